@@ -1,0 +1,50 @@
+# rainbench: every target builds its own virtual environment on first use.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+# make dataset variables (see README.md)
+OUT ?= data
+SEED ?= 0
+FRAMES ?= 200
+WIDTH ?= 800
+HEIGHT ?= 600
+RATES ?= 0:100:10
+RAIN_MODEL ?= jeon2022
+STORE ?=
+
+.PHONY: venv dataset scene test test-slow bench clean
+
+venv: $(STAMP)
+
+# torch/torchvision are installed first with the exact versions these machines hold on disk.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet torch==2.14.1 torchvision==0.29.1
+	$(BIN)/pip install --quiet -e '.[test,bench]'
+	touch $(STAMP)
+
+dataset: $(STAMP)
+	$(BIN)/rainbench generate --out $(OUT) --seed $(SEED) --frames $(FRAMES) \
+		--width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' --rain-model $(RAIN_MODEL) \
+		$(if $(STORE),--store $(STORE),)
+
+scene: $(STAMP)
+	$(BIN)/rainbench scene --seed $(SEED) --out $(OUT)/scene_$(SEED)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
+
+bench: $(STAMP)
+	mkdir -p results/bench
+	$(BIN)/python bench/render.py --json results/bench/render.json
+	if [ -f bench/rain.py ]; then $(BIN)/python bench/rain.py --json results/bench/rain.json; fi
+	if [ -f bench/eval_metrics.py ]; then $(BIN)/python bench/eval_metrics.py --json results/bench/eval_metrics.json; fi
+
+clean:
+	rm -rf $(VENV) build *.egg-info

@@ -1,0 +1,75 @@
+"""Choosing MuJoCo's offscreen OpenGL backend before ``mujoco`` is imported.
+
+MuJoCo reads ``MUJOCO_GL`` once, when it is first imported. rainbench therefore decides the
+backend in ``rainbench/__init__.py``, before any of its modules imports mujoco:
+
+- a ``MUJOCO_GL`` the user set is respected as it is (never overridden);
+- otherwise ``egl`` if the EGL library is found, else ``osmesa`` if OSMesa is found;
+- if neither is found, ``MUJOCO_GL`` stays unset and the first renderer raises
+  :class:`GLBackendError`, naming the system packages to install.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import sys
+from collections.abc import Callable, MutableMapping
+from types import SimpleNamespace
+
+# backend -> (library name for ctypes.util.find_library, Debian/Ubuntu package that provides it)
+BACKENDS: dict[str, tuple[str, str]] = {
+    "egl": ("EGL", "libegl1"),
+    "osmesa": ("OSMesa", "libosmesa6"),
+}
+AUTO_ORDER: tuple[str, ...] = ("egl", "osmesa")
+# Set by configure(): whether mujoco was already imported when rainbench chose the backend
+# (then MuJoCo did not see the choice, and renderer errors say so).
+state = SimpleNamespace(mujoco_imported_first=False)
+
+
+class GLBackendError(RuntimeError):
+    """No usable OpenGL backend for offscreen rendering."""
+
+
+def missing_backend_message(tried: tuple[str, ...]) -> str:
+    wanted = ", ".join(f"{name} (install {BACKENDS[name][1]})" for name in tried)
+    return (
+        f"no OpenGL backend for offscreen rendering: tried {wanted}; install one of these "
+        "packages, or set MUJOCO_GL to a backend that works on this machine"
+    )
+
+
+def find_backend(
+    requested: str | None = None,
+    find_library: Callable[[str], str | None] = ctypes.util.find_library,
+) -> str:
+    """The backend to use: ``requested`` if its library exists, else the first of egl, osmesa.
+
+    Raises :class:`GLBackendError` naming the missing package(s) when none is found.
+    """
+    if requested is not None and requested not in BACKENDS:
+        raise GLBackendError(
+            f"GL backend: expected one of {', '.join(BACKENDS)}, got {requested!r}"
+        )
+    tried = (requested,) if requested else AUTO_ORDER
+    for name in tried:
+        if find_library(BACKENDS[name][0]):
+            return name
+    raise GLBackendError(missing_backend_message(tried))
+
+
+def configure(
+    environ: MutableMapping[str, str],
+    find_library: Callable[[str], str | None] = ctypes.util.find_library,
+) -> str | None:
+    """Set ``environ['MUJOCO_GL']`` when unset; returns the backend in force (None if none found)."""
+    current = environ.get("MUJOCO_GL")
+    if current:
+        return current
+    try:
+        backend = find_backend(None, find_library)
+    except GLBackendError:
+        return None
+    environ["MUJOCO_GL"] = backend
+    state.mujoco_imported_first = "mujoco" in sys.modules
+    return backend

@@ -1,0 +1,190 @@
+"""Labels from segmentation renders: pure functions on arrays.
+
+Boxes are float32 ``x1, y1, x2, y2`` in pixel-edge coordinates: a box covering columns 10..19
+has ``x1 = 10, x2 = 20`` (``x2 = last column + 1``). Instance maps are (H, W) int32 with the
+actor instance id per pixel and -1 where no actor is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LabelFilter:
+    """Which visible actors become labels. Defaults are documented in docs/format.md.
+
+    - ``min_box_height``: visible box height in pixels (KITTI's "easy" starts at 40 px at
+      1242x375; 8 px keeps distant actors a detector at 640 px can still see);
+    - ``min_visible_fraction``: visible pixels / unoccluded in-image pixels;
+    - ``min_visible_pixels``: absolute visible pixel count.
+    """
+
+    min_box_height: float = 8.0
+    min_visible_fraction: float = 0.10
+    min_visible_pixels: int = 20
+
+    def __post_init__(self) -> None:
+        if self.min_box_height < 0:
+            raise ValueError(f"min_box_height: expected >= 0 px, got {self.min_box_height}")
+        if not 0.0 <= self.min_visible_fraction <= 1.0:
+            raise ValueError(
+                f"min_visible_fraction: expected 0..1, got {self.min_visible_fraction}"
+            )
+        if self.min_visible_pixels < 1:
+            raise ValueError(f"min_visible_pixels: expected >= 1, got {self.min_visible_pixels}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class FrameLabels:
+    """Labels of one frame; M labelled instances, sorted by instance id.
+
+    bbox, bbox_amodal: (M, 4) float32 xyxy pixel-edge; class_id, instance_id: (M,) int32;
+    visible_fraction, truncation: (M,) float32 in [0, 1].
+    """
+
+    bbox: np.ndarray
+    bbox_amodal: np.ndarray
+    class_id: np.ndarray
+    instance_id: np.ndarray
+    visible_fraction: np.ndarray
+    truncation: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.instance_id.shape[0])
+
+
+def _check_instance_map(instance_map: np.ndarray, name: str) -> None:
+    if instance_map.ndim != 2 or not np.issubdtype(instance_map.dtype, np.integer):
+        raise ValueError(
+            f"{name}: expected (H, W) integer instance ids, got {instance_map.shape} "
+            f"{instance_map.dtype}"
+        )
+
+
+def tight_boxes(instance_map: np.ndarray, num_instances: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel counts and tight boxes of every instance id in ``[0, num_instances)``.
+
+    instance_map: (H, W) int, -1 = none. Returns counts (K,) int64 and boxes (K, 4) float32
+    xyxy pixel-edge (NaN rows for instances without pixels). Ids >= K are ignored.
+    """
+    _check_instance_map(instance_map, "instance_map")
+    counts = np.zeros(num_instances, dtype=np.int64)
+    boxes = np.full((num_instances, 4), np.nan, dtype=np.float32)
+    ys, xs = np.nonzero((instance_map >= 0) & (instance_map < num_instances))
+    if ys.size == 0:
+        return counts, boxes
+    ids = instance_map[ys, xs]
+    order = np.argsort(ids, kind="stable")
+    ids, ys, xs = ids[order], ys[order], xs[order]
+    present, starts, per_id = np.unique(ids, return_index=True, return_counts=True)
+    counts[present] = per_id
+    boxes[present, 0] = np.minimum.reduceat(xs, starts)
+    boxes[present, 1] = np.minimum.reduceat(ys, starts)
+    boxes[present, 2] = np.maximum.reduceat(xs, starts) + 1
+    boxes[present, 3] = np.maximum.reduceat(ys, starts) + 1
+    return counts, boxes
+
+
+def alone_statistics(
+    alone_map: np.ndarray, margins: tuple[int, int], image_size: tuple[int, int],
+    num_instances: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unoccluded statistics from an actor-alone render on a padded canvas.
+
+    alone_map: (Hp, Wp) int instance ids of actors rendered without anything else, on a canvas
+    extending the image by ``margins = (mx, my)`` pixels on each side (same focal length), so the
+    image is ``alone_map[my:my+H, mx:mx+W]`` with ``image_size = (W, H)``.
+    Returns (in_image_counts (K,) int64, total_counts (K,) int64, amodal_boxes (K, 4) float32
+    xyxy in image pixels, clipped to the image; NaN when the actor has no pixel in the image).
+    """
+    _check_instance_map(alone_map, "alone_map")
+    margin_x, margin_y = margins
+    width, height = image_size
+    expected = (height + 2 * margin_y, width + 2 * margin_x)
+    if alone_map.shape != expected:
+        raise ValueError(f"alone_map: expected shape {expected}, got {alone_map.shape}")
+    total = np.bincount(alone_map[alone_map >= 0].ravel(), minlength=num_instances)[:num_instances]
+    inside = alone_map[margin_y : margin_y + height, margin_x : margin_x + width]
+    in_image, amodal = tight_boxes(inside, num_instances)
+    return in_image, total.astype(np.int64), amodal
+
+
+def make_labels(
+    visible_counts: np.ndarray,
+    visible_boxes: np.ndarray,
+    alone_in_image: np.ndarray,
+    alone_total: np.ndarray,
+    amodal_boxes: np.ndarray,
+    class_of_instance: np.ndarray,
+    label_filter: LabelFilter,
+) -> FrameLabels:
+    """Combine visible and unoccluded statistics into filtered labels.
+
+    All inputs are indexed by instance id (K,): counts int, boxes (K, 4) xyxy, classes int.
+    visible_fraction = visible pixels / unoccluded in-image pixels (occlusion only, clipped to 1);
+    truncation = unoccluded pixels outside the image / all unoccluded pixels on the padded canvas
+    (projections reaching beyond the canvas margin are counted up to the margin).
+    """
+    num = class_of_instance.shape[0]
+    for name, array in (("visible_counts", visible_counts), ("alone_in_image", alone_in_image),
+                        ("alone_total", alone_total)):
+        if array.shape != (num,):
+            raise ValueError(f"{name}: expected shape ({num},), got {array.shape}")
+    for name, array in (("visible_boxes", visible_boxes), ("amodal_boxes", amodal_boxes)):
+        if array.shape != (num, 4):
+            raise ValueError(f"{name}: expected shape ({num}, 4), got {array.shape}")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        visible_fraction = np.where(
+            alone_in_image > 0, np.minimum(1.0, visible_counts / np.maximum(alone_in_image, 1)), 0.0
+        )
+        truncation = np.where(
+            alone_total > 0, 1.0 - alone_in_image / np.maximum(alone_total, 1), 0.0
+        )
+    height = visible_boxes[:, 3] - visible_boxes[:, 1]
+    keep = (
+        (visible_counts >= label_filter.min_visible_pixels)
+        & (np.nan_to_num(height, nan=0.0) >= label_filter.min_box_height)
+        & (visible_fraction >= label_filter.min_visible_fraction)
+    )
+    ids = np.flatnonzero(keep)
+    # An amodal box always contains the visible box (rasterisation of the padded view can
+    # differ from the main view by an edge pixel).
+    amodal = amodal_boxes[ids].copy()
+    visible = visible_boxes[ids]
+    amodal[:, :2] = np.fmin(amodal[:, :2], visible[:, :2])
+    amodal[:, 2:] = np.fmax(amodal[:, 2:], visible[:, 2:])
+    return FrameLabels(
+        bbox=visible.astype(np.float32),
+        bbox_amodal=amodal.astype(np.float32),
+        class_id=class_of_instance[ids].astype(np.int32),
+        instance_id=ids.astype(np.int32),
+        visible_fraction=visible_fraction[ids].astype(np.float32),
+        truncation=np.clip(truncation[ids], 0.0, 1.0).astype(np.float32),
+    )
+
+
+def group_disjoint(boxes: dict[int, tuple[float, float, float, float]]) -> list[list[int]]:
+    """Greedy grouping of instance ids whose boxes (xyxy) do not overlap, in id order.
+
+    Actors in one group can be rendered together "alone": none can hide another.
+    """
+    groups: list[list[int]] = []
+    group_boxes: list[list[tuple[float, float, float, float]]] = []
+    for instance in sorted(boxes):
+        box = boxes[instance]
+        for members, member_boxes in zip(groups, group_boxes):
+            if all(box[2] <= b[0] or b[2] <= box[0] or box[3] <= b[1] or b[3] <= box[1]
+                   for b in member_boxes):
+                members.append(instance)
+                member_boxes.append(box)
+                break
+        else:
+            groups.append([instance])
+            group_boxes.append([box])
+    return groups

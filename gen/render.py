@@ -1,0 +1,268 @@
+"""Offscreen rendering of the ego camera: RGB, depth, instance segmentation, actor-alone passes.
+
+:class:`FrameRenderer` owns one GL context and one ``MjrContext`` (use it with ``with``). It
+follows ``mujoco.Renderer`` but reads RGB and depth from the same rasterisation, decodes
+segmentation straight to actor instance ids, and renders chosen actors alone on a padded canvas
+(same focal length, larger field of view) to measure occlusion and truncation.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import mujoco
+import numpy as np
+
+from rainbench.mjcf.scene import EGO_CAMERA, TRUNCATION_MARGIN
+
+from .gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
+from .gl import state as _gl_state
+
+HIDDEN_GROUP = 5
+
+
+def padded_size(width: int, height: int) -> tuple[int, int, int, int]:
+    """(padded width, padded height, margin x, margin y) of the actor-alone canvas."""
+    margin_x = math.ceil(width * TRUNCATION_MARGIN)
+    margin_y = math.ceil(height * TRUNCATION_MARGIN)
+    return width + 2 * margin_x, height + 2 * margin_y, margin_x, margin_y
+
+
+def camera_intrinsics(model: mujoco.MjModel, camera: str, width: int, height: int) -> np.ndarray:
+    """(3, 3) float64 pinhole K of ``camera`` at W x H (square pixels, centred principal point)."""
+    fovy = math.radians(float(model.camera(camera).fovy[0]))
+    focal = (height / 2) / math.tan(fovy / 2)
+    return np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+
+
+def camera_pose(model: mujoco.MjModel, data: mujoco.MjData, camera: str) -> np.ndarray:
+    """(4, 4) float64 T_world_cam in OpenCV axes (x right, y down, z forward)."""
+    cam = data.camera(camera)
+    rotation = cam.xmat.reshape(3, 3) @ np.diag([1.0, -1.0, -1.0])
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = cam.xpos
+    return pose
+
+
+class FrameRenderer:
+    """Renders the ``ego`` camera of ``model`` at ``width`` x ``height``.
+
+    ``geom_instance`` is the (ngeom,) int32 table geom id -> actor instance id (-1: not an actor).
+    """
+
+    def __init__(self, model: mujoco.MjModel, width: int, height: int,
+                 geom_instance: np.ndarray, camera: str = EGO_CAMERA) -> None:
+        self._gl_context = None
+        self._mjr_context = None
+        padded_w, padded_h, self._margin_x, self._margin_y = padded_size(width, height)
+        if padded_w > model.vis.global_.offwidth or padded_h > model.vis.global_.offheight:
+            raise ValueError(
+                f"framebuffer: expected at least {padded_w}x{padded_h}, got "
+                f"{model.vis.global_.offwidth}x{model.vis.global_.offheight}; set "
+                "<visual><global offwidth=... offheight=...> in the MJCF"
+            )
+        if geom_instance.shape != (model.ngeom,):
+            raise ValueError(
+                f"geom_instance: expected shape ({model.ngeom},), got {geom_instance.shape}"
+            )
+        self.model = model
+        self.width, self.height = width, height
+        self.padded_width, self.padded_height = padded_w, padded_h
+        self.camera_id = int(model.camera(camera).id)
+        self.K = camera_intrinsics(model, camera, width, height)
+        self._geom_instance = geom_instance.astype(np.int32)
+        self._actor_geoms = np.flatnonzero(geom_instance >= 0)
+        self._num_instances = int(geom_instance.max()) + 1 if geom_instance.size else 0
+        self._scene = mujoco.MjvScene(model, maxgeom=max(1000, 2 * model.ngeom))
+        self._option = mujoco.MjvOption()
+        self._alone_option = mujoco.MjvOption()
+        self._alone_option.geomgroup[:] = 0
+        self._alone_option.geomgroup[0] = 1
+        self._camera = mujoco.MjvCamera()
+        self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._camera.fixedcamid = self.camera_id
+        self._rect = mujoco.MjrRect(0, 0, width, height)
+        self._padded_rect = mujoco.MjrRect(0, 0, padded_w, padded_h)
+        self._rgb = np.empty((height, width, 3), np.uint8)
+        self._depth = np.empty((height, width), np.float32)
+        self._seg = np.empty((height, width, 3), np.uint8)
+        self._seg_padded = np.empty((padded_h, padded_w, 3), np.uint8)
+        extent = model.stat.extent
+        self._near = np.float32(model.vis.map.znear * extent)
+        self._far = np.float32(model.vis.map.zfar * extent)
+        self.backend = os.environ.get("MUJOCO_GL", "")
+        try:
+            self._gl_context = mujoco.GLContext(padded_w, padded_h)
+            self._gl_context.make_current()
+            self._mjr_context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+        except Exception as error:  # GL failures surface as several exception types
+            self.close()
+            if _gl_state.mujoco_imported_first and self.backend:
+                raise GLBackendError(
+                    f"mujoco was imported before rainbench set MUJOCO_GL={self.backend}: import "
+                    "rainbench first, or set MUJOCO_GL in the environment"
+                ) from error
+            tried = (self.backend,) if self.backend in BACKENDS else AUTO_ORDER
+            raise GLBackendError(
+                f"{missing_backend_message(tried)} (MUJOCO_GL={self.backend or 'unset'}: {error})"
+            ) from error
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._mjr_context)
+        self._mjr_context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+
+    # -- context management ------------------------------------------------------------------
+    def __enter__(self) -> "FrameRenderer":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._gl_context is not None:
+            self._gl_context.make_current()
+        if self._mjr_context is not None:
+            self._mjr_context.free()
+            self._mjr_context = None
+        if self._gl_context is not None:
+            self._gl_context.free()
+            self._gl_context = None
+
+    def _require_open(self) -> None:
+        if self._mjr_context is None:
+            raise RuntimeError("FrameRenderer: used after close()")
+        self._gl_context.make_current()
+
+    # -- passes ------------------------------------------------------------------------------
+    def update(self, data: mujoco.MjData) -> None:
+        """Build the scene of ``data`` (call once per frame, before the passes)."""
+        self._require_open()
+        mujoco.mjv_updateScene(self.model, data, self._option, None, self._camera,
+                               mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+
+    def render_rgb_depth(self) -> tuple[np.ndarray, np.ndarray]:
+        """RGB (H, W, 3) uint8 and depth (H, W) float32 metres along the optical axis (+inf: sky).
+
+        Both are read from one rasterisation.
+        """
+        self._require_open()
+        self._set_segmentation(False)
+        mujoco.mjr_render(self._rect, self._scene, self._mjr_context)
+        mujoco.mjr_readPixels(self._rgb, self._depth, self._rect, self._mjr_context)
+        rgb = np.flipud(self._rgb).copy()
+        return rgb, self._metric_depth(np.flipud(self._depth))
+
+    def render_instances(self) -> tuple[np.ndarray, np.ndarray]:
+        """Visible actor instance ids (H, W) int32 (-1: no actor) and a (H, W) bool mask of
+        pixels showing any geometry (False: sky), from one segmentation pass."""
+        self._require_open()
+        self._set_segmentation(True)
+        mujoco.mjr_render(self._rect, self._scene, self._mjr_context)
+        mujoco.mjr_readPixels(self._seg, None, self._rect, self._mjr_context)
+        self._set_segmentation(False)
+        seg = np.flipud(self._seg)
+        return self._decode(seg), seg.any(axis=-1)
+
+    def render_alone(self, data: mujoco.MjData, instance_ids) -> np.ndarray:
+        """Render only the actors ``instance_ids`` on the padded canvas (Hp, Wp) int32.
+
+        The canvas extends the image by :func:`padded_size` margins on every side with the same
+        focal length, so ``canvas[my:my+H, mx:mx+W]`` is exactly the image. Callers pass actors
+        whose projections do not overlap, so each pixel shows its actor unoccluded.
+        """
+        self._require_open()
+        groups = self.model.geom_group
+        saved = groups.copy()
+        try:
+            groups[:] = HIDDEN_GROUP
+            selected = np.isin(self._geom_instance, np.asarray(instance_ids, dtype=np.int32))
+            groups[selected] = 0
+            mujoco.mjv_updateScene(self.model, data, self._alone_option, None, self._camera,
+                                   mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+        finally:
+            groups[:] = saved
+        scale = self.padded_height / self.height
+        for gl_camera in self._scene.camera:  # mjr_render averages both (stereo) cameras
+            gl_camera.frustum_top *= scale
+            gl_camera.frustum_bottom *= scale
+            gl_camera.frustum_width *= self.padded_width / self.width
+        self._set_segmentation(True)
+        mujoco.mjr_render(self._padded_rect, self._scene, self._mjr_context)
+        mujoco.mjr_readPixels(self._seg_padded, None, self._padded_rect, self._mjr_context)
+        self._set_segmentation(False)
+        return self._decode(np.flipud(self._seg_padded))
+
+    # -- helpers -----------------------------------------------------------------------------
+    def _set_segmentation(self, enabled: bool) -> None:
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = enabled
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = enabled
+
+    def _decode(self, seg: np.ndarray) -> np.ndarray:
+        """Segmentation colours (H, W, 3) uint8 -> instance ids (H, W) int32 via the scene."""
+        geoms = self._scene.geoms[: self._scene.ngeom]
+        lut = np.full(max(256, self._scene.ngeom + 2), -1, dtype=np.int32)
+        geom_type = mujoco.mjtObj.mjOBJ_GEOM
+        for geom in geoms:
+            if geom.objtype == geom_type and geom.segid >= 0:
+                lut[geom.segid + 1] = self._geom_instance[geom.objid]
+        if lut.size == 256:  # fewer than 255 geoms: the red channel holds the whole id
+            return lut[seg[..., 0]]
+        code = seg[..., 0].astype(np.int32)
+        code |= seg[..., 1].astype(np.int32) << 8
+        if lut.size > 65536:
+            code |= seg[..., 2].astype(np.int32) << 16
+        return lut[np.minimum(code, lut.size - 1)]
+
+    def _metric_depth(self, raw: np.ndarray) -> np.ndarray:
+        """Reversed-Z depth buffer (0 = far) -> metres; as mujoco.Renderer, +inf for no geometry."""
+        near, far = self._near, self._far
+        c_coef = np.float32(-0.5) * (-(far + near) / (far - near)) - np.float32(0.5)
+        d_coef = np.float32(-0.5) * (-(np.float32(2) * far * near) / (far - near))
+        raw64 = raw.astype(np.float64)
+        with np.errstate(divide="ignore"):
+            metres = (d_coef / (raw64 + c_coef)).astype(np.float32)
+        metres[raw <= 0.0] = np.inf
+        return metres
+
+    def actor_boxes_padded(self, data: mujoco.MjData) -> dict[int, tuple[float, float, float, float]]:
+        """Conservative projected boxes of every actor on the padded canvas, from geom AABBs.
+
+        Returns instance id -> (x1, y1, x2, y2) padded-canvas pixels; an actor with any corner
+        behind the near plane gets the whole canvas. Actors entirely behind the camera are absent.
+        """
+        geoms = self._actor_geoms
+        centre_local = self.model.geom_aabb[geoms, :3]
+        half = self.model.geom_aabb[geoms, 3:]
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+        corners_local = centre_local[:, None, :] + signs[None] * half[:, None, :]  # (G, 8, 3)
+        rotation = data.geom_xmat[geoms].reshape(-1, 3, 3)
+        corners = np.einsum("gij,gkj->gki", rotation, corners_local) + data.geom_xpos[geoms][:, None]
+        pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
+        cam = (corners - pose[:3, 3]) @ pose[:3, :3]  # (G, 8, 3) OpenCV camera coordinates
+        focal = self.K[0, 0]
+        cx = self.padded_width / 2
+        cy = self.padded_height / 2
+        near = float(self._near)
+        instances = self._geom_instance[geoms]
+        boxes: dict[int, tuple[float, float, float, float]] = {}
+        full = (0.0, 0.0, float(self.padded_width), float(self.padded_height))
+        for instance in np.unique(instances):
+            c = cam[instances == instance].reshape(-1, 3)
+            z = c[:, 2]
+            if np.all(z <= near):
+                continue
+            if np.any(z <= near):
+                boxes[int(instance)] = full
+                continue
+            u = focal * c[:, 0] / z + cx
+            v = focal * c[:, 1] / z + cy
+            box = (max(0.0, float(u.min()) - 1), max(0.0, float(v.min()) - 1),
+                   min(float(self.padded_width), float(u.max()) + 1),
+                   min(float(self.padded_height), float(v.max()) + 1))
+            if box[0] < box[2] and box[1] < box[3]:
+                boxes[int(instance)] = box
+        return boxes
+
+    @property
+    def margins(self) -> tuple[int, int]:
+        return self._margin_x, self._margin_y

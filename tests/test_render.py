@@ -1,0 +1,86 @@
+"""Rendering and labels on tiny inline scenes whose answers are known from projection math."""
+
+import mujoco
+import numpy as np
+import pytest
+
+from rainbench.gen import gl
+from rainbench.gen import labels as lb
+from rainbench.gen.generate import frame_labels
+from rainbench.gen.render import FrameRenderer, camera_pose
+
+W, H = 320, 240
+
+
+def _render_labels(model, table):
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    classes = np.full(int(table.max()) + 1, 2, np.int32)
+    with FrameRenderer(model, W, H, table) as renderer:
+        renderer.update(data)
+        rgb, depth = renderer.render_rgb_depth()
+        visible, geometry = renderer.render_instances()
+        labels = frame_labels(renderer, data, visible, classes, lb.LabelFilter())
+        return renderer.K, camera_pose(model, data, "ego"), rgb, depth, visible, geometry, labels
+
+
+def test_box_matches_projected_corners(make_tiny_scene):
+    centre, half = np.array([10.0, 0.7, 1.2]), np.array([0.5, 0.8, 0.6])
+    model, table = make_tiny_scene([(centre, half)], W, H)
+    K, pose, rgb, depth, visible, _, labels = _render_labels(model, table)
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    corners = centre + signs * half
+    cam = (corners - pose[:3, 3]) @ pose[:3, :3]  # world -> OpenCV camera
+    uv = (K @ cam.T).T
+    uv = uv[:, :2] / uv[:, 2:]
+    expected = [uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()]
+    assert len(labels) == 1
+    np.testing.assert_allclose(labels.bbox[0], expected, atol=1.0)
+    # Depth of the box's front face (x = 9.5) is its distance along the optical axis.
+    u, v = int(uv[:, 0].mean()), int(uv[:, 1].mean())
+    assert depth[v, u] == pytest.approx(centre[0] - half[0] - 0.0, abs=0.02)
+    assert labels.visible_fraction[0] == pytest.approx(1.0)
+    assert labels.truncation[0] == pytest.approx(0.0)
+
+
+def test_half_occluded_plate_has_half_visible_fraction(make_tiny_scene):
+    near = ((8.0, 0.5, 1.5), (0.01, 0.5, 0.5))  # covers y in [0, 1] of the far plate
+    far = ((16.0, 0.0, 1.5), (0.01, 1.0, 1.0))
+    model, table = make_tiny_scene([near, far], W, H)
+    *_, labels = _render_labels(model, table)
+    by_id = dict(zip(labels.instance_id.tolist(), labels.visible_fraction.tolist()))
+    assert by_id[0] == pytest.approx(1.0, abs=0.02)
+    assert by_id[1] == pytest.approx(0.5, abs=0.05)
+    amodal = labels.bbox_amodal[labels.instance_id.tolist().index(1)]
+    visible = labels.bbox[labels.instance_id.tolist().index(1)]
+    assert amodal[2] - amodal[0] == pytest.approx(2 * (visible[2] - visible[0]), abs=2)
+
+
+def test_plate_half_out_of_frame_is_half_truncated(make_tiny_scene):
+    # Horizontal FOV 90 degrees: the left image edge is the ray y = x.
+    model, table = make_tiny_scene([((8.0, 8.0, 1.5), (0.01, 1.0, 0.5))], W, H)
+    *_, labels = _render_labels(model, table)
+    assert len(labels) == 1
+    assert labels.truncation[0] == pytest.approx(0.5, abs=0.05)
+    assert labels.bbox[0][0] == 0.0
+    assert labels.visible_fraction[0] == pytest.approx(1.0, abs=0.02)
+
+
+def test_sky_has_infinite_depth(make_tiny_scene):
+    model, table = make_tiny_scene([((10.0, 0.0, 1.0), (0.5, 0.5, 0.5))], W, H)
+    _, _, _, depth, _, geometry, _ = _render_labels(model, table)
+    assert not geometry[0].any() and geometry[-1].all()  # top row sky, bottom row ground
+    assert np.isfinite(depth[-1]).all()
+
+
+def test_missing_gl_backend_names_the_packages():
+    with pytest.raises(gl.GLBackendError, match=r"install libegl1.*install libosmesa6"):
+        gl.find_backend(None, find_library=lambda name: None)
+    with pytest.raises(gl.GLBackendError, match=r"tried osmesa \(install libosmesa6\)"):
+        gl.find_backend("osmesa", find_library=lambda name: None)
+    env = {}
+    assert gl.configure(env, find_library=lambda name: None) is None and env == {}
+    env = {"MUJOCO_GL": "osmesa"}
+    assert gl.configure(env, find_library=lambda name: "lib.so") == "osmesa"  # user's choice kept
+    env = {}
+    assert gl.configure(env, find_library=lambda name: "lib" + name) == "egl"
