@@ -115,9 +115,11 @@ def frame_labels(renderer: FrameRenderer, data: mujoco.MjData, visible: np.ndarr
     alone_total = np.zeros(num, np.int64)
     amodal = np.full((num, 4), np.nan, np.float32)
     for group in lb.group_disjoint(present):
-        alone = renderer.render_alone(data, group)
+        window = lb.union_window([present[i] for i in group],
+                                 (renderer.padded_width, renderer.padded_height))
+        alone = renderer.render_alone(data, group, window)
         inside, total, boxes = lb.alone_statistics(
-            alone, renderer.margins, (renderer.width, renderer.height), num)
+            alone, window[:2], renderer.margins, (renderer.width, renderer.height), num)
         alone_in[group], alone_total[group], amodal[group] = inside[group], total[group], boxes[group]
     return lb.make_labels(visible_counts, visible_boxes, alone_in, alone_total, amodal,
                           class_of_instance, label_filter)

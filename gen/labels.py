@@ -92,26 +92,36 @@ def tight_boxes(instance_map: np.ndarray, num_instances: int) -> tuple[np.ndarra
 
 
 def alone_statistics(
-    alone_map: np.ndarray, margins: tuple[int, int], image_size: tuple[int, int],
-    num_instances: int,
+    alone_map: np.ndarray, origin: tuple[int, int], margins: tuple[int, int],
+    image_size: tuple[int, int], num_instances: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unoccluded statistics from an actor-alone render on a padded canvas.
 
-    alone_map: (Hp, Wp) int instance ids of actors rendered without anything else, on a canvas
-    extending the image by ``margins = (mx, my)`` pixels on each side (same focal length), so the
-    image is ``alone_map[my:my+H, mx:mx+W]`` with ``image_size = (W, H)``.
+    The canvas extends the image by ``margins = (mx, my)`` pixels on each side (same focal
+    length): image pixel (u, v) is canvas pixel (u + mx, v + my); ``image_size = (W, H)``.
+    alone_map: (h, w) int instance ids (-1 = none) of a window of that canvas whose top-left
+    pixel is canvas pixel ``origin = (x0, y0)``; it must hold every pixel of its actors.
     Returns (in_image_counts (K,) int64, total_counts (K,) int64, amodal_boxes (K, 4) float32
     xyxy in image pixels, clipped to the image; NaN when the actor has no pixel in the image).
     """
     _check_instance_map(alone_map, "alone_map")
     margin_x, margin_y = margins
     width, height = image_size
-    expected = (height + 2 * margin_y, width + 2 * margin_x)
-    if alone_map.shape != expected:
-        raise ValueError(f"alone_map: expected shape {expected}, got {alone_map.shape}")
+    x0, y0 = origin
+    h, w = alone_map.shape
+    if x0 < 0 or y0 < 0 or x0 + w > width + 2 * margin_x or y0 + h > height + 2 * margin_y:
+        raise ValueError(
+            f"alone_map: expected a window inside the {width + 2 * margin_x}x"
+            f"{height + 2 * margin_y} canvas, got {w}x{h} at {origin}")
     total = np.bincount(alone_map[alone_map >= 0].ravel(), minlength=num_instances)[:num_instances]
-    inside = alone_map[margin_y : margin_y + height, margin_x : margin_x + width]
-    in_image, amodal = tight_boxes(inside, num_instances)
+    # The image part of the window, in window coordinates.
+    u0, v0 = max(0, margin_x - x0), max(0, margin_y - y0)
+    u1, v1 = min(w, margin_x + width - x0), min(h, margin_y + height - y0)
+    in_image = np.zeros(num_instances, np.int64)
+    amodal = np.full((num_instances, 4), np.nan, np.float32)
+    if u0 < u1 and v0 < v1:
+        in_image, amodal = tight_boxes(alone_map[v0:v1, u0:u1], num_instances)
+        amodal += np.array([x0 + u0 - margin_x, y0 + v0 - margin_y] * 2, np.float32)
     return in_image, total.astype(np.int64), amodal
 
 
@@ -188,3 +198,14 @@ def group_disjoint(boxes: dict[int, tuple[float, float, float, float]]) -> list[
             groups.append([instance])
             group_boxes.append([box])
     return groups
+
+
+def union_window(boxes, canvas_size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Integer window (x0, y0, x1, y1) covering every xyxy box, clipped to ``canvas_size``."""
+    array = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    width, height = canvas_size
+    x0 = int(np.clip(np.floor(array[:, 0].min()), 0, width - 1))
+    y0 = int(np.clip(np.floor(array[:, 1].min()), 0, height - 1))
+    x1 = int(np.clip(np.ceil(array[:, 2].max()), x0 + 1, width))
+    y1 = int(np.clip(np.ceil(array[:, 3].max()), y0 + 1, height))
+    return x0, y0, x1, y1

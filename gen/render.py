@@ -88,7 +88,6 @@ class FrameRenderer:
         self._rgb = np.empty((height, width, 3), np.uint8)
         self._depth = np.empty((height, width), np.float32)
         self._seg = np.empty((height, width, 3), np.uint8)
-        self._seg_padded = np.empty((padded_h, padded_w, 3), np.uint8)
         extent = model.stat.extent
         self._near = np.float32(model.vis.map.znear * extent)
         self._far = np.float32(model.vis.map.zfar * extent)
@@ -163,14 +162,21 @@ class FrameRenderer:
         seg = np.flipud(self._seg)
         return self._decode(seg), seg.any(axis=-1)
 
-    def render_alone(self, data: mujoco.MjData, instance_ids) -> np.ndarray:
-        """Render only the actors ``instance_ids`` on the padded canvas (Hp, Wp) int32.
+    def render_alone(self, data: mujoco.MjData, instance_ids,
+                     window: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        """Render only the actors ``instance_ids`` on the padded canvas; (h, w) int32 ids.
 
         The canvas extends the image by :func:`padded_size` margins on every side with the same
-        focal length, so ``canvas[my:my+H, mx:mx+W]`` is exactly the image. Callers pass actors
-        whose projections do not overlap, so each pixel shows its actor unoccluded.
+        focal length, so canvas ``[my:my+H, mx:mx+W]`` is exactly the image. Only ``window`` =
+        (x0, y0, x1, y1) canvas pixels (default: the whole canvas) is read back and returned.
+        Callers pass actors whose projections do not overlap, so each pixel shows its actor
+        unoccluded. This replaces the scene built by :meth:`update`.
         """
         self._require_open()
+        x0, y0, x1, y1 = window or (0, 0, self.padded_width, self.padded_height)
+        if not (0 <= x0 < x1 <= self.padded_width and 0 <= y0 < y1 <= self.padded_height):
+            raise ValueError(f"window: expected inside (0, 0, {self.padded_width}, "
+                             f"{self.padded_height}), got {(x0, y0, x1, y1)}")
         groups = self.model.geom_group
         saved = groups.copy()
         try:
@@ -188,9 +194,12 @@ class FrameRenderer:
             gl_camera.frustum_width *= self.padded_width / self.width
         self._set_segmentation(True)
         mujoco.mjr_render(self._padded_rect, self._scene, self._mjr_context)
-        mujoco.mjr_readPixels(self._seg_padded, None, self._padded_rect, self._mjr_context)
+        # GL rows count from the bottom.
+        read_rect = mujoco.MjrRect(x0, self.padded_height - y1, x1 - x0, y1 - y0)
+        seg = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
+        mujoco.mjr_readPixels(seg, None, read_rect, self._mjr_context)
         self._set_segmentation(False)
-        return self._decode(np.flipud(self._seg_padded))
+        return self._decode(np.flipud(seg))
 
     # -- helpers -----------------------------------------------------------------------------
     def _set_segmentation(self, enabled: bool) -> None:

@@ -74,6 +74,11 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     spec.visual.global_.offheight = int(math.ceil(height * (1 + pad)))
     spec.visual.quality.offsamples = 0  # exact ids in the segmentation pass
     spec.visual.quality.shadowsize = 2048
+    # Tessellation of spheres, capsules and cylinders: 16 x 8 instead of MuJoCo's 28 x 16 halves
+    # the software-rendered frame time (measured 183 -> 94 ms at 800x600) with no visible facets
+    # at road distances.
+    spec.visual.quality.numslices = 16
+    spec.visual.quality.numstacks = 8
     spec.stat.extent = 100.0
     spec.stat.center = [0.0, 0.0, 0.0]
     spec.visual.map.znear = 0.001  # 0.1 m

@@ -27,14 +27,20 @@ def test_alone_statistics_counts_outside_pixels_as_truncated():
     alone = np.full((height + 6, width + 4), -1, np.int32)
     # Actor 0: 4 columns, of which the 2 leftmost are left of the image.
     alone[5:7, 0:4] = 0
-    in_image, total, amodal = lb.alone_statistics(alone, margins, (width, height), 1)
+    in_image, total, amodal = lb.alone_statistics(alone, (0, 0), margins, (width, height), 1)
     assert in_image.tolist() == [4] and total.tolist() == [8]
     assert amodal[0].tolist() == [0, 2, 2, 4]  # image coordinates, clipped to the image
+    # The same from a window of the canvas holding the actor.
+    window = lb.union_window([(0, 5, 4, 7)], (width + 4, height + 6))
+    x0, y0, x1, y1 = window
+    windowed = lb.alone_statistics(alone[y0:y1, x0:x1], (x0, y0), margins, (width, height), 1)
+    for got, expected in zip(windowed, (in_image, total, amodal)):
+        np.testing.assert_array_equal(got, expected)
 
 
-def test_alone_statistics_checks_canvas_shape():
-    with pytest.raises(ValueError, match=r"alone_map: expected shape \(12, 12\)"):
-        lb.alone_statistics(np.zeros((5, 5), np.int32), (2, 3), (8, 6), 1)
+def test_alone_statistics_checks_the_window():
+    with pytest.raises(ValueError, match=r"alone_map: expected a window inside the 12x12 canvas"):
+        lb.alone_statistics(np.zeros((5, 5), np.int32), (10, 0), (2, 3), (8, 6), 1)
 
 
 def test_make_labels_occlusion_truncation_and_filters():
