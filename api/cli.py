@@ -107,6 +107,31 @@ def cmd_scene(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_preview(args: argparse.Namespace) -> int:
+    from rainbench.gen.preview import montage, write_png
+    from rainbench.gen.shard import open_shard, read_frame_labels
+
+    path = Path(args.shard)
+    if path.is_dir():
+        shards = sorted(path.glob("scene*_f*.h5"))
+        if not shards:
+            raise CliError(f"preview: no shard (scene*_f*.h5) in {path}")
+        path = shards[0]
+    with open_shard(path) as handle:
+        frames = handle["rgb"].shape[1]
+        if not 0 <= args.frame < frames:
+            raise CliError(f"--frame: expected 0..{frames - 1} for {path.name}, got {args.frame}")
+        images = handle["rgb"][:, args.frame]
+        rates = handle["rates"][()]
+        labels = read_frame_labels(handle, args.frame)
+    boxes = (labels["bbox"], labels["class_id"]) if args.boxes else (None, None)
+    out = Path(args.out or path.with_name(f"{path.stem}_frame{args.frame:04d}_rates.png"))
+    _writable_dir(out.parent, "--out")
+    write_png(out, montage(images, rates, boxes=boxes[0], class_ids=boxes[1]))
+    print(out)
+    return 0
+
+
 def _add_scene_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=_seed, default=0,
                         help="scene seed: layout, actors, colours, speeds, sun, camera height")
@@ -142,6 +167,12 @@ def build_parser() -> argparse.ArgumentParser:
     scene.add_argument("--out", required=True, help="directory for scene.xml and its textures")
     _add_scene_args(scene)
     scene.set_defaults(run=cmd_scene)
+    preview = sub.add_parser("preview", help="PNG montage of one frame across all rain rates")
+    preview.add_argument("shard", help="a shard, or a dataset directory (its first shard)")
+    preview.add_argument("--frame", type=int, default=0)
+    preview.add_argument("--out", default=None, help="PNG path (default: beside the shard)")
+    preview.add_argument("--boxes", action="store_true", help="draw the labels")
+    preview.set_defaults(run=cmd_preview)
     return parser
 
 

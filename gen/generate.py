@@ -166,17 +166,19 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     psnr = np.full(num_rates, np.inf, np.float32)
     coverage = np.zeros((num_rates, num_boxes), np.float32)
     contrast = np.zeros((num_rates, num_boxes), np.float32)
-    if any(rate > 0 for rate in rates):
+    rainy_rates = [rate for rate in rates if rate > 0]
+    if rainy_rates:
         from rainbench import rain  # noqa: PLC0415 -- only needed when it rains
 
         rain_config = rain.RainConfig(model=config.rain_model, **config.rain_options)
         seeds = np.random.SeedSequence([config.rain_seed, config.seed, global_frame])
+        sweep = iter(rain.render_rain_sweep(frame.rgb, frame.depth, rainy_rates,
+                                            config=rain_config, K=K, seed_sequence=seeds))
     for r, rate in enumerate(rates):
         if rate == 0:
             images[r] = frame.rgb
             continue
-        rainy = rain.render_rain(frame.rgb, frame.depth, rate, config=rain_config, K=K,
-                                 seed_sequence=seeds)
+        rainy = next(sweep)
         images[r] = rainy.rgb
         drop_count[r] = rainy.drop_count
         ssim[r], psnr[r] = rain.image_quality(frame.rgb, rainy.rgb)

@@ -41,7 +41,7 @@ def missing_backend_message(tried: tuple[str, ...]) -> str:
 
 def find_backend(
     requested: str | None = None,
-    find_library: Callable[[str], str | None] = ctypes.util.find_library,
+    find_library: Callable[[str], str | None] | None = None,
 ) -> str:
     """The backend to use: ``requested`` if its library exists, else the first of egl, osmesa.
 
@@ -51,6 +51,7 @@ def find_backend(
         raise GLBackendError(
             f"GL backend: expected one of {', '.join(BACKENDS)}, got {requested!r}"
         )
+    find_library = find_library or ctypes.util.find_library
     tried = (requested,) if requested else AUTO_ORDER
     for name in tried:
         if find_library(BACKENDS[name][0]):
@@ -60,7 +61,7 @@ def find_backend(
 
 def configure(
     environ: MutableMapping[str, str],
-    find_library: Callable[[str], str | None] = ctypes.util.find_library,
+    find_library: Callable[[str], str | None] | None = None,
 ) -> str | None:
     """Set ``environ['MUJOCO_GL']`` when unset; returns the backend in force (None if none found)."""
     current = environ.get("MUJOCO_GL")

@@ -1,0 +1,47 @@
+"""Preview montages: one frame of a shard across all its rain rates (the paper's Fig. 7)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+BOX_COLOURS = ((230, 60, 60), (60, 200, 60), (60, 120, 240), (240, 200, 40))  # RGB per class
+
+
+def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
+            boxes: np.ndarray | None = None, class_ids: np.ndarray | None = None,
+            tile_width: int = 400) -> np.ndarray:
+    """Tile ``images`` (R, H, W, 3) uint8 with "<rate> mm/h" printed on each; returns RGB uint8.
+
+    Optional ``boxes`` (M, 4) xyxy pixel-edge and ``class_ids`` (M,) are drawn on every tile.
+    """
+    if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
+        raise ValueError(f"images: expected (R, H, W, 3) uint8, got {images.shape} {images.dtype}")
+    if rates.shape != (images.shape[0],):
+        raise ValueError(f"rates: expected shape ({images.shape[0]},), got {rates.shape}")
+    count, height, width = images.shape[:3]
+    columns = columns or min(4, count)
+    rows = math.ceil(count / columns)
+    scale = tile_width / width
+    tile_h = round(height * scale)
+    sheet = np.full((rows * tile_h, columns * tile_width, 3), 255, np.uint8)
+    for index, (image, rate) in enumerate(zip(images, rates)):
+        tile = cv2.resize(image, (tile_width, tile_h), interpolation=cv2.INTER_AREA)
+        if boxes is not None:
+            for box, class_id in zip(boxes, class_ids):
+                x1, y1, x2, y2 = (np.asarray(box) * scale).round().astype(int)
+                cv2.rectangle(tile, (x1, y1), (x2 - 1, y2 - 1), BOX_COLOURS[int(class_id) % 4], 1)
+        label = f"{rate:g} mm/h"
+        for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+            cv2.putText(tile, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, thickness,
+                        cv2.LINE_AA)
+        row, column = divmod(index, columns)
+        sheet[row * tile_h:(row + 1) * tile_h, column * tile_width:(column + 1) * tile_width] = tile
+    return sheet
+
+
+def write_png(path, image: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), np.ascontiguousarray(image[:, :, ::-1])):
+        raise OSError(f"{path}: could not write the PNG")

@@ -1,0 +1,179 @@
+"""Tests of rainbench.eval.report: metrics.json/csv, report.md tables, PNG plots."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from rainbench.eval import metrics as M
+from rainbench.eval import report as R
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+RATES = (0.0, 50.0, 100.0)
+
+
+def _class_metrics(class_id, ap50, f1, n_gt=10):
+    return M.ClassMetrics(
+        class_id=class_id,
+        n_gt=n_gt,
+        n_det=12,
+        ap50=ap50,
+        ap75=ap50 / 2,
+        ap50_95=ap50 / 2,
+        precision=0.8,
+        recall=0.7,
+        f1=f1,
+        best_conf=0.3,
+        precision_at_conf=0.8,
+        recall_at_conf=0.6,
+        f1_at_conf=f1,
+        conf=0.25,
+    )
+
+
+def _records(with_ci=True):
+    """Two models x three rates x four classes with values that make the tables predictable."""
+    results, cis = {}, {}
+    for model, scale in (("YOLOv4", 1.0), ("mine", 0.5)):
+        for rate in RATES:
+            fade = 1.0 - rate / 200.0  # 1.0, 0.75, 0.5
+            per_class = {}
+            for class_id in M.CLASS_IDS:
+                ap50 = scale * (0.4 + 0.1 * class_id) * fade
+                per_class[class_id] = _class_metrics(class_id, ap50, 0.8 * fade, n_gt=10 + class_id)
+            per_class[M.CLASS_IDS[1]] = (
+                _class_metrics(1, float("nan"), float("nan"), n_gt=0) if rate == 50.0 else per_class[1]
+            )
+            results[(model, rate)] = per_class
+            cis[(model, rate)] = {
+                c: M.BootstrapCI(c, "ap50", m.ap50, m.ap50 - 0.05, m.ap50 + 0.05, 0.05, 100, 100)
+                for c, m in per_class.items()
+            }
+    return M.metric_records(results, cis if with_ci else None)
+
+
+def test_metrics_json_and_csv_round_trip(tmp_path):
+    records = _records()
+    json_path, csv_path = R.write_metrics(records, tmp_path / "out")
+    assert (json_path.name, csv_path.name) == ("metrics.json", "metrics.csv")
+    text = json_path.read_text()
+    assert "NaN" not in text and "null" in text
+    assert isinstance(json.loads(text), list) and len(json.loads(text)) == len(records) == 24
+    assert csv_path.read_text().splitlines()[0] == ",".join(M.RECORD_FIELDS)
+    for path in (json_path, csv_path):
+        back = R.read_metrics(path)
+        assert len(back) == len(records)
+        for original, loaded in zip(records, back, strict=True):
+            assert list(loaded) == list(original)
+            for key, value in original.items():
+                if isinstance(value, float) and math.isnan(value):
+                    assert isinstance(loaded[key], float) and math.isnan(loaded[key]), (path.suffix, key)
+                else:
+                    assert loaded[key] == value and type(loaded[key]) is type(value), (path.suffix, key)
+
+
+def test_read_metrics_rejects_other_suffix(tmp_path):
+    with pytest.raises(ValueError, match=r"expected a .json or .csv metrics file, got suffix '.txt'"):
+        R.read_metrics(tmp_path / "metrics.txt")
+
+
+def test_report_md_has_paper_tables():
+    text = R.render_report_md(_records())
+    assert "## Table III. AP@0.5 degradation, Normal vs 100mm/h" in text
+    assert "## Table IV. F1 degradation, Normal vs 100mm/h" in text
+    assert "| Model | Condition | Car | Person | Bicycle | Motorcycle |" in text
+    # YOLOv4 car: 0.6 -> 0.3 (50 % drop); person 0.4 -> 0.2; bicycle 0.5 -> 0.25; motorcycle 0.7 -> 0.35.
+    assert "| YOLOv4 | Normal | 0.600 | 0.400 | 0.500 | 0.700 |" in text
+    assert "|  | 100mm/h | 0.300 | 0.200 | 0.250 | 0.350 |" in text
+    assert "|  | % drop | 50.00 | 50.00 | 50.00 | 50.00 |" in text
+    assert "| mine | Normal | 0.300 | 0.200 | 0.250 | 0.350 |" in text
+    # Table IV: F1 0.8 -> 0.4 for every class.
+    assert "| YOLOv4 | Normal | 0.800 | 0.800 | 0.800 | 0.800 |" in text
+    # Rate-by-rate table, nan rendered as n/a (bicycle has no ground truth at 50 mm/h).
+    assert "| Model | Class | Normal | 50mm/h | 100mm/h |" in text
+    assert "|  | bicycle | 0.500 | n/a | 0.250 |" in text
+    # CIs; mPC / rPC (car YOLOv4 AP: P 0.6, mPC (0.45 + 0.3) / 2 = 0.375, rPC 0.625; F1: P 0.8,
+    # mPC (0.6 + 0.4) / 2 = 0.5, rPC 0.625; a nan rate makes mPC nan); ground-truth counts.
+    assert "| YOLOv4 | car | [0.550, 0.650] | [0.400, 0.500] | [0.250, 0.350] |" in text
+    assert "| YOLOv4 | car | 0.600 | 0.375 | 0.625 | 0.800 | 0.500 | 0.625 |" in text
+    assert "|  | bicycle | 0.500 | n/a | n/a | 0.800 | n/a | n/a |" in text
+    assert "| car | 12 | 12 | 12 |" in text
+
+
+def test_report_md_paper_columns_beside_ours():
+    text = R.render_report_md(_records(with_ci=False), paper=R.PAPER_TABLES, paper_models={"mine": "YOLOv7x"})
+    assert "| Model | Condition | Car | Car (paper) | Person | Person (paper) |" in text
+    # YOLOv4 matched by name; paper values from Table III / IV and their % drop.
+    assert "| YOLOv4 | Normal | 0.600 | 0.640 | 0.400 | 0.771 | 0.500 | 0.913 | 0.700 | 0.263 |" in text
+    assert "|  | 100mm/h | 0.300 | 0.424 | 0.200 | 0.469 | 0.250 | 0.677 | 0.350 | 0.0043 |" in text
+    assert "|  | % drop | 50.00 | 33.75 |" in text
+    assert "| mine | Normal | 0.300 | 0.669 |" in text  # mapped to YOLOv7x
+    assert "| YOLOv4 | Normal | 0.800 | 0.629 | 0.800 | 0.699 |" in text  # Table IV
+    assert "bootstrap" not in text  # no CI section without CIs
+
+
+def test_paper_tables_transcription():
+    assert set(R.PAPER_TABLES) == {"ap50", "f1"}
+    for metric in R.PAPER_TABLES.values():
+        assert set(metric) == {"YOLOv4", "YOLOv5x", "YOLOv7x"}
+        for by_rate in metric.values():
+            assert set(by_rate) == {0.0, 100.0}
+            assert all(set(values) == set(R.TABLE_CLASS_ORDER) for values in by_rate.values())
+    # The paper's text: car AP drops 31.24 % (v7x), 30.67 % (v5x), 33.75 % (v4).
+    drops = {m: M.percent_drop(v[0.0]["car"], v[100.0]["car"]) for m, v in R.PAPER_TABLES["ap50"].items()}
+    assert drops == pytest.approx({"YOLOv7x": 31.24, "YOLOv5x": 30.67, "YOLOv4": 33.75}, abs=0.005)
+
+
+def test_report_md_errors():
+    with pytest.raises(ValueError, match="records: expected at least one metric record, got none"):
+        R.render_report_md([])
+    with pytest.raises(
+        ValueError, match=r"expected rates present in the records \[0.0, 50.0, 100.0\], got 0.0 and 30.0"
+    ):
+        R.render_report_md(_records(), heavy_rate=30.0)
+
+
+def _assert_png(path, min_height, min_width):
+    assert path.read_bytes()[:8] == PNG_MAGIC
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    assert image is not None and image.shape[0] >= min_height and image.shape[1] >= min_width
+    assert image.std() > 5  # not a blank canvas
+    return image
+
+
+def test_plot_metric_vs_rate_writes_png(tmp_path):
+    records = _records()
+    path = R.plot_metric_vs_rate(records, "ap50", tmp_path / "plots" / "ap50.png")
+    _assert_png(path, 200, 800)
+    path_f1 = R.plot_metric_vs_rate(records, "f1", tmp_path / "f1.png", ci=False)
+    _assert_png(path_f1, 200, 800)
+    with pytest.raises(ValueError, match=r"metric: expected a record key such as 'ap50' or 'f1', got 'map'"):
+        R.plot_metric_vs_rate(records, "map", tmp_path / "x.png")
+
+
+def test_plot_detection_strip_draws_boxes(tmp_path):
+    rng = np.random.default_rng(0)
+    frames = {rate: rng.integers(0, 40, (60, 80, 3), dtype=np.uint8) for rate in (0.0, 10.0, 20.0, 30.0, 40.0)}
+    detections = {
+        0.0: [{"image_id": 1, "category_id": 2, "bbox": [10, 10, 30, 30], "score": 0.9}],
+        10.0: [{"image_id": 1, "category_id": 0, "bbox": [5, 5, 20, 40], "score": 0.1}],  # below min_score
+    }
+    path = R.plot_detection_strip(frames, detections, tmp_path / "strip.png", columns=3)
+    image = _assert_png(path, 1, 1)
+    banner, gap = 28, 4
+    assert image.shape == (2 * (60 + banner) + gap, 3 * 80 + 2 * gap, 3)
+    car_bgr = np.array(R._BOX_COLORS_BGR[2])
+    first_tile = image[: 60 + banner, :80]
+    second_tile = image[: 60 + banner, 80 + gap : 160 + gap]
+    person_bgr = np.array(R._BOX_COLORS_BGR[0])
+    assert np.any(np.all(first_tile == car_bgr, axis=-1))
+    assert not np.any(np.all(second_tile == person_bgr, axis=-1))
+    with pytest.raises(
+        ValueError,
+        match=r"images_by_rate\[10.0\]: expected uint8 \(60, 80, 3\) like the first image, got uint8 \(10, 10, 3\)",
+    ):
+        R.plot_detection_strip({0.0: frames[0.0], 10.0: np.zeros((10, 10, 3), np.uint8)}, {}, tmp_path / "bad.png")
