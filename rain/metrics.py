@@ -1,0 +1,192 @@
+"""Image-quality statistics of rainy frames: SSIM, PSNR and per-box rain labels.
+
+SSIM convention (seed paper eq. 1; Wang et al. 2004), identical to
+``skimage.metrics.structural_similarity(Y1, Y2, gaussian_weights=True, sigma=1.5,
+use_sample_covariance=False, data_range=255)`` on BT.601 luma:
+
+* Y = 0.299 R + 0.587 G + 0.114 B in float64, no rounding;
+* Gaussian window sigma 1.5 truncated at 3.5 sigma (11 taps, radius 5), normalised, applied
+  separably with reflect borders (scipy ``mode='reflect'`` == OpenCV ``BORDER_REFLECT``);
+* K1 = 0.01, K2 = 0.03, data range L = 255, population (co)variances;
+* the SSIM map is averaged after cropping a 5-pixel border.
+
+PSNR (eq. 2): 10 log10(255^2 / MSE) over all RGB values; +inf for identical images.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+SSIM_SIGMA = 1.5
+SSIM_TRUNCATE = 3.5
+SSIM_RADIUS = int(SSIM_TRUNCATE * SSIM_SIGMA + 0.5)  # 5, as scipy.ndimage computes it
+SSIM_WINDOW = 2 * SSIM_RADIUS + 1  # 11
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+DATA_RANGE = 255.0
+LUMA_WEIGHTS = (0.299, 0.587, 0.114)
+_CLEAN_STD_FLOOR = 1e-6
+
+
+def _gaussian_kernel() -> np.ndarray:
+    offsets = np.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, dtype=np.float64)
+    kernel = np.exp(-0.5 * (offsets / SSIM_SIGMA) ** 2)
+    return kernel / kernel.sum()
+
+
+_KERNEL = _gaussian_kernel()
+
+
+def _check_rgb_pair(clean: np.ndarray, rainy: np.ndarray) -> None:
+    for name, image in (("clean", clean), ("rainy", rainy)):
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+            got = f"{type(image).__name__} {getattr(image, 'shape', '')} {getattr(image, 'dtype', '')}".strip()
+            raise ValueError(f"{name} must be an (H, W, 3) uint8 array, got {got}")
+    if clean.shape != rainy.shape:
+        raise ValueError(f"clean and rainy must have the same shape, got {clean.shape} and {rainy.shape}")
+
+
+def luma(rgb: np.ndarray) -> np.ndarray:
+    """BT.601 luma of an RGB image.
+
+    Args:
+        rgb: (H, W, 3) uint8 (or any real dtype), channels R, G, B.
+
+    Returns:
+        (H, W) float64 ``0.299 R + 0.587 G + 0.114 B``, not rounded.
+    """
+    image = rgb.astype(np.float64)
+    return LUMA_WEIGHTS[0] * image[..., 0] + LUMA_WEIGHTS[1] * image[..., 1] + LUMA_WEIGHTS[2] * image[..., 2]
+
+
+def _filter(image: np.ndarray) -> np.ndarray:
+    return cv2.sepFilter2D(image, cv2.CV_64F, _KERNEL, _KERNEL, borderType=cv2.BORDER_REFLECT)
+
+
+def ssim_gray(first: np.ndarray, second: np.ndarray, data_range: float = DATA_RANGE) -> float:
+    """Mean SSIM of two single-channel images (the module's convention).
+
+    Args:
+        first, second: (H, W) float64 images, H and W >= 11.
+        data_range: L in C1 = (K1 L)^2, C2 = (K2 L)^2.
+
+    Returns:
+        mean SSIM over the map with a 5-pixel border cropped.
+    """
+    if first.shape != second.shape or first.ndim != 2:
+        raise ValueError(f"ssim_gray needs two 2-D images of equal shape, got {first.shape} and {second.shape}")
+    if min(first.shape) < SSIM_WINDOW:
+        raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels (11-tap window), got {first.shape[1]}x{first.shape[0]}")
+    x = np.ascontiguousarray(first, dtype=np.float64)
+    y = np.ascontiguousarray(second, dtype=np.float64)
+    mu_x = _filter(x)
+    mu_y = _filter(y)
+    var_x = _filter(x * x) - mu_x * mu_x
+    var_y = _filter(y * y) - mu_y * mu_y
+    cov_xy = _filter(x * y) - mu_x * mu_y
+    c1 = (SSIM_K1 * data_range) ** 2
+    c2 = (SSIM_K2 * data_range) ** 2
+    numerator = (2.0 * mu_x * mu_y + c1) * (2.0 * cov_xy + c2)
+    denominator = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
+    ssim_map = numerator / denominator
+    pad = SSIM_RADIUS
+    return float(ssim_map[pad:-pad, pad:-pad].mean(dtype=np.float64))
+
+
+def psnr(clean: np.ndarray, rainy: np.ndarray) -> float:
+    """PSNR in dB over all RGB values, data range 255; ``math.inf`` for identical images.
+
+    Args:
+        clean, rainy: (H, W, 3) uint8.
+    """
+    _check_rgb_pair(clean, rainy)
+    difference = clean.astype(np.float64) - rainy.astype(np.float64)
+    mse = float(np.mean(difference * difference))
+    if mse == 0.0:
+        return math.inf
+    return 10.0 * math.log10(DATA_RANGE * DATA_RANGE / mse)
+
+
+def image_quality(clean: np.ndarray, rainy: np.ndarray) -> tuple[float, float]:
+    """(SSIM, PSNR) of a rainy image against its clean render (module docstring convention).
+
+    Args:
+        clean, rainy: (H, W, 3) uint8 RGB images of the same shape, H and W >= 11.
+
+    Returns:
+        (ssim on BT.601 luma, psnr in dB on RGB; inf when identical).
+    """
+    _check_rgb_pair(clean, rainy)
+    return ssim_gray(luma(clean), luma(rainy)), psnr(clean, rainy)
+
+
+def box_pixel_ranges(boxes: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Integer pixel ranges of boxes in pixel-edge coordinates.
+
+    A pixel (column i, row j) belongs to a box when its centre (i + 0.5, j + 0.5) lies in
+    [x1, x2) x [y1, y2); the range is clipped to the image.
+
+    Args:
+        boxes: (M, 4) float x1, y1, x2, y2 in pixels (x2 = last column + 1 for integer boxes).
+        height, width: image size.
+
+    Returns:
+        (M, 4) int64 col0, row0, col1, row1 (exclusive ends); empty when col1 <= col0 or row1 <= row0.
+    """
+    boxes64 = boxes.astype(np.float64)
+    col0 = np.clip(np.ceil(boxes64[:, 0] - 0.5), 0, width)
+    row0 = np.clip(np.ceil(boxes64[:, 1] - 0.5), 0, height)
+    col1 = np.clip(np.ceil(boxes64[:, 2] - 0.5), 0, width)
+    row1 = np.clip(np.ceil(boxes64[:, 3] - 0.5), 0, height)
+    return np.stack([col0, row0, col1, row1], axis=1).astype(np.int64)
+
+
+def box_rain_labels(clean: np.ndarray, rainy: np.ndarray, coverage: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-box rain statistics for detection labels.
+
+    Definitions, over the pixels whose centres lie inside a box (see :func:`box_pixel_ranges`):
+
+    * rain_coverage = mean of ``coverage`` (per-pixel drop/streak opacity);
+    * contrast_loss = ``1 - std(Y_rainy) / std(Y_clean)``, clipped to [0, 1], with Y the
+      BT.601 luma (float64) and std the population standard deviation; 0 when
+      ``std(Y_clean) < 1e-6`` (a flat box has no contrast to lose).
+
+    A box containing no pixel centre (degenerate or outside the image) gets 0 for both.
+
+    Args:
+        clean, rainy: (H, W, 3) uint8 images.
+        coverage: (H, W) float32 in [0, 1] (``RainFrame.coverage``).
+        boxes: (M, 4) float32 x1, y1, x2, y2 pixel-edge coordinates (x2 = last column + 1).
+
+    Returns:
+        (rain_coverage (M,) float32, contrast_loss (M,) float32).
+    """
+    _check_rgb_pair(clean, rainy)
+    height, width = clean.shape[:2]
+    if not isinstance(coverage, np.ndarray) or coverage.shape != (height, width):
+        raise ValueError(f"coverage must be an ({height}, {width}) array, got {getattr(coverage, 'shape', type(coverage).__name__)}")
+    boxes_array = np.asarray(boxes)
+    if boxes_array.size == 0:
+        return np.zeros(0, dtype=np.float32), np.zeros(0, dtype=np.float32)
+    if boxes_array.ndim != 2 or boxes_array.shape[1] != 4:
+        raise ValueError(f"boxes must be an (M, 4) array of x1, y1, x2, y2, got shape {boxes_array.shape}")
+    if not np.all(np.isfinite(boxes_array)):
+        raise ValueError("boxes must be finite, got NaN or inf coordinates")
+    ranges = box_pixel_ranges(boxes_array, height, width)
+    luma_clean = luma(clean)
+    luma_rainy = luma(rainy)
+    rain_coverage = np.zeros(len(ranges), dtype=np.float32)
+    contrast_loss = np.zeros(len(ranges), dtype=np.float32)
+    for index, (col0, row0, col1, row1) in enumerate(ranges):
+        if col1 <= col0 or row1 <= row0:
+            continue
+        rain_coverage[index] = np.float32(coverage[row0:row1, col0:col1].mean(dtype=np.float64))
+        std_clean = float(luma_clean[row0:row1, col0:col1].std())
+        if std_clean < _CLEAN_STD_FLOOR:
+            continue
+        std_rainy = float(luma_rainy[row0:row1, col0:col1].std())
+        contrast_loss[index] = np.float32(min(max(1.0 - std_rainy / std_clean, 0.0), 1.0))
+    return rain_coverage, contrast_loss

@@ -1,0 +1,117 @@
+"""Parsing of rain-rate specifications such as ``"0:100:10"``, ``"0,25,50"`` or ``"50"``.
+
+Rates are rainfall intensities in millimetres per hour (mm/h). Every refusal raises
+:class:`RatesError` with a single-line message that starts with ``RATES`` and quotes the spec.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+MAX_RATE_MM_H = 1000.0
+"""Largest accepted rain rate in mm/h (the world record hourly rainfall is about 300 mm/h)."""
+
+MAX_RATE_COUNT = 1001
+"""Largest number of rates a spec may expand to (``"0:1000:1"`` is the largest sensible sweep)."""
+
+_RANGE_EPS = 1e-9
+"""Relative slack for the inclusive end of ``start:stop:step`` (so ``0:1:0.1`` gives 11 values)."""
+
+_DECIMALS = 10
+"""Range values are rounded to this many decimals so that ``0:1:0.1`` gives 0.3, not 0.30000000000000004."""
+
+
+class RatesError(ValueError):
+    """A rain-rate specification was refused. The message is one line starting with ``RATES``."""
+
+
+def _fail(spec: str, reason: str) -> RatesError:
+    quoted = json.dumps(spec)  # double-quoted, escapes newlines: the message stays on one line
+    return RatesError(f"RATES {quoted}: {reason}")
+
+
+def _parse_number(spec: str, text: str, what: str) -> float:
+    stripped = text.strip()
+    if not stripped:
+        raise _fail(spec, f"empty {what}; expected a number in mm/h")
+    try:
+        value = float(stripped)
+    except ValueError:
+        raise _fail(spec, f"{what} {json.dumps(stripped)} is not a number; expected e.g. 0:100:10, 0,25,50 or 50") from None
+    if not math.isfinite(value):
+        raise _fail(spec, f"{what} {json.dumps(stripped)} is not finite; expected a finite number in mm/h")
+    return value + 0.0  # turns -0.0 into 0.0
+
+
+def _check_rate(spec: str, value: float, what: str) -> None:
+    if value < 0.0:
+        raise _fail(spec, f"{what} {value:g} is negative; expected rates in [0, {MAX_RATE_MM_H:g}] mm/h")
+    if value > MAX_RATE_MM_H:
+        raise _fail(spec, f"{what} {value:g} exceeds {MAX_RATE_MM_H:g} mm/h; expected rates in [0, {MAX_RATE_MM_H:g}] mm/h")
+
+
+def parse_rates(spec: str) -> tuple[float, ...]:
+    """Parse a rain-rate spec into an ascending tuple of rates in mm/h.
+
+    Accepted forms:
+
+    * ``"start:stop:step"`` -- inclusive range, e.g. ``"0:100:10"`` -> ``(0.0, 10.0, ..., 100.0)``.
+      The count is ``floor((stop - start) / step + 1e-9) + 1``, so ``"0:1:0.1"`` gives 11 values;
+      values are rounded to 10 decimals.
+    * ``"a,b,c"`` -- explicit list, returned sorted ascending; duplicates are refused.
+    * ``"r"`` -- a single rate.
+
+    Every rate must be finite and in ``[0, 1000]`` mm/h; a range needs ``step > 0`` and
+    ``stop >= start``; at most 1001 rates.
+
+    Args:
+        spec: the text to parse.
+
+    Returns:
+        tuple of float rates in mm/h, strictly ascending, at least one element.
+
+    Raises:
+        RatesError: one-line message starting with ``RATES "<spec>":`` saying what was wrong.
+    """
+    if not isinstance(spec, str):
+        raise RatesError(f"RATES {json.dumps(repr(spec))}: expected a string such as 0:100:10, got {type(spec).__name__}")
+    text = spec.strip()
+    if not text:
+        raise _fail(spec, "empty spec; expected e.g. 0:100:10, 0,25,50 or 50")
+
+    if ":" in text:
+        parts = text.split(":")
+        if len(parts) != 3:
+            raise _fail(spec, f"a range needs exactly start:stop:step (3 fields), got {len(parts)} fields")
+        start = _parse_number(spec, parts[0], "start")
+        stop = _parse_number(spec, parts[1], "stop")
+        step = _parse_number(spec, parts[2], "step")
+        _check_rate(spec, start, "start")
+        _check_rate(spec, stop, "stop")
+        if step <= 0.0:
+            raise _fail(spec, f"step {step:g} must be > 0")
+        if stop < start:
+            raise _fail(spec, f"stop {stop:g} is below start {start:g}; expected start <= stop")
+        span = (stop - start) / step
+        if span + 1 > MAX_RATE_COUNT:
+            raise _fail(spec, f"expands to {math.floor(span) + 1} rates; at most {MAX_RATE_COUNT} are allowed")
+        count = math.floor(span + _RANGE_EPS * max(1.0, span)) + 1
+        values = tuple(min(round(start + index * step, _DECIMALS), stop) + 0.0 for index in range(count))
+        return values
+
+    if "," in text:
+        values_list = [_parse_number(spec, part, f"item {index + 1}") for index, part in enumerate(text.split(","))]
+        for index, value in enumerate(values_list):
+            _check_rate(spec, value, f"item {index + 1}")
+        ordered = sorted(values_list)
+        for lower, upper in zip(ordered, ordered[1:]):
+            if lower == upper:
+                raise _fail(spec, f"rate {lower:g} is listed twice; expected distinct rates")
+        if len(ordered) > MAX_RATE_COUNT:
+            raise _fail(spec, f"lists {len(ordered)} rates; at most {MAX_RATE_COUNT} are allowed")
+        return tuple(ordered)
+
+    value = _parse_number(spec, text, "rate")
+    _check_rate(spec, value, "rate")
+    return (value,)
