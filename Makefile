@@ -13,8 +13,14 @@ HEIGHT ?= 600
 RATES ?= 0:100:10
 RAIN_MODEL ?= jeon2022
 STORE ?=
+SCENES ?= 1
+WORKERS ?=
+# make eval variables
+RESULTS ?= results/eval
+WEIGHTS ?=
+PREDICTIONS ?=
 
-.PHONY: venv dataset scene test test-slow bench clean
+.PHONY: venv dataset scene verify eval test test-slow bench clean
 
 venv: $(STAMP)
 
@@ -23,13 +29,21 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet torch==2.14.1 torchvision==0.29.1
-	$(BIN)/pip install --quiet -e '.[test,bench]'
+	$(BIN)/pip install --quiet -e '.[test,bench,ray]'
 	touch $(STAMP)
 
 dataset: $(STAMP)
-	$(BIN)/rainbench generate --out $(OUT) --seed $(SEED) --frames $(FRAMES) \
-		--width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' --rain-model $(RAIN_MODEL) \
-		$(if $(STORE),--store $(STORE),)
+	$(BIN)/rainbench generate --out $(OUT) --seed $(SEED) --scenes $(SCENES) \
+		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
+		--rain-model $(RAIN_MODEL) $(if $(STORE),--store $(STORE),) \
+		$(if $(WORKERS),--workers $(WORKERS),)
+
+eval: $(STAMP)
+	$(BIN)/rainbench eval --data $(OUT) --out $(RESULTS) \
+		$(foreach w,$(WEIGHTS),--weights $(w)) $(if $(PREDICTIONS),--predictions $(PREDICTIONS),)
+
+verify: $(STAMP)
+	$(BIN)/rainbench verify $(OUT)
 
 scene: $(STAMP)
 	$(BIN)/rainbench scene --seed $(SEED) --out $(OUT)/scene_$(SEED)

@@ -78,15 +78,31 @@ def cmd_generate(args: argparse.Namespace) -> int:
     _choose_gl(args.gl)
     from tqdm import tqdm
 
-    from rainbench.gen.generate import GenerateConfig, generate_shard
+    from rainbench.gen.dataset import DatasetConfig, run_dataset
 
-    config = GenerateConfig(seed=args.seed, frames=args.frames, width=args.width,
-                            height=args.height, rates=rates, rain_model=args.rain_model,
-                            rain_seed=args.rain_seed, store=args.store, fps=args.fps)
-    with tqdm(total=config.frames, unit="frame", desc=f"scene {config.seed}",
+    config = DatasetConfig(seed=args.seed, scenes=args.scenes, frames=args.frames,
+                           frames_per_shard=args.frames_per_shard, width=args.width,
+                           height=args.height, rates=rates, rain_model=args.rain_model,
+                           rain_seed=args.rain_seed, store=args.store, fps=args.fps)
+    workers = args.workers or min(os.cpu_count() or 1, len(config.tasks()))
+    with tqdm(total=config.scenes * config.frames, unit="frame", desc="rainbench generate",
               disable=args.quiet, dynamic_ncols=True) as bar:
-        path = generate_shard(config, out, progress=bar.update)
-    print(path)
+        manifest = run_dataset(config, out, workers=workers, executor=args.executor,
+                               ray_address=args.ray_address, render_threads=args.render_threads,
+                               overwrite=args.overwrite, progress=bar.update)
+    print(manifest)
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from rainbench.gen.dataset import verify_dataset
+
+    problems = verify_dataset(args.out)
+    for problem in problems:
+        print(f"rainbench: bad: {problem}", file=sys.stderr)
+    if problems:
+        return 1
+    print(f"{args.out}: ok")
     return 0
 
 
@@ -132,6 +148,21 @@ def cmd_preview(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    if bool(args.weights) == (args.predictions is not None):
+        raise CliError("eval: expected exactly one of --weights W [--weights W2 ...] or --predictions DIR")
+    out = _writable_dir(Path(args.out), "--out")
+    from rainbench.eval.pipeline import run_eval
+
+    outputs = run_eval(args.data, out, predictions_dir=args.predictions, weights=args.weights or (),
+                       imgsz=args.imgsz, batch=args.batch, conf=args.conf, iou=args.iou,
+                       max_det=args.max_det, report_conf=args.report_conf, n_boot=args.n_boot,
+                       class_map=args.class_map, device=args.device, force=args.force,
+                       progress=not args.quiet)
+    print(outputs.paths["report.md"])
+    return 0
+
+
 def _add_scene_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=_seed, default=0,
                         help="scene seed: layout, actors, colours, speeds, sun, camera height")
@@ -159,10 +190,26 @@ def build_parser() -> argparse.ArgumentParser:
     generate.add_argument("--rain-seed", type=_seed, default=0)
     generate.add_argument("--store", type=_store, default=(),
                           help="extra per-frame arrays: depth,instance")
+    generate.add_argument("--scenes", type=_positive_int("SCENES"), default=1,
+                          help="number of scenes; scene k uses seed SEED + k")
+    generate.add_argument("--frames-per-shard", type=_positive_int("FRAMES_PER_SHARD"),
+                          default=200, help="split longer clips into shards of this many frames")
+    generate.add_argument("--workers", type=_positive_int("WORKERS"), default=None,
+                          help="parallel worker processes (default: cores, at most one per shard)")
+    generate.add_argument("--render-threads", type=_positive_int("RENDER_THREADS"), default=None,
+                          help="Mesa software-render threads per worker (LP_NUM_THREADS)")
+    generate.add_argument("--executor", choices=("local", "ray"), default="local")
+    generate.add_argument("--ray-address", default=None,
+                          help="address of an existing Ray cluster (default: start a local one)")
+    generate.add_argument("--overwrite", action="store_true",
+                          help="replace a dataset of another config in OUT")
     generate.add_argument("--gl", choices=sorted(gl.BACKENDS), default=None,
                           help="offscreen GL backend (default: MUJOCO_GL, else egl, else osmesa)")
     generate.add_argument("--quiet", action="store_true", help="no progress bar")
     generate.set_defaults(run=cmd_generate)
+    verify = sub.add_parser("verify", help="re-hash a dataset against its manifest")
+    verify.add_argument("out", help="dataset directory (with manifest.json)")
+    verify.set_defaults(run=cmd_verify)
     scene = sub.add_parser("scene", help="write the composed scene as a standalone MJCF file")
     scene.add_argument("--out", required=True, help="directory for scene.xml and its textures")
     _add_scene_args(scene)
@@ -173,6 +220,30 @@ def build_parser() -> argparse.ArgumentParser:
     preview.add_argument("--out", default=None, help="PNG path (default: beside the shard)")
     preview.add_argument("--boxes", action="store_true", help="draw the labels")
     preview.set_defaults(run=cmd_preview)
+    evaluate = sub.add_parser("eval", help="AP / F1 per class and rain rate of detectors on a dataset")
+    evaluate.add_argument("--data", required=True, help="dataset directory of scene*_f*.h5 shards")
+    evaluate.add_argument("--weights", action="append", default=None,
+                          help="local ultralytics .pt detector (repeat for several models); "
+                               "loading a .pt runs code from it: only load weights you trust")
+    evaluate.add_argument("--predictions", default=None,
+                          help="instead of --weights: DIR/<model>/rate_<rate>.json COCO results files")
+    evaluate.add_argument("--out", required=True, help="results directory")
+    evaluate.add_argument("--imgsz", type=_positive_int("IMGSZ"), default=640)
+    evaluate.add_argument("--batch", type=_positive_int("BATCH"), default=32)
+    evaluate.add_argument("--conf", type=float, default=0.001, help="detector confidence floor")
+    evaluate.add_argument("--iou", type=float, default=0.7, help="detector NMS IoU")
+    evaluate.add_argument("--max-det", type=_positive_int("MAX_DET"), default=300)
+    evaluate.add_argument("--report-conf", type=float, default=0.25,
+                          help="fixed threshold of the *_at_conf metrics and the detection strip")
+    evaluate.add_argument("--n-boot", type=_positive_int("N_BOOT"), default=1000,
+                          help="bootstrap resamples of the AP confidence intervals")
+    evaluate.add_argument("--class-map", default=None,
+                          help="model class name -> rainbench id, e.g. car=2,pedestrian=0 "
+                               "(needed unless the model is COCO-80)")
+    evaluate.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
+    evaluate.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
+    evaluate.add_argument("--quiet", action="store_true", help="no progress bars")
+    evaluate.set_defaults(run=cmd_eval)
     return parser
 
 
@@ -181,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.run(args)
-    except (CliError, ValueError, gl.GLBackendError, OSError) as error:
+    except (CliError, ValueError, gl.GLBackendError, OSError, RuntimeError) as error:
         message = " ".join(str(error).split())
         print(f"rainbench: error: {message}", file=sys.stderr)
         return EXIT_USAGE

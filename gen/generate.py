@@ -36,6 +36,7 @@ class GenerateConfig:
     seed: int = 0
     frames: int = 200
     frame_offset: int = 0
+    clip_frames: int | None = None  # frames of the whole clip; None: frame_offset + frames
     fps: float = 10.0
     width: int = 800
     height: int = 600
@@ -63,14 +64,18 @@ class GenerateConfig:
         if unknown:
             raise ValueError(f"store: expected a subset of {','.join(STORABLE)}, got "
                              f"{','.join(unknown)}")
+        if self.clip_frames is not None and self.clip_frames < self.frame_offset + self.frames:
+            raise ValueError(f"clip_frames: expected >= frame_offset + frames = "
+                             f"{self.frame_offset + self.frames}, got {self.clip_frames}")
         rates = tuple(float(r) for r in self.rates)
         if not rates or list(rates) != sorted(set(rates)) or rates[0] < 0:
             raise ValueError(f"rates: expected ascending distinct values >= 0, got {self.rates}")
 
     @property
     def duration_s(self) -> float:
-        """Length of the whole clip the layout is planned for: ``(frame_offset + frames) / fps``."""
-        return (self.frame_offset + self.frames) / self.fps
+        """Length of the whole clip the layout is planned for (all shards of a scene share it)."""
+        clip = self.clip_frames if self.clip_frames is not None else self.frame_offset + self.frames
+        return clip / self.fps
 
     def scenario_config(self) -> L.ScenarioConfig:
         if self.scenario is not None:

@@ -215,7 +215,8 @@ def sample_air_candidates(*, config: RainConfig, K: np.ndarray, height: int, wid
     diameter_mm = config.streak_min_diameter_mm - np.log1p(-uniforms[:, 3]) / slope_max
     keep_uniform = 1.0 - uniforms[:, 4]  # (0, 1]
     slope_threshold = slope_max - np.log(keep_uniform) / diameter_mm
-    threshold = np.power(slope_threshold / MP_LAMBDA_COEF, -1.0 / MP_LAMBDA_EXP)
+    # u = 1 gives exactly R_max; the clip only removes rounding above it
+    threshold = np.minimum(np.power(slope_threshold / MP_LAMBDA_COEF, -1.0 / MP_LAMBDA_EXP), MAX_RATE_MM_H)
 
     fx, fy = float(K[0, 0]), float(K[1, 1])
     velocity = terminal_velocity(diameter_mm)

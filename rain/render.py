@@ -285,7 +285,6 @@ def _physical_sweep(
     rgb: np.ndarray, depth: np.ndarray, ascending: list[float], config: RainConfig, K: np.ndarray, seed_sequence: np.random.SeedSequence
 ) -> list[RainFrame]:
     height, width = rgb.shape[:2]
-    n_pixels = height * width
     top_rate = ascending[-1]
     if top_rate == 0:
         return [_clean_frame(rgb) for _ in ascending]

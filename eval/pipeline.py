@@ -1,0 +1,366 @@
+"""The ``rainbench eval`` pipeline: dataset -> detections per model and rate -> metrics, report, plots.
+
+Building blocks (each usable alone):
+
+- :func:`dataset_images` numbers the frames of a dataset folder (image ids 1-based, shards sorted
+  by name, then frame order: the numbering everywhere in rainbench);
+- :func:`dataset_rates` / :func:`ground_truth` read the rates and the COCO ground truth (labels are
+  the same at every rate, so one ground truth serves all rates);
+- :func:`rate_token` names prediction files ``rate_<token>.json``;
+- :func:`load_predictions_file` reads and checks one COCO results file;
+- :func:`run_eval` orchestrates everything and writes the outputs (see docs/eval.md).
+
+Every user-facing failure is an :class:`EvalError` (a ValueError) with a one-line message.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rainbench.gen.dataset import DatasetError, list_shards, read_manifest
+from rainbench.gen.shard import open_shard, read_frame_labels
+
+from .metrics import CLASS_IDS, CLASS_NAMES, bootstrap_ci, coco_ground_truth, evaluate, metric_records
+from .report import PAPER_TABLES, plot_detection_strip, plot_metric_vs_rate, render_report_md, write_metrics
+
+SHARD_GLOB = "scene*_f*.h5"
+BOOTSTRAP_SEED = 0
+"""Seed of the bootstrap generator (``np.random.default_rng(BOOTSTRAP_SEED)`` per model and rate)."""
+
+
+class EvalError(ValueError):
+    """A user-facing evaluation error with a one-line message."""
+
+
+# --------------------------------------------------------------------------------------------
+# Dataset
+# --------------------------------------------------------------------------------------------
+
+
+def rate_token(rate: float) -> str:
+    """Shortest decimal of a rate as stored (float32): 0 -> "0", 12.5 -> "12.5", 100 -> "100"."""
+    value = float(rate)
+    if not math.isfinite(value) or value < 0:
+        raise EvalError(f"rate: expected a finite rate >= 0 mm/h, got {rate!r}")
+    return np.format_float_positional(np.float32(value), trim="-")
+
+
+def _shards(data_dir: str | Path) -> list[Path]:
+    """Shards in manifest order (sorted names without a manifest): the rainbench numbering."""
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise EvalError(f"--data: {data_dir} is not a directory")
+    if not any(data_dir.glob(SHARD_GLOB)) and read_manifest(data_dir) is None:
+        raise EvalError(f"--data: no shard ({SHARD_GLOB}) in {data_dir}")
+    try:
+        return list_shards(data_dir)
+    except DatasetError as error:
+        raise EvalError(f"--data: {error}") from error
+
+
+def _scan(data_dir: str | Path) -> tuple[list[tuple[int, Path, int]], np.ndarray]:
+    images: list[tuple[int, Path, int]] = []
+    rates: np.ndarray | None = None
+    first: Path | None = None
+    for shard in _shards(data_dir):
+        with open_shard(shard) as handle:
+            shard_rates = handle["rates"][()].astype(np.float32)
+            frames = int(handle["labels/offsets"].shape[0]) - 1
+        if rates is None:
+            rates, first = shard_rates, shard
+        elif shard_rates.shape != rates.shape or not np.array_equal(shard_rates, rates):
+            raise EvalError(f"--data: {shard.name} has rates {shard_rates.tolist()} but {first.name} has "
+                            f"{rates.tolist()}; all shards of a dataset must share the same rates")
+        for frame in range(frames):
+            images.append((len(images) + 1, shard, frame))
+    if not images:
+        raise EvalError(f"--data: the shards in {data_dir} hold no frames")
+    return images, rates
+
+
+def dataset_images(data_dir: str | Path) -> list[tuple[int, Path, int]]:
+    """``[(image_id, shard_path, frame)]``: shards ``scene*_f*.h5`` sorted by name, ids from 1.
+
+    Raises :class:`EvalError` for a missing or empty folder, and for shards whose rates differ.
+    """
+    return _scan(data_dir)[0]
+
+
+def dataset_rates(data_dir: str | Path) -> list[float]:
+    """The rain rates (mm/h, ascending) shared by every shard of the dataset."""
+    return [float(r) for r in _scan(data_dir)[1]]
+
+
+def ground_truth(images: Sequence[tuple[int, Path, int]]) -> dict[str, list[dict]]:
+    """COCO ground-truth dict of ``images`` (from :func:`dataset_images`); valid at every rate."""
+    entries = []
+    handles: dict[Path, Any] = {}
+    try:
+        for image_id, shard, frame in images:
+            if shard not in handles:
+                handles[shard] = open_shard(shard)
+            handle = handles[shard]
+            labels = read_frame_labels(handle, frame)
+            entries.append((image_id, int(handle.attrs["width"]), int(handle.attrs["height"]),
+                            np.asarray(labels["bbox"], np.float32).reshape(-1, 4),
+                            np.asarray(labels["class_id"]).astype(np.int64)))
+    finally:
+        for handle in handles.values():
+            handle.close()
+    return coco_ground_truth(entries)
+
+
+def _read_rgb(images: Sequence[tuple[int, Path, int]], rate_index: int, batch: int):
+    """Yield ``(image_ids, [RGB arrays])`` in batches of at most ``batch`` frames of one shard."""
+    by_shard: dict[Path, list[tuple[int, int]]] = {}
+    for image_id, shard, frame in images:
+        by_shard.setdefault(shard, []).append((image_id, frame))
+    for shard, items in by_shard.items():
+        with open_shard(shard) as handle:
+            rgb = handle["rgb"]
+            for start in range(0, len(items), batch):
+                chunk = items[start:start + batch]
+                yield [i for i, _ in chunk], [rgb[rate_index, frame] for _, frame in chunk]
+
+
+# --------------------------------------------------------------------------------------------
+# Prediction files
+# --------------------------------------------------------------------------------------------
+
+
+def predictions_path(root: str | Path, model: str, rate: float) -> Path:
+    """``root/<model>/rate_<rate_token>.json``."""
+    return Path(root) / model / f"rate_{rate_token(rate)}.json"
+
+
+def check_detections(records: Any, image_ids: set[int], where: str) -> list[dict]:
+    """Check COCO results records; errors name ``where`` (the file). Returns clean records."""
+    if not isinstance(records, list):
+        raise EvalError(f"{where}: expected a JSON list of COCO results records, got {type(records).__name__}")
+    known = set(CLASS_IDS)
+    clean = []
+    for position, record in enumerate(records):
+        try:
+            image_id, category_id = record["image_id"], record["category_id"]
+            bbox, score = [float(v) for v in record["bbox"]], float(record["score"])
+        except (TypeError, KeyError, ValueError) as error:
+            raise EvalError(f"{where}: record {position}: expected image_id, category_id, bbox [x, y, w, h] "
+                            f"and score ({type(error).__name__}: {error})") from None
+        if isinstance(category_id, bool) or not isinstance(category_id, int) or category_id not in known:
+            raise EvalError(f"{where}: record {position}: category_id {category_id!r} is not a class id in "
+                            f"{min(known)}..{max(known)}")
+        if isinstance(image_id, bool) or not isinstance(image_id, int) or image_id not in image_ids:
+            raise EvalError(f"{where}: record {position}: image_id {image_id!r} is not an image of the dataset "
+                            f"(ids 1..{len(image_ids)})")
+        if len(bbox) != 4 or not all(math.isfinite(v) for v in bbox) or bbox[2] < 0 or bbox[3] < 0:
+            raise EvalError(f"{where}: record {position}: bbox {record['bbox']!r} is not a finite [x, y, w, h] "
+                            "with w, h >= 0")
+        if not 0.0 <= score <= 1.0:
+            raise EvalError(f"{where}: record {position}: score {score} is not in [0, 1]")
+        clean.append({"image_id": image_id, "category_id": category_id, "bbox": bbox, "score": score})
+    return clean
+
+
+def load_predictions_file(path: str | Path, image_ids: set[int]) -> list[dict]:
+    """Read and check one COCO results file (errors name the file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise EvalError(f"predictions: {path} is missing")
+    try:
+        records = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise EvalError(f"predictions: {path} is not valid JSON ({error})") from None
+    return check_detections(records, image_ids, str(path))
+
+
+def _write_json(path: Path, data: Any) -> None:
+    """Write JSON under a temporary name and rename it, so a final name is always whole."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(data) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def prediction_models(predictions_dir: str | Path) -> list[str]:
+    """Model names of a predictions folder: its sub-folders, sorted."""
+    root = Path(predictions_dir)
+    if not root.is_dir():
+        raise EvalError(f"--predictions: {root} is not a directory")
+    models = sorted(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not models:
+        raise EvalError(f"--predictions: no model folder (<model>/rate_<rate>.json) in {root}")
+    return models
+
+
+# --------------------------------------------------------------------------------------------
+# Orchestrator
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class EvalOutputs:
+    """What :func:`run_eval` wrote: the records and the paths, keyed by output name."""
+
+    records: list[dict[str, Any]]
+    paths: dict[str, Path] = field(default_factory=dict)
+    inference_runs: int = 0
+    """(model, rate) pairs whose detections were computed by a backend in this run (not cached)."""
+
+
+def _model_name(weights: str | Path) -> str:
+    return Path(weights).stem
+
+
+def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map) -> dict[str, Any]:
+    stat = weights.stat()
+    return {"weights": str(weights.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
+            "imgsz": imgsz, "conf": conf, "iou": iou, "max_det": max_det, "class_map": class_map}
+
+
+def _infer(detector, images, rate_index: int, *, batch, imgsz, conf, iou, max_det, bar) -> list[dict]:
+    from .metrics import coco_detections
+
+    records: list[dict] = []
+    for image_ids, arrays in _read_rgb(images, rate_index, batch):
+        outputs = detector.predict(arrays, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det)
+        for image_id, (boxes, scores, class_ids) in zip(image_ids, outputs, strict=True):
+            records += coco_detections(image_id, np.asarray(boxes, np.float64).reshape(-1, 4),
+                                       np.clip(np.asarray(scores, np.float64), 0.0, 1.0),
+                                       np.asarray(class_ids, np.int64))
+        bar.update(len(image_ids))
+    return records
+
+
+def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str | Path | None = None,
+             weights: Sequence[str | Path] = (), imgsz: int = 640, batch: int = 32, conf: float = 0.001,
+             iou: float = 0.7, max_det: int = 300, report_conf: float = 0.25, n_boot: int = 1000,
+             class_map: str | None = None, device: str | None = None, force: bool = False,
+             progress: bool = True) -> EvalOutputs:
+    """Evaluate every model at every rain rate of a dataset and write the outputs under ``out_dir``.
+
+    Detections come either from ``predictions_dir`` (``<model>/rate_<rate_token>.json`` COCO
+    results files, one per rate) or from running each of ``weights`` through
+    :func:`rainbench.eval.backends.load_detector`; backend detections are cached as
+    ``out_dir/predictions/<model>/rate_<rate>.json`` and reused by later runs with the same
+    weights file and settings unless ``force``.
+
+    Outputs: ``metrics.json``, ``metrics.csv``, ``images.json``, ``report.md``,
+    ``ap50_vs_rate.png``, ``f1_vs_rate.png``, ``detections_strip.png``.
+    """
+    from tqdm import tqdm
+
+    if (predictions_dir is None) == (not weights):
+        raise EvalError("expected exactly one of --weights or --predictions")
+    for name, value in (("--imgsz", imgsz), ("--batch", batch), ("--max-det", max_det), ("n_boot", n_boot)):
+        if int(value) < 1:
+            raise EvalError(f"{name}: expected >= 1, got {value}")
+    for name, value in (("--conf", conf), ("--iou", iou), ("--report-conf", report_conf)):
+        if not 0.0 <= float(value) <= 1.0:
+            raise EvalError(f"{name}: expected a value in [0, 1], got {value}")
+    images, rates_array = _scan(data_dir)
+    rates = [float(r) for r in rates_array]
+    image_ids = {image_id for image_id, _, _ in images}
+    gt = ground_truth(images)
+    out_dir = Path(out_dir)
+
+    detections: dict[tuple[str, float], list[dict]] = {}
+    inference_runs = 0
+    if predictions_dir is not None:
+        models = prediction_models(predictions_dir)
+        for model in models:
+            for rate in rates:
+                detections[(model, rate)] = load_predictions_file(
+                    predictions_path(predictions_dir, model, rate), image_ids)
+    else:
+        from . import backends
+
+        weights = [Path(w) for w in weights]
+        for path in weights:
+            if not path.is_file():
+                raise EvalError(f"--weights: {path} does not exist (weights are loaded from local files only)")
+        if class_map is not None:
+            backends.parse_class_map(class_map)  # fail early on a bad spec
+        models = [_model_name(w) for w in weights]
+        duplicates = sorted({m for m in models if models.count(m) > 1})
+        if duplicates:
+            raise EvalError(f"--weights: several weights files are named {duplicates[0]!r}; model names "
+                            "(file stems) must be unique")
+        for path, model in zip(weights, models, strict=True):
+            settings = _cache_settings(path, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det,
+                                       class_map=class_map)
+            cache_root = out_dir / "predictions"
+            meta_path = cache_root / model / "settings.json"
+            try:
+                cached_settings = json.loads(meta_path.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                cached_settings = None
+            reuse = not force and cached_settings == settings
+            detector = None
+            for rate_index, rate in enumerate(rates):
+                cache = predictions_path(cache_root, model, rate)
+                if reuse and cache.is_file():
+                    detections[(model, rate)] = load_predictions_file(cache, image_ids)
+                    continue
+                if detector is None:
+                    detector = backends.load_detector(path, class_map=class_map, device=device)
+                    if not reuse:  # settings changed or --force: older rate files are stale
+                        meta_path.unlink(missing_ok=True)
+                with tqdm(total=len(images), unit="img", desc=f"{model} {rate_token(rate)} mm/h",
+                          disable=not progress, dynamic_ncols=True) as bar:
+                    records = _infer(detector, images, rate_index, batch=batch, imgsz=imgsz, conf=conf,
+                                     iou=iou, max_det=max_det, bar=bar)
+                _write_json(cache, records)
+                detections[(model, rate)] = records
+                inference_runs += 1
+            if detector is not None:
+                # Written once every rate is cached, so an interrupted run re-infers what is stale.
+                _write_json(meta_path, settings)
+
+    results, ci50, ci5095 = {}, {}, {}
+    with tqdm(total=len(models) * len(rates), unit="eval", desc="metrics", disable=not progress,
+              dynamic_ncols=True) as bar:
+        for model in models:
+            for rate in rates:
+                dets = detections[(model, rate)]
+                results[(model, rate)] = evaluate(gt, dets, conf=report_conf)
+                rng = np.random.default_rng(BOOTSTRAP_SEED)
+                ci50[(model, rate)] = bootstrap_ci(gt, dets, n_boot, rng=rng, metric="ap50")
+                ci5095[(model, rate)] = bootstrap_ci(gt, dets, n_boot, rng=rng, metric="ap50_95")
+                bar.update(1)
+    clean_rate = 0.0 if 0.0 in rates else rates[0]
+    records = metric_records(results, [ci50, ci5095], clean_rate=clean_rate)
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    paths["metrics.json"], paths["metrics.csv"] = write_metrics(records, out_dir)
+    paths["images.json"] = out_dir / "images.json"
+    paths["images.json"].write_text(json.dumps(
+        [{"id": i, "shard": shard.name, "frame": frame} for i, shard, frame in images], indent=1) + "\n",
+        encoding="utf-8")
+    paths["report.md"] = out_dir / "report.md"
+    paths["report.md"].write_text(render_report_md(records, paper=PAPER_TABLES, clean_rate=clean_rate),
+                                  encoding="utf-8")
+    paths["ap50_vs_rate.png"] = plot_metric_vs_rate(records, "ap50", out_dir / "ap50_vs_rate.png")
+    paths["f1_vs_rate.png"] = plot_metric_vs_rate(records, "f1", out_dir / "f1_vs_rate.png")
+
+    # The frame with the most labels (the first such), across rates, with the first model's boxes.
+    counts: dict[int, int] = {}
+    for annotation in gt["annotations"]:
+        counts[annotation["image_id"]] = counts.get(annotation["image_id"], 0) + 1
+    strip_id = max(sorted(image_ids), key=lambda i: counts.get(i, 0))
+    _, strip_shard, strip_frame = images[strip_id - 1]
+    with open_shard(strip_shard) as handle:
+        frames_by_rate = {rate: handle["rgb"][index, strip_frame] for index, rate in enumerate(rates)}
+    strip_dets = {rate: [d for d in detections[(models[0], rate)] if d["image_id"] == strip_id] for rate in rates}
+    paths["detections_strip.png"] = plot_detection_strip(frames_by_rate, strip_dets,
+                                                         out_dir / "detections_strip.png",
+                                                         class_names=CLASS_NAMES, min_score=report_conf)
+    return EvalOutputs(records=records, paths=paths, inference_runs=inference_runs)

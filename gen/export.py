@@ -1,0 +1,319 @@
+"""Dataset exports: YOLO folders (trainable with ultralytics) and COCO JSON, one per rain rate.
+
+Both exports number images with :func:`rainbench.gen.dataset.image_index` (1-based, manifest
+shard order, then frame order), the numbering used everywhere in rainbench, so an exported
+image ``000007.png`` is image id 7 in evaluation too.
+
+Layout of ``out_dir`` (``<token>`` is :func:`rate_token` of the rate, e.g. ``0``, ``12.5``):
+
+- YOLO: ``rate_<token>/images/<id:06d>.png``, ``rate_<token>/labels/<id:06d>.txt``,
+  ``rate_<token>/data.yaml``;
+- COCO: ``rate_<token>.json`` whose ``file_name`` s are ``rate_<token>/images/<id:06d>.png``
+  (relative to ``out_dir``; the images are written there too unless ``images=False``).
+
+Boxes in shards are float32 ``x1, y1, x2, y2`` in pixel-edge coordinates (docs/format.md).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .dataset import DatasetError, image_index, list_shards
+from .shard import open_shard, read_frame_labels
+
+IMAGE_FORMATS = ("png", "jpg")
+_JPEG_QUALITY = 95
+
+
+class ExportError(DatasetError):
+    """An export request that cannot be honoured; the message is one line naming the thing."""
+
+
+def rate_token(rate: float) -> str:
+    """Shortest decimal of ``rate`` as stored in shards (float32): 0 -> "0", 12.5 -> "12.5",
+    100 -> "100", 0.1 -> "0.1". Used in folder and file names (``rate_<token>``)."""
+    value = float(rate)
+    if not np.isfinite(value) or value < 0:
+        raise ExportError(f"rate: expected a finite rate >= 0 mm/h, got {rate!r}")
+    return np.format_float_positional(np.float32(value), trim="-")
+
+
+def dataset_rates(shards: Sequence[Path], rates: Sequence[float] | None = None) -> list[float]:
+    """The rates to export (float32 values as Python floats, in the requested order).
+
+    ``rates=None``: the rates of the first shard (ascending). Every selected rate must be in
+    every shard; otherwise one-line :class:`ExportError` naming the rate (and the shard).
+    """
+    per_shard = []
+    for path in shards:
+        with open_shard(path) as handle:
+            per_shard.append((Path(path), handle["rates"][:].astype(np.float32)))
+    if rates is None:
+        selected = [float(rate) for rate in per_shard[0][1]]
+    else:
+        try:
+            if isinstance(rates, (str, bytes)):
+                raise TypeError
+            rates = list(rates)
+        except TypeError as error:
+            raise ExportError(f"rates: expected a list of rates in mm/h, got {rates!r}") \
+                from error
+        if len(rates) == 0:
+            raise ExportError("rates: expected at least one rate, got an empty list")
+        selected = []
+        for rate in rates:
+            try:
+                value = float(np.float32(float(rate)))
+            except (TypeError, ValueError) as error:
+                raise ExportError(f"rates: {rate!r} is not a number") from error
+            rate_token(value)
+            if value not in selected:
+                selected.append(value)
+    for value in selected:
+        for path, shard_rates in per_shard:
+            if not np.any(shard_rates == np.float32(value)):
+                available = ", ".join(f"{r:g}" for r in shard_rates)
+                raise ExportError(f"rate {value:g} mm/h is not in the dataset ({path.name} has "
+                                  f"{available})")
+    return selected
+
+
+def _class_names(shards: Sequence[Path]) -> list[str]:
+    names = None
+    for path in shards:
+        with open_shard(path) as handle:
+            current = json.loads(handle.attrs["class_names"])
+        if names is None:
+            names = current
+        elif current != names:
+            raise ExportError(f"{path}: class_names {current} differ from the first shard's "
+                              f"{names}")
+    return names
+
+
+def _prepare_out_dir(out_dir: Path, overwrite: bool, targets: Sequence[Path]) -> None:
+    """Refuse a non-empty ``out_dir`` unless ``overwrite``; then remove only ``targets``."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ExportError(f"OUT: {out_dir} exists and is not a directory")
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        if not overwrite:
+            raise ExportError(f"OUT: {out_dir} is not empty; use --overwrite or choose another "
+                              "directory")
+        for target in targets:
+            if target.is_dir():
+                shutil.rmtree(target)
+            elif target.exists():
+                target.unlink()
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _check_image_format(image_format: str) -> str:
+    if image_format not in IMAGE_FORMATS:
+        raise ExportError(f"image_format: expected one of {', '.join(IMAGE_FORMATS)}, got "
+                          f"{image_format!r}")
+    return image_format
+
+
+def _write_image(path: Path, rgb: np.ndarray) -> None:
+    """Write an (H, W, 3) uint8 RGB image (PNG lossless, JPEG quality 95)."""
+    params = [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY] if path.suffix == ".jpg" else []
+    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1]), params):
+        raise OSError(f"{path}: could not write the image")
+
+
+def _walk(shards: Sequence[Path], rates: Sequence[float]):
+    """Yield ``(image_id, shard_path, frame, rgb_by_rate, labels, (height, width))``.
+
+    ``rgb_by_rate``: list of (H, W, 3) uint8 RGB images, one per rate of ``rates`` (in that
+    order); ``labels``: :func:`read_frame_labels` of the frame (``bbox`` (M, 4) xyxy
+    pixel-edge float32, ``class_id`` (M,) int32, ...; ``rain_coverage`` and ``contrast_loss``
+    (R, M) sliced to the rates of ``rates``).
+    """
+    index = image_index(shards)
+    handle, current, positions = None, None, None
+    try:
+        for image_id, path, frame in index:
+            if path != current:
+                if handle is not None:
+                    handle.close()
+                handle, current = open_shard(path), path
+                shard_rates = handle["rates"][:].astype(np.float32)
+                positions = [int(np.flatnonzero(shard_rates == np.float32(r))[0]) for r in rates]
+            labels = read_frame_labels(handle, frame)
+            for key in ("rain_coverage", "contrast_loss"):
+                if key in labels:
+                    labels[key] = labels[key][positions]
+            rgb = [handle["rgb"][position, frame] for position in positions]
+            size = (int(handle.attrs["height"]), int(handle.attrs["width"]))
+            yield image_id, path, frame, rgb, labels, size
+    finally:
+        if handle is not None:
+            handle.close()
+
+
+def _yolo_lines(boxes: np.ndarray, class_ids: np.ndarray, width: int, height: int) -> str:
+    """YOLO label text: ``class cx cy w h`` per box, normalised to [0, 1], 6 decimals."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    x1, y1, x2, y2 = boxes.T
+    columns = np.stack([(x1 + x2) / 2 / width, (y1 + y2) / 2 / height,
+                        (x2 - x1) / width, (y2 - y1) / height], axis=1)
+    columns = np.clip(columns, 0.0, 1.0)
+    return "".join(f"{int(c)} {cx:.6f} {cy:.6f} {w:.6f} {h:.6f}\n"
+                   for c, (cx, cy, w, h) in zip(class_ids, columns))
+
+
+def _data_yaml(folder: Path, names: Sequence[str], image_dir: str = "images") -> str:
+    # JSON strings are valid YAML double-quoted scalars, so names and paths need no escaping.
+    lines = [f"path: {json.dumps(str(folder.resolve()))}", f"train: {image_dir}",
+             f"val: {image_dir}", f"nc: {len(names)}", "names:"]
+    lines += [f"  {i}: {json.dumps(name)}" for i, name in enumerate(names)]
+    return "\n".join(lines) + "\n"
+
+
+def export_yolo(data, out_dir, *, rates: Sequence[float] | None = None,
+                image_format: str = "png", overwrite: bool = False) -> list[Path]:
+    """Export the dataset ``data`` (a dataset directory, a shard, or a list of shards) as one
+    ultralytics YOLO folder per rain rate; returns the ``data.yaml`` paths (in rate order).
+
+    ``out_dir/rate_<token>/``: ``images/<id:06d>.<image_format>`` (RGB of the shard, lossless
+    for png), ``labels/<id:06d>.txt`` (one ``class cx cy w h`` line per box: the shard's xyxy
+    pixel-edge ``bbox`` normalised by the image size, 6 decimals; an empty file for no boxes),
+    ``data.yaml`` (``path`` absolute, ``train``/``val`` = ``images``, ``names`` by class id):
+    ``YOLO("yolo11n.pt").train(data=".../rate_0/data.yaml")`` trains on it directly.
+
+    ``rates=None`` exports every rate of the dataset; a rate not in the dataset raises
+    :class:`ExportError`. A non-empty ``out_dir`` raises unless ``overwrite`` (then the
+    ``rate_<token>/`` folders of the exported rates are replaced; other files are left alone).
+    """
+    _check_image_format(image_format)
+    shards = list_shards(data)
+    selected = dataset_rates(shards, rates)
+    names = _class_names(shards)
+    out_dir = Path(out_dir)
+    folders = [out_dir / f"rate_{rate_token(rate)}" for rate in selected]
+    _prepare_out_dir(out_dir, overwrite, folders)
+    for folder in folders:
+        (folder / "images").mkdir(parents=True, exist_ok=True)
+        (folder / "labels").mkdir(parents=True, exist_ok=True)
+    for image_id, _path, _frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected):
+        text = _yolo_lines(labels["bbox"], labels["class_id"], width, height)
+        for folder, rgb in zip(folders, rgb_by_rate):
+            _write_image(folder / "images" / f"{image_id:06d}.{image_format}", rgb)
+            (folder / "labels" / f"{image_id:06d}.txt").write_text(text)
+    paths = []
+    for folder in folders:
+        path = folder / "data.yaml"
+        path.write_text(_data_yaml(folder, names))
+        paths.append(path)
+    return paths
+
+
+def read_yolo_labels(txt_path, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Read a YOLO label file back to pixels: boxes (M, 4) float32 xyxy pixel-edge and
+    class ids (M,) int32 (M = 0 for an empty file). Malformed lines raise naming file and line."""
+    txt_path = Path(txt_path)
+    boxes, class_ids = [], []
+    for number, line in enumerate(txt_path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        fields = line.split()
+        try:
+            if len(fields) != 5:
+                raise ValueError(f"expected 5 fields, got {len(fields)}")
+            class_id = int(fields[0])
+            cx, cy, w, h = (float(value) for value in fields[1:])
+        except ValueError as error:
+            raise ExportError(f"{txt_path}:{number}: not a YOLO box line ({error})") from error
+        boxes.append([(cx - w / 2) * width, (cy - h / 2) * height,
+                      (cx + w / 2) * width, (cy + h / 2) * height])
+        class_ids.append(class_id)
+    return (np.asarray(boxes, dtype=np.float32).reshape(-1, 4),
+            np.asarray(class_ids, dtype=np.int32))
+
+
+def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: bool = True,
+                image_format: str = "png", overwrite: bool = False) -> list[Path]:
+    """Export the dataset ``data`` as one COCO detection JSON per rain rate; returns the JSON
+    paths ``out_dir/rate_<token>.json`` (in rate order).
+
+    - ``images``: ``id`` = rainbench image id (1-based, :func:`image_index`), ``file_name``
+      ``rate_<token>/images/<id:06d>.png`` relative to ``out_dir``, ``width``, ``height``,
+      ``shard`` (shard file path relative to the dataset directory), ``frame`` (index in it);
+    - ``annotations``: ``id`` 1-based, ``image_id``, ``category_id`` = rainbench class id
+      (COCO-80 index, 0 = person), ``bbox`` ``[x, y, w, h]`` from the shard's xyxy pixel-edge
+      box, ``area`` = w * h, ``iscrowd`` 0, plus ``visible_fraction``, ``truncation``,
+      ``instance_id`` and, at this rate, ``rain_coverage`` and ``contrast_loss``;
+    - ``categories``: ``{"id": i, "name": class_names[i], "supercategory": "object"}``.
+
+    ``images=True`` also writes the images at the ``file_name`` paths (the same files as
+    :func:`export_yolo`, so both exports can share one ``out_dir`` with ``overwrite=True``).
+    Rate selection and ``overwrite`` as in :func:`export_yolo` (replaced: ``rate_<token>.json``
+    and, with ``images``, ``rate_<token>/images/``).
+    """
+    _check_image_format(image_format)
+    shards = list_shards(data)
+    selected = dataset_rates(shards, rates)
+    names = _class_names(shards)
+    out_dir = Path(out_dir)
+    tokens = [rate_token(rate) for rate in selected]
+    targets = [out_dir / f"rate_{token}.json" for token in tokens]
+    if images:
+        targets += [out_dir / f"rate_{token}" / "images" for token in tokens]
+    _prepare_out_dir(out_dir, overwrite, targets)
+    if images:
+        for token in tokens:
+            (out_dir / f"rate_{token}" / "images").mkdir(parents=True, exist_ok=True)
+    root = Path(data) if not isinstance(data, (list, tuple)) and Path(data).is_dir() else None
+    image_records, annotation_records = [], []  # rate-independent parts; file_name added later
+    per_rate_extra: list[list[tuple[float, float]]] = []  # (rain_coverage, contrast_loss)
+    for image_id, path, frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected):
+        try:
+            shard = path.relative_to(root).as_posix() if root is not None else path.name
+        except ValueError:
+            shard = path.name
+        image_records.append({"id": image_id, "width": width, "height": height,
+                              "shard": shard, "frame": frame})
+        if images:
+            for token, rgb in zip(tokens, rgb_by_rate):
+                _write_image(out_dir / f"rate_{token}" / "images" /
+                             f"{image_id:06d}.{image_format}", rgb)
+        count = labels["bbox"].shape[0]
+        coverage = labels.get("rain_coverage", np.zeros((len(selected), count), np.float32))
+        contrast = labels.get("contrast_loss", np.zeros((len(selected), count), np.float32))
+        for row in range(count):
+            x1, y1, x2, y2 = (float(value) for value in labels["bbox"][row])
+            w, h = x2 - x1, y2 - y1
+            annotation_records.append({
+                "id": len(annotation_records) + 1, "image_id": image_id,
+                "category_id": int(labels["class_id"][row]), "bbox": [x1, y1, w, h],
+                "area": w * h, "iscrowd": 0,
+                "visible_fraction": float(labels["visible_fraction"][row]),
+                "truncation": float(labels["truncation"][row]),
+                "instance_id": int(labels["instance_id"][row]),
+            })
+            per_rate_extra.append([(float(coverage[r, row]), float(contrast[r, row]))
+                                   for r in range(len(selected))])
+    categories = [{"id": i, "name": name, "supercategory": "object"}
+                  for i, name in enumerate(names)]
+    paths = []
+    for position, (rate, token) in enumerate(zip(selected, tokens)):
+        payload = {
+            "info": {"description": "rainbench export", "rate_mm_h": rate},
+            "images": [dict(record, file_name=f"rate_{token}/images/{record['id']:06d}."
+                                              f"{image_format}")
+                       for record in image_records],
+            "annotations": [dict(record, rain_coverage=extra[position][0],
+                                 contrast_loss=extra[position][1])
+                            for record, extra in zip(annotation_records, per_rate_extra)],
+            "categories": categories,
+        }
+        path = out_dir / f"rate_{token}.json"
+        path.write_text(json.dumps(payload))
+        paths.append(path)
+    return paths

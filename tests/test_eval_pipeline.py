@@ -1,0 +1,293 @@
+"""rainbench eval: the pipeline on a tiny shard, prediction files, caching, backends, CLI errors."""
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from rainbench import cli
+from rainbench.eval import backends, pipeline
+from rainbench.eval.metrics import CLASS_NAMES
+from rainbench.gen.generate import GenerateConfig, generate_shard
+from rainbench.gen.shard import open_shard, read_frame_labels
+
+# torch (through torch._dynamo) loads triton, whose bundled LLVM segfaults when it is loaded
+# after Mesa's llvmpipe has rendered in the same process (seen here: generate a shard, then
+# import triton -> SIGSEGV). Loaded at collection, before any fixture renders, it is fine.
+backends._offline_ultralytics()
+import torch._dynamo  # noqa: E402,F401
+import ultralytics  # noqa: E402,F401
+
+RATES = (0.0, 50.0)
+RECORD_KEYS = {"model", "rate", "class", "ap50", "ap50_95", "precision", "recall", "f1", "n_gt"}
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data")
+    generate_shard(GenerateConfig(frames=2, width=96, height=72, rates=RATES), out)
+    return out
+
+
+def _perfect_records(data_dir):
+    """COCO results equal to the shard's own labels, score 1."""
+    records = []
+    for image_id, shard, frame in pipeline.dataset_images(data_dir):
+        with open_shard(shard) as handle:
+            labels = read_frame_labels(handle, frame)
+        for box, class_id in zip(labels["bbox"].tolist(), labels["class_id"].tolist()):
+            records.append({"image_id": image_id, "category_id": int(class_id),
+                            "bbox": [box[0], box[1], box[2] - box[0], box[3] - box[1]], "score": 1.0})
+    return records
+
+
+def _write_predictions(root, model, records, rates=RATES):
+    for rate in rates:
+        path = root / model / f"rate_{pipeline.rate_token(rate)}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(records))
+
+
+def _run(capsys, *argv):
+    code = cli.main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _one_line_error(err, *fragments):
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("rainbench: error: "), err
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, err)
+
+
+@pytest.mark.parametrize("rate, token", [(0, "0"), (0.0, "0"), (12.5, "12.5"), (100, "100"),
+                                         (np.float32(0.1), "0.1"), (10.0, "10"), (2.25, "2.25")])
+def test_rate_token_is_the_shortest_decimal(rate, token):
+    assert pipeline.rate_token(rate) == token
+
+
+@pytest.mark.parametrize("rate", [-1.0, math.nan, math.inf])
+def test_rate_token_rejects_bad_rates(rate):
+    with pytest.raises(ValueError, match="rate"):
+        pipeline.rate_token(rate)
+
+
+def test_dataset_images_numbering_and_errors(data_dir, tmp_path):
+    images = pipeline.dataset_images(data_dir)
+    assert [(i, s.name, f) for i, s, f in images] == [(1, "scene000000_f00000.h5", 0),
+                                                      (2, "scene000000_f00000.h5", 1)]
+    assert pipeline.dataset_rates(data_dir) == list(RATES)
+    # A second shard sorts after the first: ids continue in shard order.
+    two = tmp_path / "two"
+    two.mkdir()
+    shutil.copy(data_dir / "scene000000_f00000.h5", two / "scene000000_f00002.h5")
+    shutil.copy(data_dir / "scene000000_f00000.h5", two / "scene000000_f00000.h5")
+    assert [(i, s.name, f) for i, s, f in pipeline.dataset_images(two)] == [
+        (1, "scene000000_f00000.h5", 0), (2, "scene000000_f00000.h5", 1),
+        (3, "scene000000_f00002.h5", 0), (4, "scene000000_f00002.h5", 1)]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(pipeline.EvalError, match="no shard"):
+        pipeline.dataset_images(tmp_path / "empty")
+    with pytest.raises(pipeline.EvalError, match="not a directory"):
+        pipeline.dataset_images(tmp_path / "missing")
+    gt = pipeline.ground_truth(images)
+    assert [im["id"] for im in gt["images"]] == [1, 2]
+    assert gt["images"][0]["width"] == 96 and gt["images"][0]["height"] == 72
+
+
+def test_mixed_rates_are_an_error(data_dir, tmp_path):
+    other = tmp_path / "other"
+    generate_shard(GenerateConfig(seed=1, frames=1, width=96, height=72, rates=(0.0, 100.0)), other)
+    shutil.copy(data_dir / "scene000000_f00000.h5", other / "scene000000_f00000.h5")
+    with pytest.raises(pipeline.EvalError, match="same rates"):
+        pipeline.dataset_images(other)
+
+
+def test_predictions_mode_end_to_end_perfect_predictions(data_dir, tmp_path, capsys):
+    records = _perfect_records(data_dir)
+    assert records, "the tiny shard should hold at least one label"
+    preds = tmp_path / "preds"
+    _write_predictions(preds, "perfect", records)
+    out = tmp_path / "results"
+    code, stdout, err = _run(capsys, "eval", "--data", data_dir, "--predictions", preds, "--out", out,
+                             "--n-boot", "20", "--quiet")
+    assert code == 0, err
+    assert stdout.strip() == str(out / "report.md")
+    for name in ("metrics.json", "metrics.csv", "images.json", "report.md", "ap50_vs_rate.png",
+                 "f1_vs_rate.png", "detections_strip.png"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert len(metrics) == len(RATES) * len(CLASS_NAMES)
+    assert {(m["model"], m["rate"], m["class"]) for m in metrics} == {
+        ("perfect", rate, name) for rate in RATES for name in CLASS_NAMES}
+    for record in metrics:
+        assert RECORD_KEYS <= set(record)
+        if record["n_gt"] > 0:
+            assert record["ap50"] == pytest.approx(1.0) and record["ap50_95"] == pytest.approx(1.0)
+            assert record["f1"] == pytest.approx(1.0, abs=1e-3)
+        else:
+            assert record["ap50"] is None  # nan -> null
+    present = {r["category_id"] for r in records}
+    assert {m["class"] for m in metrics if m["n_gt"] > 0} == {CLASS_NAMES[c] for c in present}
+    assert json.loads((out / "images.json").read_text()) == [
+        {"id": 1, "shard": "scene000000_f00000.h5", "frame": 0},
+        {"id": 2, "shard": "scene000000_f00000.h5", "frame": 1}]
+    report = (out / "report.md").read_text()
+    assert "## Table III. AP@0.5 degradation, Normal vs 50mm/h" in report
+    assert "## Table IV. F1 degradation" in report
+    assert "| perfect | Normal | 1.000 |" in report and "|  | % drop | 0.00 |" in report
+
+
+def test_bad_prediction_files_name_the_file(data_dir, tmp_path):
+    records = _perfect_records(data_dir)
+    preds = tmp_path / "preds"
+    _write_predictions(preds, "m", records, rates=(0.0,))
+    with pytest.raises(pipeline.EvalError, match="rate_50.json is missing"):
+        pipeline.run_eval(data_dir, tmp_path / "out", predictions_dir=preds, n_boot=5, progress=False)
+    (preds / "m" / "rate_50.json").write_text("[{not json")
+    with pytest.raises(pipeline.EvalError, match="rate_50.json is not valid JSON"):
+        pipeline.run_eval(data_dir, tmp_path / "out", predictions_dir=preds, n_boot=5, progress=False)
+    bad_class = [dict(records[0], category_id=7)]
+    (preds / "m" / "rate_50.json").write_text(json.dumps(bad_class))
+    with pytest.raises(pipeline.EvalError, match="rate_50.json: record 0: category_id 7"):
+        pipeline.run_eval(data_dir, tmp_path / "out", predictions_dir=preds, n_boot=5, progress=False)
+    (preds / "m" / "rate_50.json").write_text(json.dumps([dict(records[0], image_id=99)]))
+    with pytest.raises(pipeline.EvalError, match="image_id 99 is not an image"):
+        pipeline.run_eval(data_dir, tmp_path / "out", predictions_dir=preds, n_boot=5, progress=False)
+
+
+class _FakeDetector:
+    """Returns the frame's own labels (found by image equality) as detections; counts calls."""
+
+    def __init__(self, name, truth):
+        self.name, self.truth, self.calls = name, truth, 0
+
+    def predict(self, images, *, imgsz, conf, iou, max_det):
+        self.calls += 1
+        outputs = []
+        for image in images:
+            boxes, class_ids = self.truth(image)
+            outputs.append((boxes, np.full(len(boxes), 0.9, np.float32), class_ids))
+        return outputs
+
+
+def test_backend_detections_are_cached_and_reused(data_dir, tmp_path, monkeypatch):
+    by_bytes = {}
+    for _, shard, frame in pipeline.dataset_images(data_dir):
+        with open_shard(shard) as handle:
+            labels = read_frame_labels(handle, frame)
+            for rate_index in range(len(RATES)):
+                by_bytes[handle["rgb"][rate_index, frame].tobytes()] = (labels["bbox"], labels["class_id"])
+    loads = []
+
+    def fake_load(weights, *, class_map=None, device=None):
+        detector = _FakeDetector(weights.stem, lambda image: by_bytes[np.asarray(image).tobytes()])
+        loads.append(detector)
+        return detector
+
+    monkeypatch.setattr(backends, "load_detector", fake_load)
+    weights = tmp_path / "fake.pt"
+    weights.write_bytes(b"not used")
+    out = tmp_path / "out"
+    first = pipeline.run_eval(data_dir, out, weights=[weights], n_boot=5, batch=1, progress=False)
+    assert first.inference_runs == len(RATES) and len(loads) == 1 and loads[0].calls == 2 * len(RATES)
+    for rate in RATES:
+        assert (out / "predictions" / "fake" / f"rate_{pipeline.rate_token(rate)}.json").is_file()
+    assert all(r["ap50"] == pytest.approx(1.0) for r in first.records if r["n_gt"] > 0)
+    second = pipeline.run_eval(data_dir, out, weights=[weights], n_boot=5, progress=False)
+    assert second.inference_runs == 0 and len(loads) == 1
+    assert json.dumps(second.records) == json.dumps(first.records)
+    forced = pipeline.run_eval(data_dir, out, weights=[weights], n_boot=5, force=True, progress=False)
+    assert forced.inference_runs == len(RATES) and len(loads) == 2
+    # Other settings invalidate the cache.
+    pipeline.run_eval(data_dir, out, weights=[weights], n_boot=5, conf=0.2, progress=False)
+    assert len(loads) == 3
+
+
+def test_class_map_logic_with_fake_names():
+    coco = {i: n for i, n in enumerate(["person", "bicycle", "car", "motorcycle", "airplane", "bus"])}
+    assert backends.class_lookup(coco, None, "m").tolist() == [0, 1, 2, 3, -1, -1]
+    other = {0: "pedestrian", 1: "car", 2: "truck"}
+    with pytest.raises(backends.BackendError, match="not COCO-80; pass --class-map"):
+        backends.class_lookup(other, None, "m")
+    assert backends.class_lookup(other, "car=2,pedestrian=0", "m").tolist() == [0, 2, -1]
+    assert backends.class_lookup(["a", "b"], "b=3", "m").tolist() == [-1, 3]
+    with pytest.raises(backends.BackendError, match="no class named 'bus'"):
+        backends.class_lookup(other, "bus=2", "m")
+    assert backends.parse_class_map(" car = 2 , pedestrian=0") == {"car": 2, "pedestrian": 0}
+    for spec in ("car", "car=9", "car=x", "=2", "", "car=2,car=1"):
+        with pytest.raises(backends.BackendError, match="--class-map"):
+            backends.parse_class_map(spec)
+
+
+@pytest.fixture(scope="module")
+def tiny_yolo(tmp_path_factory):
+    """A yolo11n with random weights and COCO-80 names, saved as a .pt (no download)."""
+    backends._offline_ultralytics()
+    from ultralytics import YOLO
+
+    path = tmp_path_factory.mktemp("weights") / "tiny11n.pt"
+    model = YOLO("yolo11n.yaml")
+    coco = ["person", "bicycle", "car", "motorcycle"] + [f"coco{i}" for i in range(4, 80)]
+    model.model.names = dict(enumerate(coco))
+    model.save(str(path))
+    return path
+
+
+def test_ultralytics_backend_end_to_end(data_dir, tiny_yolo, tmp_path):
+    detector = backends.load_detector(tiny_yolo, device="cpu")
+    assert detector.name == "tiny11n"
+    images = []
+    for _, shard, frame in pipeline.dataset_images(data_dir):
+        with open_shard(shard) as handle:
+            images.append(handle["rgb"][1, frame])
+    outputs = detector.predict(images, imgsz=96, conf=0.0001, iou=0.7, max_det=50)
+    assert len(outputs) == 2
+    for boxes, scores, class_ids in outputs:
+        assert boxes.dtype == np.float32 and boxes.ndim == 2 and boxes.shape[1] == 4
+        assert scores.shape == class_ids.shape == (len(boxes),) and len(boxes) <= 50
+        assert set(class_ids.tolist()) <= {0, 1, 2, 3}
+        assert (boxes[:, 0] >= 0).all() and (boxes[:, 2] <= 96).all()
+        assert (boxes[:, 1] >= 0).all() and (boxes[:, 3] <= 72).all()
+        assert (boxes[:, 2] >= boxes[:, 0]).all() and (boxes[:, 3] >= boxes[:, 1]).all()
+    # The whole pipeline on the real backend.
+    result = pipeline.run_eval(data_dir, tmp_path / "out", weights=[tiny_yolo], imgsz=96, n_boot=5,
+                               device="cpu", progress=False)
+    assert result.inference_runs == len(RATES)
+    assert {r["model"] for r in result.records} == {"tiny11n"}
+    # Non-COCO names need a class map.
+    with pytest.raises(backends.BackendError, match="not COCO-80"):
+        backends.class_lookup(detector.model.names | {0: "ped"}, None, "x")
+
+
+def test_cli_one_line_errors(data_dir, tmp_path, capsys):
+    out = tmp_path / "out"
+    code, _, err = _run(capsys, "eval", "--data", data_dir, "--weights", tmp_path / "nope.pt", "--out", out)
+    assert code == 2
+    _one_line_error(err, "nope.pt does not exist")
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"garbage")
+    code, _, err = _run(capsys, "eval", "--data", data_dir, "--weights", garbage, "--out", out, "--quiet")
+    assert code == 2
+    _one_line_error(err, "garbage.pt is not a loadable ultralytics checkpoint")
+    code, _, err = _run(capsys, "eval", "--data", data_dir, "--weights", garbage, "--out", out,
+                        "--class-map", "car=7")
+    assert code == 2
+    _one_line_error(err, "--class-map")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, _, err = _run(capsys, "eval", "--data", empty, "--predictions", tmp_path, "--out", out)
+    assert code == 2
+    _one_line_error(err, "no shard", str(empty))
+    preds = tmp_path / "preds"
+    _write_predictions(preds, "m", [], rates=(0.0,))
+    code, _, err = _run(capsys, "eval", "--data", data_dir, "--predictions", preds, "--out", out)
+    assert code == 2
+    _one_line_error(err, "rate_50.json is missing")
+    code, _, err = _run(capsys, "eval", "--data", data_dir, "--out", out)
+    assert code == 2
+    _one_line_error(err, "exactly one of --weights")
