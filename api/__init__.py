@@ -11,3 +11,12 @@ from rainbench.gen import gl as _gl
 GL_BACKEND = _gl.configure(_os.environ)
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    """Lazy public API: ``from rainbench import ShardDataset, ShardReader`` (imports torch)."""
+    if name in ("ShardDataset", "ShardReader"):
+        from rainbench.gen import reader
+
+        return getattr(reader, name)
+    raise AttributeError(f"module 'rainbench' has no attribute {name!r}")

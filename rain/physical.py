@@ -51,7 +51,10 @@ MIN_BLUR_SIGMA_PX = 0.35
 
 
 def marshall_palmer_slope(rate_mm_h: float | np.ndarray) -> float | np.ndarray:
-    """Lambda(R) = 4.1 R^-0.21 in mm^-1, for R > 0 mm/h (inf at R = 0)."""
+    """Lambda(R) = 4.1 R^-0.21 in mm^-1 for a rate R in mm/h (inf at R = 0).
+
+    Scalar in, float out; array in, float64 array of the same shape out.
+    """
     rate = np.asarray(rate_mm_h, dtype=np.float64)
     with np.errstate(divide="ignore"):
         slope = MP_LAMBDA_COEF * np.power(rate, -MP_LAMBDA_EXP)
@@ -87,13 +90,19 @@ def sample_marshall_palmer_diameters(rng: np.random.Generator, count: int, rate_
 
 
 def terminal_velocity(diameter_mm: float | np.ndarray) -> float | np.ndarray:
-    """Atlas et al. (1973): v = 9.65 - 10.3 exp(-0.6 D) m/s (D in mm), floored at 0."""
+    """Atlas et al. (1973): v = 9.65 - 10.3 exp(-0.6 D) m/s (D in mm), floored at 0.
+
+    Scalar in, float out; array in, float64 array of the same shape out.
+    """
     velocity = np.maximum(VELOCITY_MAX_M_S - VELOCITY_COEF_M_S * np.exp(-VELOCITY_RATE_PER_MM * np.asarray(diameter_mm, dtype=np.float64)), 0.0)
     return float(velocity) if velocity.ndim == 0 else velocity
 
 
 def extinction_coefficient(rate_mm_h: float | np.ndarray) -> float | np.ndarray:
-    """Weber et al. (2015): beta = 0.312 R^0.67 in km^-1 (0 at R = 0)."""
+    """Weber et al. (2015): beta = 0.312 R^0.67 in km^-1 for a rate R in mm/h (0 at R = 0).
+
+    Scalar in, float out; array in, float64 array of the same shape out.
+    """
     beta = EXTINCTION_COEF_PER_KM * np.power(np.asarray(rate_mm_h, dtype=np.float64), EXTINCTION_EXP)
     return float(beta) if beta.ndim == 0 else beta
 
@@ -105,7 +114,8 @@ def visibility_km(rate_mm_h: float) -> float:
 
 
 def frustum_volume_m3(K: np.ndarray, height: int, width: int, z_near_m: float, z_far_m: float) -> float:
-    """Volume of the camera frustum between two depths.
+    """Volume in m^3 of the camera frustum (K (3, 3) intrinsics in pixels, image H x W) between
+    two depths in metres.
 
     ``(1/3) (W / fx) (H / fy) (z_far^3 - z_near^3)``, equal to
     ``(4/3) tan(hfov/2) tan(vfov/2) (z_far^3 - z_near^3)`` for a centred principal point.
@@ -115,7 +125,16 @@ def frustum_volume_m3(K: np.ndarray, height: int, width: int, z_near_m: float, z
 
 
 def defocus_diameter_px(depth_m: np.ndarray, *, focus_distance_m: float, focal_length_m: float, f_number: float, pixel_pitch_m: float) -> np.ndarray:
-    """Thin-lens circle of confusion in pixels: |z - z_f| f^2 / (z (z_f - f) N) / pitch."""
+    """Thin-lens circle of confusion in pixels: |z - z_f| f^2 / (z (z_f - f) N) / pitch.
+
+    Args:
+        depth_m: (N,) depths z in metres.
+        focus_distance_m: z_f in metres; focal_length_m: f in metres; f_number: N;
+        pixel_pitch_m: sensor pixel pitch in metres.
+
+    Returns:
+        (N,) float64 blur-circle diameters in pixels.
+    """
     depth = np.asarray(depth_m, dtype=np.float64)
     return np.abs(depth - focus_distance_m) * focal_length_m**2 / (depth * (focus_distance_m - focal_length_m) * f_number) / pixel_pitch_m
 
@@ -262,8 +281,15 @@ class StreakRaster:
 
 
 def blur_layer(blur_sigma_px: np.ndarray) -> np.ndarray:
-    """Blur layer of each drop: 0 below MIN_BLUR_SIGMA_PX, else 1 + the nearest level index in
-    log scale (levels BLUR_LEVELS_PX)."""
+    """Blur layer of each drop.
+
+    Args:
+        blur_sigma_px: (N,) float64 defocus sigma in pixels.
+
+    Returns:
+        (N,) int64: 0 below MIN_BLUR_SIGMA_PX (no blur), else 1 + the index of the nearest level
+        of BLUR_LEVELS_PX in log scale.
+    """
     sigma = np.asarray(blur_sigma_px, dtype=np.float64)
     with np.errstate(divide="ignore"):
         level = np.clip(np.rint(2.0 * np.log2(np.maximum(sigma, 1e-12) / BLUR_LEVELS_PX[0])), 0, len(BLUR_LEVELS_PX) - 1).astype(np.int64)

@@ -1,0 +1,205 @@
+"""Datasets: manifest, resume after crashes, verify, worker-count independence, Ray, readers."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from rainbench import ShardDataset, cli
+from rainbench.gen import dataset as ds
+from rainbench.gen.reader import ShardReader
+from rainbench.gen.shard import ShardWriter, read_frame_labels
+
+SMALL = dict(scenes=2, frames=4, frames_per_shard=2, width=96, height=72, rates=(0.0, 50.0))
+
+
+def _hashes(root):
+    manifest = json.loads((Path(root) / ds.MANIFEST).read_text())
+    return [(entry["path"], entry["sha256"]) for entry in manifest["shards"]]
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ds")
+    ds.run_dataset(ds.DatasetConfig(**SMALL), root, workers=1)
+    return root
+
+
+def test_manifest_lists_every_shard_in_order(dataset_dir):
+    manifest = json.loads((dataset_dir / ds.MANIFEST).read_text())
+    assert manifest["complete"] is True and manifest["config"]["scenes"] == 2
+    assert [(e["scene_seed"], e["frame_offset"], e["frames"]) for e in manifest["shards"]] == [
+        (0, 0, 2), (0, 2, 2), (1, 0, 2), (1, 2, 2)]
+    for entry in manifest["shards"]:
+        assert entry["bytes"] == (dataset_dir / entry["path"]).stat().st_size
+        assert entry["rates"] == [0.0, 50.0] and len(entry["sha256"]) == 64
+    ids = [image_id for image_id, _, _ in ds.image_index(ds.list_shards(dataset_dir))]
+    assert ids == list(range(1, 9))
+
+
+def test_split_shards_continue_one_clip(dataset_dir, tmp_path):
+    """Frames 2..3 of scene 0 equal frames 2..3 of the same scene rendered as one shard."""
+    whole = dict(SMALL, scenes=1, frames_per_shard=4)
+    ds.run_dataset(ds.DatasetConfig(**whole), tmp_path, workers=1)
+    with h5py.File(tmp_path / "scene000000_f00000.h5") as one, \
+            h5py.File(dataset_dir / "scene000000_f00002.h5") as part:
+        np.testing.assert_array_equal(one["rgb"][:, 2:4], part["rgb"][()])
+        np.testing.assert_array_equal(one["camera/T_world_cam"][2:4], part["camera/T_world_cam"][()])
+
+
+def test_two_workers_give_the_same_bytes(dataset_dir, tmp_path):
+    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=2)
+    assert _hashes(tmp_path) == _hashes(dataset_dir)
+
+
+def test_ray_executor_on_a_local_cluster(dataset_dir, tmp_path):
+    import ray  # the ray extra, installed by the Makefile
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, executor="ray")
+    finally:
+        ray.shutdown()
+    assert _hashes(tmp_path) == _hashes(dataset_dir)
+
+
+def test_resume_after_an_interrupted_run(dataset_dir, tmp_path):
+    frames_done = []
+
+    def crash(n):
+        frames_done.append(n)
+        if sum(frames_done) == 3:  # in the middle of the second shard
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1, progress=crash)
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["manifest.json", "scene000000_f00000.h5"]  # nothing partial, no temp file
+    assert json.loads((tmp_path / ds.MANIFEST).read_text())["complete"] is False
+    (tmp_path / ".scene000000_f00002.h5.tmp-99999").write_bytes(b"left by kill -9")
+    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1)
+    assert _hashes(tmp_path) == _hashes(dataset_dir)
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_kill_9_mid_run_then_resume(tmp_path):
+    out = tmp_path / "killed"
+    argv = [sys.executable, "-m", "rainbench.cli", "generate", "--out", str(out), "--scenes", "3",
+            "--frames", "6", "--frames-per-shard", "2", "--width", "96", "--height", "72",
+            "--workers", "1", "--quiet"]
+    process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while not (out / ds.MANIFEST).exists() and time.time() < deadline and process.poll() is None:
+        time.sleep(0.02)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    listed = {e["path"] for e in json.loads((out / ds.MANIFEST).read_text())["shards"]}
+    for shard in out.glob("scene*.h5"):  # every shard under a final name is complete
+        with h5py.File(shard) as handle:
+            assert handle["labels/offsets"].shape == (3,)
+    assert subprocess.run(argv, capture_output=True).returncode == 0
+    assert ds.verify_dataset(out) == []
+    assert len(json.loads((out / ds.MANIFEST).read_text())["shards"]) == 9 >= len(listed)
+
+
+def test_other_config_is_refused_unless_overwrite(dataset_dir, tmp_path, capsys):
+    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1)
+    other = dict(SMALL, rates=(0.0,))
+    with pytest.raises(ds.DatasetError, match="holds a dataset of another config"):
+        ds.run_dataset(ds.DatasetConfig(**other), tmp_path, workers=1)
+    ds.run_dataset(ds.DatasetConfig(**other), tmp_path, workers=1, overwrite=True)
+    assert ds.verify_dataset(tmp_path) == []
+    stranger = tmp_path / "stranger"
+    stranger.mkdir()
+    (stranger / "notes.txt").write_text("mine")
+    code = cli.main(["generate", "--out", str(stranger), "--frames", "2", "--width", "96",
+                     "--height", "72", "--quiet"])
+    assert code == 2 and "is not empty and has no manifest" in capsys.readouterr().err
+    assert sorted(p.name for p in stranger.iterdir()) == ["notes.txt"]
+
+
+def test_write_error_is_a_clear_error_and_leaves_nothing(tmp_path, capsys, monkeypatch):
+    def disk_full(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ShardWriter, "write_frame", disk_full)
+    code = cli.main(["generate", "--out", str(tmp_path), "--frames", "2", "--width", "96",
+                     "--height", "72", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "No space left on device" in err[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_verify_names_flipped_and_truncated_files(dataset_dir, tmp_path, capsys):
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    for path in dataset_dir.iterdir():
+        (copy / path.name).write_bytes(path.read_bytes())
+    assert cli.main(["verify", str(copy)]) == 0
+    flipped = copy / "scene000000_f00002.h5"
+    data = bytearray(flipped.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    flipped.write_bytes(bytes(data))
+    truncated = copy / "scene000001_f00000.h5"
+    truncated.write_bytes(truncated.read_bytes()[:4000])
+    capsys.readouterr()
+    assert cli.main(["verify", str(copy)]) == 1
+    err = capsys.readouterr().err
+    assert "scene000000_f00002.h5: sha256 differs" in err
+    assert "scene000001_f00000.h5: 4000 bytes" in err
+    assert "scene000000_f00000.h5" not in err
+
+
+def test_shard_dataset_through_a_two_worker_dataloader(dataset_dir):
+    dataset = ShardDataset(dataset_dir)
+    assert len(dataset) == 8 * 2 and dataset.rates == (0.0, 50.0)
+    loader = DataLoader(dataset, batch_size=3, num_workers=2, collate_fn=ShardDataset.collate_fn)
+    seen = []
+    with h5py.File(dataset_dir / "scene000001_f00002.h5") as check:
+        expected_boxes = read_frame_labels(check, 1)["bbox"]
+        expected_rgb = check["rgb"][1, 1]
+    for images, targets in loader:
+        for image, target in zip(images, targets):
+            assert image.dtype == torch.uint8 and image.shape == (3, 72, 96)
+            assert target["boxes"].dtype == torch.float32 and target["labels"].dtype == torch.int64
+            seen.append((target["image_id"], float(target["rate"])))
+            if target["shard"] == "scene000001_f00002.h5" and target["frame"] == 1 \
+                    and float(target["rate"]) == 50.0:
+                np.testing.assert_array_equal(target["boxes"].numpy(), expected_boxes)
+                np.testing.assert_array_equal(image.permute(1, 2, 0).numpy(), expected_rgb)
+    assert sorted(seen) == sorted((i, r) for i in range(1, 9) for r in (0.0, 50.0))
+
+
+def test_reader_filters_and_rate_selection(dataset_dir):
+    everything = ShardReader(dataset_dir, rates=[50])
+    cars_only = ShardReader(dataset_dir, rates=[50], classes=[2], min_visible_fraction=0.5)
+    assert len(everything) == 8
+    for index in range(8):
+        _, all_target = everything.sample(index)
+        _, target = cars_only.sample(index)
+        assert float(target["rate"]) == 50.0
+        keep = (all_target["labels"] == 2) & (all_target["visible_fraction"] >= 0.5)
+        np.testing.assert_array_equal(target["boxes"], all_target["boxes"][keep])
+    with pytest.raises(ds.DatasetError, match="has no rate 30 mm/h"):
+        ShardReader(dataset_dir, rates=[30])
+
+
+def test_reader_names_corrupt_and_future_shards(dataset_dir, tmp_path):
+    bad = tmp_path / "scene000000_f00000.h5"
+    bad.write_bytes((dataset_dir / "scene000000_f00000.h5").read_bytes()[:3000])
+    with pytest.raises(ValueError, match="scene000000_f00000.h5: not a readable HDF5 shard"):
+        ShardDataset(bad)
+    future = tmp_path / "scene000000_f00002.h5"
+    future.write_bytes((dataset_dir / "scene000000_f00002.h5").read_bytes())
+    with h5py.File(future, "a") as handle:
+        handle.attrs["format_version"] = 9
+    with pytest.raises(ValueError, match="scene000000_f00002.h5: unknown format_version 9"):
+        ShardDataset([future])
