@@ -123,7 +123,33 @@ def cmd_scene(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rate_list(text: str | None) -> list[float] | None:
+    if text is None:
+        return None
+    from rainbench.rain import parse_rates
+
+    return list(parse_rates(text))
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from rainbench.gen.export import export_coco, export_yolo
+
+    out = _writable_dir(Path(args.out), "--out")
+    export = export_yolo if args.format == "yolo" else export_coco
+    for path in export(args.data, out, rates=_rate_list(args.rates), overwrite=args.overwrite):
+        print(path)
+    return 0
+
+
 def cmd_preview(args: argparse.Namespace) -> int:
+    if args.video:
+        from rainbench.gen.video import write_videos
+
+        out = _writable_dir(Path(args.out or Path(args.shard) / "videos"), "--out")
+        for path in write_videos(args.shard, out, rates=_rate_list(args.rates),
+                                 boxes=args.boxes, overwrite=args.overwrite):
+            print(path)
+        return 0
     from rainbench.gen.preview import montage, write_png
     from rainbench.gen.shard import open_shard, read_frame_labels
 
@@ -219,7 +245,19 @@ def build_parser() -> argparse.ArgumentParser:
     preview.add_argument("--frame", type=int, default=0)
     preview.add_argument("--out", default=None, help="PNG path (default: beside the shard)")
     preview.add_argument("--boxes", action="store_true", help="draw the labels")
+    preview.add_argument("--video", action="store_true",
+                         help="one MP4 per rate over every frame instead (in --out, default "
+                              "DATA/videos)")
+    preview.add_argument("--rates", default=None, help="with --video: rates to write (RATES spec)")
+    preview.add_argument("--overwrite", action="store_true", help="with --video: replace videos")
     preview.set_defaults(run=cmd_preview)
+    export = sub.add_parser("export", help="export a dataset as YOLO folders or COCO JSON")
+    export.add_argument("data", help="dataset directory, or one shard")
+    export.add_argument("--format", choices=("yolo", "coco"), required=True)
+    export.add_argument("--out", required=True, help="export directory")
+    export.add_argument("--rates", default=None, help="rates to export (RATES spec; default all)")
+    export.add_argument("--overwrite", action="store_true")
+    export.set_defaults(run=cmd_export)
     evaluate = sub.add_parser("eval", help="AP / F1 per class and rain rate of detectors on a dataset")
     evaluate.add_argument("--data", required=True, help="dataset directory of scene*_f*.h5 shards")
     evaluate.add_argument("--weights", action="append", default=None,

@@ -104,3 +104,22 @@ class _no_raise:
 
     def __exit__(self, *exc):
         return False
+
+
+def test_export_and_video_commands(tmp_path, capsys):
+    assert _run(capsys, "generate", "--out", str(tmp_path / "d"), *TINY, "--rates", "0,50")[0] == 0
+    code, out, _ = _run(capsys, "export", str(tmp_path / "d"), "--format", "yolo",
+                        "--out", str(tmp_path / "yolo"), "--rates", "50")
+    assert code == 0 and (tmp_path / "yolo" / "rate_50" / "data.yaml").exists()
+    assert not (tmp_path / "yolo" / "rate_0").exists()
+    code, out, _ = _run(capsys, "export", str(tmp_path / "d"), "--format", "coco",
+                        "--out", str(tmp_path / "coco"))
+    assert code == 0 and (tmp_path / "coco" / "rate_0.json").exists()
+    code, _, err = _run(capsys, "export", str(tmp_path / "d"), "--format", "coco",
+                        "--out", str(tmp_path / "coco2"), "--rates", "30")
+    assert code == 2
+    _check_one_line(err, "30")
+    code, out, _ = _run(capsys, "preview", str(tmp_path / "d"), "--video", "--out",
+                        str(tmp_path / "v"), "--boxes")
+    assert code == 0 and sorted(p.name for p in (tmp_path / "v").iterdir()) == [
+        "rate_0.mp4", "rate_50.mp4"]
