@@ -6,11 +6,13 @@ call it. Its result depends only on the :class:`GenerateConfig` (and the GL back
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import json
 import math
 import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -161,8 +163,13 @@ def render_clip(config: GenerateConfig, setup: SceneSetup | None = None):
                                      camera_pose(model, data, "ego")), renderer
 
 
-def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int):
-    """(R, H, W, 3) images and per-rate statistics of one frame."""
+def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int,
+                    pool: ThreadPoolExecutor):
+    """(R, H, W, 3) images and per-rate statistics of one frame.
+
+    The sweep shares rate-independent work; the per-rate statistics run in ``pool`` threads
+    (OpenCV and numpy release the GIL).
+    """
     rates = config.rates
     num_rates, num_boxes = len(rates), len(frame.labels)
     images = np.empty((num_rates,) + frame.rgb.shape, np.uint8)
@@ -171,24 +178,27 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     psnr = np.full(num_rates, np.inf, np.float32)
     coverage = np.zeros((num_rates, num_boxes), np.float32)
     contrast = np.zeros((num_rates, num_boxes), np.float32)
-    rainy_rates = [rate for rate in rates if rate > 0]
-    if rainy_rates:
-        from rainbench import rain  # noqa: PLC0415 -- only needed when it rains
+    rainy_rows = [r for r, rate in enumerate(rates) if rate > 0]
+    images[[r for r, rate in enumerate(rates) if rate == 0]] = frame.rgb
+    if not rainy_rows:
+        return images, drop_count, ssim, psnr, coverage, contrast
+    from rainbench import rain  # noqa: PLC0415 -- only needed when it rains
 
-        rain_config = rain.RainConfig(model=config.rain_model, **config.rain_options)
-        seeds = np.random.SeedSequence([config.rain_seed, config.seed, global_frame])
-        sweep = iter(rain.render_rain_sweep(frame.rgb, frame.depth, rainy_rates,
-                                            config=rain_config, K=K, seed_sequence=seeds))
-    for r, rate in enumerate(rates):
-        if rate == 0:
-            images[r] = frame.rgb
-            continue
-        rainy = next(sweep)
-        images[r] = rainy.rgb
-        drop_count[r] = rainy.drop_count
-        ssim[r], psnr[r] = rain.image_quality(frame.rgb, rainy.rgb)
-        coverage[r], contrast[r] = rain.box_rain_labels(frame.rgb, rainy.rgb, rainy.coverage,
-                                                         frame.labels.bbox)
+    rain_config = rain.RainConfig(model=config.rain_model, **config.rain_options)
+    seeds = np.random.SeedSequence([config.rain_seed, config.seed, global_frame])
+    frames = rain.render_rain_sweep(frame.rgb, frame.depth, [rates[r] for r in rainy_rows],
+                                    config=rain_config, K=K, seed_sequence=seeds)
+    reference = rain.SsimReference(frame.rgb)
+
+    def statistics(row_and_frame):
+        row, rainy = row_and_frame
+        images[row] = rainy.rgb
+        drop_count[row] = rainy.drop_count
+        ssim[row], psnr[row] = reference.quality(rainy.rgb)
+        coverage[row], contrast[row] = rain.box_rain_labels(frame.rgb, rainy.rgb, rainy.coverage,
+                                                            frame.labels.bbox)
+
+    list(pool.map(statistics, zip(rainy_rows, frames)))
     return images, drop_count, ssim, psnr, coverage, contrast
 
 
@@ -196,7 +206,8 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
                    progress: Callable[[int], None] | None = None) -> Path:
     """Render ``config`` into ``out_dir/<shard name>``; returns the shard path.
 
-    ``progress(n)`` is called with the number of frames finished since the last call.
+    Rain, statistics and compression of frame i run in background threads while frame i + 1
+    renders. ``progress(n)`` is called with the number of frames finished since the last call.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -210,24 +221,37 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
         "config": json.dumps(config.to_dict(), sort_keys=True, default=_json_default),
     }
     writer = None
-    try:
-        for index, frame, renderer in render_clip(config, setup):
-            if writer is None:
-                writer = ShardWriter(path, attrs=attrs, rates=np.asarray(config.rates),
-                                     num_frames=config.frames, width=config.width,
-                                     height=config.height, K=renderer.K, store=config.store)
-            images, drops, ssim, psnr, coverage, contrast = _rain_for_frame(
-                config, frame, renderer.K, config.frame_offset + index)
-            writer.write_frame(index, images, frame.labels, frame.T_world_cam,
-                               depth=frame.depth, instance=frame.instance, drop_count=drops,
-                               ssim=ssim, psnr=psnr, rain_coverage=coverage,
-                               contrast_loss=contrast)
-            if progress is not None:
-                progress(1)
-        return writer.commit()
-    finally:
-        if writer is not None and not writer.committed:
-            writer.abort()
+    pending = None
+
+    def finish(index: int, frame: FrameResult, K: np.ndarray) -> None:
+        images, drops, ssim, psnr, coverage, contrast = _rain_for_frame(
+            config, frame, K, config.frame_offset + index, stats_pool)
+        writer.write_frame(index, images, frame.labels, frame.T_world_cam, depth=frame.depth,
+                           instance=frame.instance, drop_count=drops, ssim=ssim, psnr=psnr,
+                           rain_coverage=coverage, contrast_loss=contrast)
+        if progress is not None:
+            progress(1)
+
+    with ThreadPoolExecutor(1, thread_name_prefix="rainbench-frame") as frame_pool, \
+            ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="rainbench-rate") as stats_pool:
+        try:
+            for index, frame, renderer in render_clip(config, setup):
+                if writer is None:
+                    writer = ShardWriter(path, attrs=attrs, rates=np.asarray(config.rates),
+                                         num_frames=config.frames, width=config.width,
+                                         height=config.height, K=renderer.K, store=config.store)
+                if pending is not None:
+                    pending.result()  # at most one frame in flight: bounded memory
+                pending = frame_pool.submit(finish, index, frame, renderer.K)
+            if pending is not None:
+                pending.result()
+            return writer.commit()
+        finally:
+            if pending is not None and not pending.done():
+                pending.cancel()
+                concurrent.futures.wait([pending])
+            if writer is not None and not writer.committed:
+                writer.abort()
 
 
 def _json_default(value):

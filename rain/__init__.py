@@ -14,7 +14,7 @@ Typical use::
 
 from rainbench.rain.config import RAIN_MODELS, RainConfig
 from rainbench.rain.lens import LensDrops, jeon2022_drop_count
-from rainbench.rain.metrics import box_rain_labels, image_quality, luma, psnr, ssim_gray
+from rainbench.rain.metrics import SsimReference, box_rain_labels, image_quality, luma, psnr, ssim_gray
 from rainbench.rain.physical import AirDrops, extinction_coefficient, marshall_palmer_slope, terminal_velocity, visibility_km
 from rainbench.rain.rates import MAX_RATE_MM_H, RatesError, parse_rates
 from rainbench.rain.render import Drops, RainFrame, render_rain, render_rain_sweep, sample_drops
@@ -28,6 +28,7 @@ __all__ = [
     "RainConfig",
     "RainFrame",
     "RatesError",
+    "SsimReference",
     "box_rain_labels",
     "extinction_coefficient",
     "image_quality",

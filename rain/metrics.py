@@ -66,6 +66,47 @@ def _filter(image: np.ndarray) -> np.ndarray:
     return cv2.sepFilter2D(image, cv2.CV_64F, _KERNEL, _KERNEL, borderType=cv2.BORDER_REFLECT)
 
 
+class SsimReference:
+    """The clean image's half of SSIM (luma, local mean and second moment), computed once.
+
+    ``SsimReference(clean).ssim(rainy)`` equals ``image_quality(clean, rainy)[0]``; a sweep of
+    rates against one clean frame saves two of the five window filters per rate.
+
+    Args:
+        clean: (H, W, 3) uint8 RGB, H and W >= 11.
+    """
+
+    def __init__(self, clean: np.ndarray) -> None:
+        _check_rgb_pair(clean, clean)
+        self.clean = clean
+        self._x = luma(clean)
+        self._mu_x = _filter(self._x)
+        self._xx = _filter(self._x * self._x)
+
+    def ssim(self, rainy: np.ndarray) -> float:
+        """Mean SSIM of ``rainy`` (H, W, 3) uint8 against the reference."""
+        _check_rgb_pair(self.clean, rainy)
+        return _ssim_from_moments(self._x, self._mu_x, self._xx, luma(rainy), DATA_RANGE)
+
+    def quality(self, rainy: np.ndarray) -> tuple[float, float]:
+        """(SSIM, PSNR) of ``rainy`` against the reference, as :func:`image_quality`."""
+        return self.ssim(rainy), psnr(self.clean, rainy)
+
+
+def _ssim_from_moments(x, mu_x, xx, y, data_range: float) -> float:
+    mu_y = _filter(y)
+    var_x = xx - mu_x * mu_x
+    var_y = _filter(y * y) - mu_y * mu_y
+    cov_xy = _filter(x * y) - mu_x * mu_y
+    c1 = (SSIM_K1 * data_range) ** 2
+    c2 = (SSIM_K2 * data_range) ** 2
+    numerator = (2.0 * mu_x * mu_y + c1) * (2.0 * cov_xy + c2)
+    denominator = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
+    ssim_map = numerator / denominator
+    pad = SSIM_RADIUS
+    return float(ssim_map[pad:-pad, pad:-pad].mean(dtype=np.float64))
+
+
 def ssim_gray(first: np.ndarray, second: np.ndarray, data_range: float = DATA_RANGE) -> float:
     """Mean SSIM of two single-channel images (the module's convention).
 
@@ -82,18 +123,7 @@ def ssim_gray(first: np.ndarray, second: np.ndarray, data_range: float = DATA_RA
         raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels (11-tap window), got {first.shape[1]}x{first.shape[0]}")
     x = np.ascontiguousarray(first, dtype=np.float64)
     y = np.ascontiguousarray(second, dtype=np.float64)
-    mu_x = _filter(x)
-    mu_y = _filter(y)
-    var_x = _filter(x * x) - mu_x * mu_x
-    var_y = _filter(y * y) - mu_y * mu_y
-    cov_xy = _filter(x * y) - mu_x * mu_y
-    c1 = (SSIM_K1 * data_range) ** 2
-    c2 = (SSIM_K2 * data_range) ** 2
-    numerator = (2.0 * mu_x * mu_y + c1) * (2.0 * cov_xy + c2)
-    denominator = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
-    ssim_map = numerator / denominator
-    pad = SSIM_RADIUS
-    return float(ssim_map[pad:-pad, pad:-pad].mean(dtype=np.float64))
+    return _ssim_from_moments(x, _filter(x), _filter(x * x), y, data_range)
 
 
 def psnr(clean: np.ndarray, rainy: np.ndarray) -> float:

@@ -472,6 +472,18 @@ def test_ssim_matches_skimage_on_rainy_frames(small_frame):
         assert ssim < 1.0
 
 
+def test_ssim_reference_equals_image_quality(small_frame):
+    from rainbench.rain import SsimReference
+
+    rgb, depth, K = small_frame
+    reference = SsimReference(rgb)
+    frames = render_rain_sweep(rgb, depth, [20.0, 90.0], config=_config("jeon2022"), K=K,
+                               seed_sequence=_seed())
+    for frame in frames:
+        assert reference.quality(frame.rgb) == image_quality(rgb, frame.rgb)
+        assert reference.ssim(frame.rgb) == pytest.approx(_skimage_ssim(rgb, frame.rgb), abs=1e-9)
+
+
 def test_image_quality_refuses_bad_inputs():
     image = np.zeros((20, 20, 3), dtype=np.uint8)
     with pytest.raises(ValueError, match=r"clean and rainy must have the same shape, got \(20, 20, 3\) and \(20, 21, 3\)"):

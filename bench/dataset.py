@@ -1,0 +1,144 @@
+"""Dataset benchmark (issue: datasets at scale). Three measurements, each against a baseline
+run in the same process and the same run:
+
+1. end to end: ``rainbench generate`` of the paper's clip (1 scene, 200 frames, 800x600,
+   RATES=0:100:10) against a bare ``mujoco.Renderer`` RGB-only pass over the same 200 frames.
+   Target: ratio <= 3.
+2. scaling: 2 scenes with 2 workers against 1 worker, once with one Mesa render thread per
+   worker (``LP_NUM_THREADS=1``; target >= 1.6x) and once with Mesa's default threads.
+3. reader: images/s through ``ShardDataset`` + ``DataLoader(num_workers=2)`` against reading
+   the same images from PNG files with ``cv2.imread``. Target >= 2x.
+
+    python bench/dataset.py [--frames 200] [--scaling-frames 40] [--json OUT] [--skip e2e,...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import rainbench  # noqa: F401  -- chooses MUJOCO_GL before mujoco is imported
+
+import cv2
+import mujoco
+import numpy as np
+
+from rainbench.gen import sim
+from rainbench.gen.generate import GenerateConfig, build_scene
+
+
+def bare_render_seconds(frames: int, width: int, height: int) -> float:
+    config = GenerateConfig(frames=frames, width=width, height=height)
+    setup = build_scene(config)
+    data = mujoco.MjData(setup.model)
+    driver = sim.ActorDriver(setup.model, setup.layout)
+    renderer = mujoco.Renderer(setup.model, height, width)
+    renderer.update_scene(data, "ego")
+    renderer.render()
+    start = time.perf_counter()
+    previous = 0.0
+    for index in range(frames):
+        sim.advance(setup.model, data, driver, previous, index / config.fps)
+        previous = index / config.fps
+        renderer.update_scene(data, "ego")
+        renderer.render()
+    elapsed = time.perf_counter() - start
+    renderer.close()
+    return elapsed
+
+
+def cli_seconds(args: list[str], env: dict | None = None) -> float:
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "rainbench.cli", "generate", "--quiet", *args],
+                   check=True, env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - start
+
+
+def end_to_end(tmp: Path, frames: int) -> dict:
+    seconds = cli_seconds(["--out", str(tmp / "e2e"), "--frames", str(frames),
+                           "--rates", "0:100:10"])
+    bare = bare_render_seconds(frames, 800, 600)
+    return {"frames": frames, "generate_s": seconds, "bare_render_s": bare,
+            "ratio": seconds / bare, "target_ratio": 3.0}
+
+
+def scaling(tmp: Path, frames: int) -> dict:
+    common = ["--scenes", "2", "--frames", str(frames), "--rates", "0,50,100"]
+    result = {"frames_per_scene": frames}
+    for label, env in (("one_render_thread", {"LP_NUM_THREADS": "1"}), ("default_threads", {})):
+        one = cli_seconds(["--out", str(tmp / f"s1{label}"), "--workers", "1", *common], env)
+        two = cli_seconds(["--out", str(tmp / f"s2{label}"), "--workers", "2", *common], env)
+        result[label] = {"one_worker_s": one, "two_workers_s": two, "speedup": one / two}
+    return result
+
+
+def reader(tmp: Path, frames: int) -> dict:
+    from torch.utils.data import DataLoader
+
+    from rainbench import ShardDataset
+
+    data = tmp / "reader"
+    cli_seconds(["--out", str(data), "--frames", str(frames), "--rates", "0,50"])
+    dataset = ShardDataset(data)
+    pngs = tmp / "pngs"
+    pngs.mkdir()
+    for index in range(len(dataset)):
+        image, _ = dataset.reader.sample(index)
+        cv2.imwrite(str(pngs / f"{index:06d}.png"), image[:, :, ::-1])
+    loader = DataLoader(dataset, batch_size=8, num_workers=2, collate_fn=ShardDataset.collate_fn)
+    start = time.perf_counter()
+    count = sum(len(images) for images, _ in loader)
+    shard_s = time.perf_counter() - start
+    paths = sorted(pngs.iterdir())
+    start = time.perf_counter()
+    for path in paths:
+        cv2.imread(str(path))
+    png_s = time.perf_counter() - start
+    return {"images": count, "shard_dataset_images_per_s": count / shard_s,
+            "png_imread_images_per_s": len(paths) / png_s,
+            "ratio": (count / shard_s) / (len(paths) / png_s), "target_ratio": 2.0}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--scaling-frames", type=int, default=40)
+    parser.add_argument("--reader-frames", type=int, default=60)
+    parser.add_argument("--skip", default="", help="comma list of e2e,scaling,reader")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args()
+    skip = set(filter(None, args.skip.split(",")))
+    tmp = Path(tempfile.mkdtemp(prefix="rainbench-bench-"))
+    results: dict = {"benchmark": "dataset", "cpu_count": os.cpu_count(),
+                     "gl_backend": os.environ.get("MUJOCO_GL", "")}
+    try:
+        if "e2e" not in skip:
+            results["end_to_end"] = e2e = end_to_end(tmp, args.frames)
+            print(f"end to end: generate {e2e['generate_s']:.1f} s, bare RGB {e2e['bare_render_s']:.1f}"
+                  f" s, ratio {e2e['ratio']:.2f} (target <= 3)")
+        if "scaling" not in skip:
+            results["scaling"] = scale = scaling(tmp, args.scaling_frames)
+            for label in ("one_render_thread", "default_threads"):
+                row = scale[label]
+                print(f"scaling ({label}): 1 worker {row['one_worker_s']:.1f} s, 2 workers "
+                      f"{row['two_workers_s']:.1f} s, speed-up {row['speedup']:.2f}x")
+        if "reader" not in skip:
+            results["reader"] = read = reader(tmp, args.reader_frames)
+            print(f"reader: ShardDataset {read['shard_dataset_images_per_s']:.0f} images/s, "
+                  f"PNG imread {read['png_imread_images_per_s']:.0f} images/s, ratio "
+                  f"{read['ratio']:.2f} (target >= 2)")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
