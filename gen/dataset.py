@@ -230,10 +230,10 @@ def _init_worker(progress_queue, render_threads: int | None) -> None:
         os.environ["LP_NUM_THREADS"] = str(render_threads)
 
 
-def _generate_task(task: GenerateConfig, out: str) -> str:
+def _generate_task(task: GenerateConfig, out: str, threads: int | None = None) -> str:
     """Worker body: render one shard; progress goes to the queue set by :func:`_init_worker`."""
     report = (lambda n: _progress_queue.put(n)) if _progress_queue is not None else None
-    return str(generate_shard(task, out, progress=report))
+    return str(generate_shard(task, out, progress=report, threads=threads))
 
 
 def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> dict[str, dict]:
@@ -312,7 +312,9 @@ def _run_local_pool(tasks, pending, root, workers, render_threads, record, progr
     with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=context,
                              initializer=_init_worker,
                              initargs=(progress_queue, render_threads)) as pool:
-        futures = {pool.submit(_generate_task, tasks[i], str(root)): i for i in pending}
+        # Each worker's post-processing threads share the cores with the other workers.
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        futures = {pool.submit(_generate_task, tasks[i], str(root), threads): i for i in pending}
         remaining = set(futures)
         try:
             while remaining:

@@ -203,12 +203,15 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
 
 
 def generate_shard(config: GenerateConfig, out_dir: str | Path,
-                   progress: Callable[[int], None] | None = None) -> Path:
+                   progress: Callable[[int], None] | None = None,
+                   threads: int | None = None) -> Path:
     """Render ``config`` into ``out_dir/<shard name>``; returns the shard path.
 
-    Rain, statistics and compression of frame i run in background threads while frame i + 1
-    renders. ``progress(n)`` is called with the number of frames finished since the last call.
+    Rain, statistics and compression of frame i run in background threads (``threads`` of
+    them, default one per core) while frame i + 1 renders. ``progress(n)`` is called with the
+    number of frames finished since the last call. The bytes do not depend on ``threads``.
     """
+    threads = threads or os.cpu_count() or 1
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     setup = build_scene(config)
@@ -233,13 +236,14 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
             progress(1)
 
     with ThreadPoolExecutor(1, thread_name_prefix="rainbench-frame") as frame_pool, \
-            ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="rainbench-rate") as stats_pool:
+            ThreadPoolExecutor(threads, thread_name_prefix="rainbench-rate") as stats_pool:
         try:
             for index, frame, renderer in render_clip(config, setup):
                 if writer is None:
                     writer = ShardWriter(path, attrs=attrs, rates=np.asarray(config.rates),
                                          num_frames=config.frames, width=config.width,
-                                         height=config.height, K=renderer.K, store=config.store)
+                                         height=config.height, K=renderer.K, store=config.store,
+                                         threads=threads)
                 if pending is not None:
                     pending.result()  # at most one frame in flight: bounded memory
                 pending = frame_pool.submit(finish, index, frame, renderer.K)

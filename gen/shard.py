@@ -27,17 +27,6 @@ RGB_COMPRESSION = {"compression": "gzip", "compression_opts": 1}
 STORABLE = ("depth", "instance")
 
 
-_POOL = None
-
-
-def _compress_pool() -> ThreadPoolExecutor:
-    global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=os.cpu_count() or 1,
-                                   thread_name_prefix="rainbench-deflate")
-    return _POOL
-
-
 def _deflate(image: np.ndarray) -> bytes:
     return zlib.compress(np.ascontiguousarray(image).tobytes(), RGB_COMPRESSION["compression_opts"])
 
@@ -58,7 +47,8 @@ class ShardWriter:
     """
 
     def __init__(self, path: str | Path, *, attrs: dict, rates: np.ndarray, num_frames: int,
-                 width: int, height: int, K: np.ndarray, store: tuple[str, ...] = ()) -> None:
+                 width: int, height: int, K: np.ndarray, store: tuple[str, ...] = (),
+                 threads: int | None = None) -> None:
         unknown = sorted(set(store) - set(STORABLE))
         if unknown:
             raise ValueError(f"store: expected a subset of {STORABLE}, got {unknown}")
@@ -68,6 +58,9 @@ class ShardWriter:
         self._rates = np.asarray(rates, dtype=np.float32)
         num_rates = self._rates.shape[0]
         self._file = h5py.File(self._tmp, "w", libver=("v110", "latest"))
+        # zlib drops the GIL: images of one frame are compressed on ``threads`` threads.
+        self._pool = ThreadPoolExecutor(max_workers=threads or os.cpu_count() or 1,
+                                        thread_name_prefix="rainbench-deflate")
         f = self._file
         f.attrs["format"] = FORMAT
         f.attrs["format_version"] = FORMAT_VERSION
@@ -119,10 +112,10 @@ class ShardWriter:
             raise ValueError(f"rgb_by_rate: expected {expected} uint8, got "
                              f"{rgb_by_rate.shape} {rgb_by_rate.dtype}")
         rgb = f["rgb"]
-        chunks = _compress_pool().map(_deflate, [rgb_by_rate[r] for r in range(expected[0])])
+        chunks = self._pool.map(_deflate, [rgb_by_rate[r] for r in range(expected[0])])
         for rate_index, chunk in enumerate(chunks):
             # A pre-compressed chunk is exactly what the gzip filter stores (filter mask 0), so
-            # plain h5py reads it; compressing in threads uses every core (zlib drops the GIL).
+            # plain h5py reads it.
             rgb.id.write_direct_chunk((rate_index, index, 0, 0, 0), chunk)
         if "depth" in f:
             f["depth"][index] = depth
@@ -170,6 +163,7 @@ class ShardWriter:
         f.create_dataset("rain/psnr", data=self._psnr)
         f.flush()
         f.close()
+        self._pool.shutdown()
         with open(self._tmp, "rb") as handle:
             os.fsync(handle.fileno())
         os.replace(self._tmp, self.path)
@@ -177,6 +171,7 @@ class ShardWriter:
         return self.path
 
     def abort(self) -> None:
+        self._pool.shutdown(cancel_futures=True)
         try:
             self._file.close()
         finally:

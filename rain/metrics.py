@@ -4,11 +4,14 @@ SSIM convention (seed paper eq. 1; Wang et al. 2004), identical to
 ``skimage.metrics.structural_similarity(Y1, Y2, gaussian_weights=True, sigma=1.5,
 use_sample_covariance=False, data_range=255)`` on BT.601 luma:
 
-* Y = 0.299 R + 0.587 G + 0.114 B in float64, no rounding;
+* Y = 0.299 R + 0.587 G + 0.114 B, no rounding;
 * Gaussian window sigma 1.5 truncated at 3.5 sigma (11 taps, radius 5), normalised, applied
   separably with reflect borders (scipy ``mode='reflect'`` == OpenCV ``BORDER_REFLECT``);
 * K1 = 0.01, K2 = 0.03, data range L = 255, population (co)variances;
-* the SSIM map is averaged after cropping a 5-pixel border.
+* the SSIM map is averaged (in float64) after cropping a 5-pixel border.
+
+The SSIM maps are computed in float32: five times faster than float64 and within about 1e-6 of
+scikit-image's float64 result (the tests pin 1e-5; the contract is 1e-3).
 
 PSNR (eq. 2): 10 log10(255^2 / MSE) over all RGB values; +inf for identical images.
 """
@@ -62,8 +65,17 @@ def luma(rgb: np.ndarray) -> np.ndarray:
     return LUMA_WEIGHTS[0] * image[..., 0] + LUMA_WEIGHTS[1] * image[..., 1] + LUMA_WEIGHTS[2] * image[..., 2]
 
 
+_KERNEL32 = _KERNEL.astype(np.float32)
+
+
 def _filter(image: np.ndarray) -> np.ndarray:
-    return cv2.sepFilter2D(image, cv2.CV_64F, _KERNEL, _KERNEL, borderType=cv2.BORDER_REFLECT)
+    return cv2.sepFilter2D(image, cv2.CV_32F, _KERNEL32, _KERNEL32, borderType=cv2.BORDER_REFLECT)
+
+
+def _luma32(rgb: np.ndarray) -> np.ndarray:
+    image = rgb.astype(np.float32)
+    return (np.float32(LUMA_WEIGHTS[0]) * image[..., 0] + np.float32(LUMA_WEIGHTS[1]) * image[..., 1]
+            + np.float32(LUMA_WEIGHTS[2]) * image[..., 2])
 
 
 class SsimReference:
@@ -78,15 +90,18 @@ class SsimReference:
 
     def __init__(self, clean: np.ndarray) -> None:
         _check_rgb_pair(clean, clean)
+        if min(clean.shape[:2]) < SSIM_WINDOW:
+            raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels "
+                             f"(11-tap window), got {clean.shape[1]}x{clean.shape[0]}")
         self.clean = clean
-        self._x = luma(clean)
+        self._x = _luma32(clean)
         self._mu_x = _filter(self._x)
         self._xx = _filter(self._x * self._x)
 
     def ssim(self, rainy: np.ndarray) -> float:
         """Mean SSIM of ``rainy`` (H, W, 3) uint8 against the reference."""
         _check_rgb_pair(self.clean, rainy)
-        return _ssim_from_moments(self._x, self._mu_x, self._xx, luma(rainy), DATA_RANGE)
+        return _ssim_from_moments(self._x, self._mu_x, self._xx, _luma32(rainy), DATA_RANGE)
 
     def quality(self, rainy: np.ndarray) -> tuple[float, float]:
         """(SSIM, PSNR) of ``rainy`` against the reference, as :func:`image_quality`."""
@@ -111,7 +126,7 @@ def ssim_gray(first: np.ndarray, second: np.ndarray, data_range: float = DATA_RA
     """Mean SSIM of two single-channel images (the module's convention).
 
     Args:
-        first, second: (H, W) float64 images, H and W >= 11.
+        first, second: (H, W) real images (computed in float32), H and W >= 11.
         data_range: L in C1 = (K1 L)^2, C2 = (K2 L)^2.
 
     Returns:
@@ -121,8 +136,8 @@ def ssim_gray(first: np.ndarray, second: np.ndarray, data_range: float = DATA_RA
         raise ValueError(f"ssim_gray needs two 2-D images of equal shape, got {first.shape} and {second.shape}")
     if min(first.shape) < SSIM_WINDOW:
         raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels (11-tap window), got {first.shape[1]}x{first.shape[0]}")
-    x = np.ascontiguousarray(first, dtype=np.float64)
-    y = np.ascontiguousarray(second, dtype=np.float64)
+    x = np.ascontiguousarray(first, dtype=np.float32)
+    y = np.ascontiguousarray(second, dtype=np.float32)
     return _ssim_from_moments(x, _filter(x), _filter(x * x), y, data_range)
 
 
@@ -133,8 +148,7 @@ def psnr(clean: np.ndarray, rainy: np.ndarray) -> float:
         clean, rainy: (H, W, 3) uint8.
     """
     _check_rgb_pair(clean, rainy)
-    difference = clean.astype(np.float64) - rainy.astype(np.float64)
-    mse = float(np.mean(difference * difference))
+    mse = cv2.norm(clean, rainy, cv2.NORM_L2SQR) / clean.size  # exact: integer squares in double
     if mse == 0.0:
         return math.inf
     return 10.0 * math.log10(DATA_RANGE * DATA_RANGE / mse)
@@ -150,7 +164,7 @@ def image_quality(clean: np.ndarray, rainy: np.ndarray) -> tuple[float, float]:
         (ssim on BT.601 luma, psnr in dB on RGB; inf when identical).
     """
     _check_rgb_pair(clean, rainy)
-    return ssim_gray(luma(clean), luma(rainy)), psnr(clean, rainy)
+    return SsimReference(clean).quality(rainy)
 
 
 def box_pixel_ranges(boxes: np.ndarray, height: int, width: int) -> np.ndarray:

@@ -457,7 +457,7 @@ def test_ssim_and_psnr_match_references(shape):
     for first, second in pairs:
         ssim, peak = image_quality(first, second)
         assert ssim == pytest.approx(_skimage_ssim(first, second), abs=1e-3)
-        assert abs(ssim - _skimage_ssim(first, second)) < 1e-9  # in practice identical
+        assert abs(ssim - _skimage_ssim(first, second)) < 1e-5  # float32 maps: far inside the 1e-3 contract
         mse = np.mean((first.astype(np.float64) - second.astype(np.float64)) ** 2)
         assert peak == pytest.approx(10 * math.log10(255**2 / mse), abs=1e-3)
     assert image_quality(clean, clean.copy()) == (pytest.approx(1.0), math.inf)
@@ -468,7 +468,7 @@ def test_ssim_matches_skimage_on_rainy_frames(small_frame):
     for model in RAIN_MODELS:
         frame = render_rain(rgb, depth, 80.0, config=_config(model), K=K, seed_sequence=_seed())
         ssim, _ = image_quality(rgb, frame.rgb)
-        assert ssim == pytest.approx(_skimage_ssim(rgb, frame.rgb), abs=1e-9)
+        assert ssim == pytest.approx(_skimage_ssim(rgb, frame.rgb), abs=1e-5)
         assert ssim < 1.0
 
 
@@ -481,7 +481,7 @@ def test_ssim_reference_equals_image_quality(small_frame):
                                seed_sequence=_seed())
     for frame in frames:
         assert reference.quality(frame.rgb) == image_quality(rgb, frame.rgb)
-        assert reference.ssim(frame.rgb) == pytest.approx(_skimage_ssim(rgb, frame.rgb), abs=1e-9)
+        assert reference.ssim(frame.rgb) == pytest.approx(_skimage_ssim(rgb, frame.rgb), abs=1e-5)
 
 
 def test_image_quality_refuses_bad_inputs():
