@@ -57,8 +57,9 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	mkdir -p results/bench
 	$(BIN)/python bench/render.py --json results/bench/render.json
-	if [ -f bench/rain.py ]; then $(BIN)/python bench/rain.py --json results/bench/rain.json; fi
-	if [ -f bench/eval_metrics.py ]; then $(BIN)/python bench/eval_metrics.py --json results/bench/eval_metrics.json; fi
+	$(BIN)/python bench/rain.py --json results/bench/rain.json
+	$(BIN)/python bench/eval_metrics.py --json results/bench/eval_metrics.json
+	$(BIN)/python bench/dataset.py --json results/bench/dataset.json
 
 clean:
 	rm -rf $(VENV) build *.egg-info

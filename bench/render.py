@@ -22,7 +22,7 @@ import mujoco
 import numpy as np
 
 from rainbench.gen import sim
-from rainbench.gen.generate import GenerateConfig, build_scene, frame_labels
+from rainbench.gen.generate import GenerateConfig, build_scene, render_frame
 from rainbench.gen.render import FrameRenderer
 
 
@@ -55,13 +55,8 @@ def main() -> None:
             for index in block:
                 sim.advance(model, data_full, driver, previous_full, times[index])
                 previous_full = times[index]
-                renderer.update(data_full)
-                rgb, depth = renderer.render_rgb_depth()
-                visible, geometry = renderer.render_instances()
-                depth[~geometry] = np.inf
-                labels = frame_labels(renderer, data_full, visible, setup.class_of_instance,
-                                      config.label_filter)
-                labels_total += len(labels)
+                frame = render_frame(renderer, data_full, setup, config.label_filter)
+                labels_total += len(frame.labels)
             full_s += time.perf_counter() - start
             for index in block:  # the bare loop is timed on rendering alone
                 sim.advance(model, data_bare, driver, previous_bare, times[index])

@@ -141,6 +141,17 @@ class FrameResult:
     T_world_cam: np.ndarray  # (4, 4)
 
 
+def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup,
+                 label_filter: lb.LabelFilter) -> FrameResult:
+    """Every pass of one frame at the state in ``data``: RGB + depth, segmentation, labels."""
+    renderer.update(data)
+    rgb, depth = renderer.render_rgb_depth()
+    visible, geometry = renderer.render_instances()
+    depth[~geometry] = np.inf
+    labels = frame_labels(renderer, data, visible, setup.class_of_instance, label_filter)
+    return FrameResult(rgb, depth, visible, labels, camera_pose(setup.model, data, "ego"))
+
+
 def render_clip(config: GenerateConfig, setup: SceneSetup | None = None):
     """Yield (frame index within the shard, FrameResult, the renderer) for every frame."""
     setup = setup or build_scene(config)
@@ -153,14 +164,7 @@ def render_clip(config: GenerateConfig, setup: SceneSetup | None = None):
             t = (config.frame_offset + index) / config.fps
             sim.advance(model, data, driver, t_prev, t)
             t_prev = t
-            renderer.update(data)
-            rgb, depth = renderer.render_rgb_depth()
-            visible, geometry = renderer.render_instances()
-            depth[~geometry] = np.inf
-            labels = frame_labels(renderer, data, visible, setup.class_of_instance,
-                                  config.label_filter)
-            yield index, FrameResult(rgb, depth, visible, labels,
-                                     camera_pose(model, data, "ego")), renderer
+            yield index, render_frame(renderer, data, setup, config.label_filter), renderer
 
 
 def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int,
