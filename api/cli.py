@@ -193,7 +193,7 @@ def _add_scene_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=_seed, default=0,
                         help="scene seed: layout, actors, colours, speeds, sun, camera height")
     parser.add_argument("--frames", type=_positive_int("FRAMES"), default=200)
-    parser.add_argument("--fps", type=float, default=10.0)
+    parser.add_argument("--fps", type=float, default=10.0, help="frames per second (default 10)")
     parser.add_argument("--width", type=_positive_int("WIDTH"), default=800)
     parser.add_argument("--height", type=_positive_int("HEIGHT"), default=600)
 
@@ -207,7 +207,7 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="rainbench", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    generate = sub.add_parser("generate", help="render a clip with rain into an HDF5 shard")
+    generate = sub.add_parser("generate", help="render scenes with rain into HDF5 shards and a manifest")
     generate.add_argument("--out", default="data", help="output directory (default: data)")
     _add_scene_args(generate)
     generate.add_argument("--rates", default="0",
