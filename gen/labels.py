@@ -7,7 +7,7 @@ actor instance id per pixel and -1 where no actor is.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -35,9 +35,6 @@ class LabelFilter:
             )
         if self.min_visible_pixels < 1:
             raise ValueError(f"min_visible_pixels: expected >= 1, got {self.min_visible_pixels}")
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass(frozen=True)

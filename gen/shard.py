@@ -7,7 +7,6 @@ a complete shard. :func:`open_shard` checks the format before anything is read.
 
 from __future__ import annotations
 
-import json
 import os
 import zlib
 from concurrent.futures import ThreadPoolExecutor
@@ -214,7 +213,3 @@ def read_frame_labels(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
         labels[key] = data[:, start:stop] if data.ndim == 2 and key in (
             "rain_coverage", "contrast_loss") else data[start:stop]
     return labels
-
-
-def config_of(handle: h5py.File) -> dict:
-    return json.loads(handle.attrs["config"])

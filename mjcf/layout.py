@@ -11,7 +11,6 @@ Traffic keeps to the right: lanes at y < 0 drive towards +x, lanes at y > 0 towa
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -155,9 +154,6 @@ class Layout:
     pole_xs: tuple[tuple[float, float], ...]
     crosswalk_x: float
     road_x_range: tuple[float, float]
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 def unit_position(unit: Unit, t: np.ndarray | float) -> np.ndarray:
