@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from rainbench.gen.dataset import DatasetError, list_shards, read_manifest
+from rainbench.gen.dataset import DatasetError, image_index, list_shards, read_manifest
+from rainbench.gen.export import rate_token
 from rainbench.gen.shard import open_shard, read_frame_labels
 
 from .metrics import CLASS_IDS, CLASS_NAMES, bootstrap_ci, coco_ground_truth, evaluate, metric_records
@@ -45,14 +46,6 @@ class EvalError(ValueError):
 # --------------------------------------------------------------------------------------------
 
 
-def rate_token(rate: float) -> str:
-    """Shortest decimal of a rate as stored (float32): 0 -> "0", 12.5 -> "12.5", 100 -> "100"."""
-    value = float(rate)
-    if not math.isfinite(value) or value < 0:
-        raise EvalError(f"rate: expected a finite rate >= 0 mm/h, got {rate!r}")
-    return np.format_float_positional(np.float32(value), trim="-")
-
-
 def _shards(data_dir: str | Path) -> list[Path]:
     """Shards in manifest order (sorted names without a manifest): the rainbench numbering."""
     data_dir = Path(data_dir)
@@ -67,27 +60,25 @@ def _shards(data_dir: str | Path) -> list[Path]:
 
 
 def _scan(data_dir: str | Path) -> tuple[list[tuple[int, Path, int]], np.ndarray]:
-    images: list[tuple[int, Path, int]] = []
+    shards = _shards(data_dir)
     rates: np.ndarray | None = None
-    first: Path | None = None
-    for shard in _shards(data_dir):
+    for shard in shards:
         with open_shard(shard) as handle:
             shard_rates = handle["rates"][()].astype(np.float32)
-            frames = int(handle["labels/offsets"].shape[0]) - 1
         if rates is None:
-            rates, first = shard_rates, shard
+            rates = shard_rates
         elif shard_rates.shape != rates.shape or not np.array_equal(shard_rates, rates):
-            raise EvalError(f"--data: {shard.name} has rates {shard_rates.tolist()} but {first.name} has "
+            raise EvalError(f"--data: {shard.name} has rates {shard_rates.tolist()} but {shards[0].name} has "
                             f"{rates.tolist()}; all shards of a dataset must share the same rates")
-        for frame in range(frames):
-            images.append((len(images) + 1, shard, frame))
+    images = image_index(shards)  # the rainbench numbering: 1-based, shard order, frame order
     if not images:
         raise EvalError(f"--data: the shards in {data_dir} hold no frames")
     return images, rates
 
 
 def dataset_images(data_dir: str | Path) -> list[tuple[int, Path, int]]:
-    """``[(image_id, shard_path, frame)]``: shards ``scene*_f*.h5`` sorted by name, ids from 1.
+    """``[(image_id, shard_path, frame)]``: shards in manifest order (sorted names without a
+    manifest), ids from 1.
 
     Raises :class:`EvalError` for a missing or empty folder, and for shards whose rates differ.
     """
