@@ -189,6 +189,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from rainbench.eval.train import load_recipe, train
+
+    recipe = load_recipe(args.recipe)
+    out = _writable_dir(Path(args.out or Path("runs") / recipe.name), "--out")
+    print(train(recipe, out, device=args.device, workers=args.workers))
+    return 0
+
+
 def _add_scene_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=_seed, default=0,
                         help="scene seed: layout, actors, colours, speeds, sun, camera height")
@@ -282,6 +291,15 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
     evaluate.add_argument("--quiet", action="store_true", help="no progress bars")
     evaluate.set_defaults(run=cmd_eval)
+    training = sub.add_parser("train", help="train a YOLO detector from scratch on clean scenes (a recipe)")
+    training.add_argument("--recipe", default="rainbench-yolo11n",
+                          help="a shipped recipe name (rainbench-yolo11n, rainbench-yolo11s) or a .yaml file")
+    training.add_argument("--out", default=None, help="run directory (default: runs/<name>); "
+                          "running the same command again resumes a cut-off run there")
+    training.add_argument("--device", default=None, help="torch device (default: CUDA 0 if present, else cpu)")
+    training.add_argument("--workers", type=_positive_int("WORKERS"), default=1,
+                          help="processes generating the training scenes")
+    training.set_defaults(run=cmd_train)
     return parser
 
 

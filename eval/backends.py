@@ -1,20 +1,39 @@
-"""Detector backends for ``rainbench eval``: local weights files -> boxes in original image pixels.
+"""Detector backends for ``rainbench eval``: local weights -> boxes in original image pixels.
 
-:func:`load_detector` returns a :class:`Detector`. Backend implemented: ultralytics ``.pt``
-checkpoints (``ultralytics.YOLO(path)``), loaded from a local file only; nothing is downloaded
-(``YOLO_OFFLINE=1``) and ultralytics' settings go to a temporary folder, not the home folder.
+:func:`load_detector` returns a :class:`Detector` for a weights spec (:func:`resolve_weights`):
+
+- a shipped model by name (``rainbench-yolo11n``): ``rainbench/eval/weights/<name>.pt``;
+- an ultralytics checkpoint ``.pt`` (YOLOv3u/v5u/v8/v9/v10/11/12...): ``ultralytics.YOLO(path)``;
+- an ONNX export ``.onnx`` through onnxruntime: YOLOv5/YOLOv7-style outputs ``(B, N, 5 + nc)``
+  (cx, cy, w, h, objectness, class scores) and YOLOv8+-style ``(B, 4 + nc, N)`` (no objectness);
+- a Darknet model (YOLOv4) through OpenCV DNN: ``name.cfg`` and ``name.weights`` side by side
+  (either may be given).
+
+Weights are loaded from local files only; nothing is downloaded (``YOLO_OFFLINE=1``) and
+ultralytics' settings go to a temporary folder, not the home folder.
 
 WARNING: ``.pt`` checkpoints are Python pickles; loading one executes code from the file. Only
-load weights you trust.
+load weights you trust. ONNX and Darknet files hold no code.
+
+Pre-processing: RGB, letterboxed (aspect kept, grey 114 padding, centred) to ``imgsz`` on the
+long side; ONNX models with a dynamic input get the smallest multiple of 32 around the image
+(640x480 for 800x600 frames), fixed-size inputs get their own size (``--imgsz`` must equal its
+long side). Darknet networks take their ``[net] width/height`` and are stretched, not
+letterboxed, unless the cfg says ``letter_box=1`` (how Darknet itself runs them). Post-processing
+for ONNX and Darknet: confidence floor, per-class NMS (torchvision), at most ``max_det`` boxes,
+letterbox undone, boxes clipped to the image.
 
 Class mapping: rainbench class ids are COCO-80 indices 0 person, 1 bicycle, 2 car, 3 motorcycle.
 A model whose names[0..3] are those COCO names maps ids 0..3 directly and drops its other
-classes; any other model needs a class map ``"car=2,pedestrian=0"`` (model class name = rainbench
-class id); model classes left out of the map are dropped.
+classes (ONNX files without names metadata and Darknet files with 80 classes count as COCO-80);
+any other model needs a class map ``"car=2,pedestrian=0"`` (model class name = rainbench class
+id; models without names use their class indices as names, ``"0=2"``); model classes left out
+of the map are dropped.
 """
 
 from __future__ import annotations
 
+import ast
 import os
 import tempfile
 from dataclasses import dataclass
@@ -24,6 +43,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from .metrics import CLASS_IDS, CLASS_NAMES
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+"""Shipped weights: ``<name>.pt``, selectable by name (docs/models.md)."""
+LETTERBOX_FILL = 114
+COCO_PREFIX = CLASS_NAMES  # COCO-80 names 0..3; the rest of COCO is dropped anyway
 
 
 class BackendError(ValueError):
@@ -38,6 +62,32 @@ class Detector(Protocol):
         """(H, W, 3) uint8 RGB images -> per image (boxes (K, 4) float32 xyxy in original pixels,
         scores (K,) float32, class_ids (K,) int64 rainbench ids)."""
         ...
+
+
+def shipped_models() -> list[str]:
+    """Names of the weights shipped with rainbench (``rainbench eval --weights NAME``)."""
+    return sorted(p.stem for p in WEIGHTS_DIR.glob("*.pt"))
+
+
+def resolve_weights(spec: str | Path) -> tuple[Path, str]:
+    """``(file, model name)`` for a weights spec: a shipped model's name, or a local file.
+
+    The model name is the shipped name or the file stem. Darknet models resolve to their
+    ``.weights`` file (the ``.cfg`` must sit beside it). Raises :class:`BackendError` for a
+    missing file.
+    """
+    text = str(spec)
+    path = Path(text)
+    if path.suffix == "" and (WEIGHTS_DIR / f"{text}.pt").is_file():
+        return WEIGHTS_DIR / f"{text}.pt", text
+    if path.suffix.lower() == ".cfg":
+        path = path.with_suffix(".weights")
+    if not path.is_file():
+        hint = ""
+        if path.suffix == "":
+            hint = f"; shipped models: {', '.join(shipped_models()) or 'none'}"
+        raise BackendError(f"--weights: {path} does not exist (weights are loaded from local files only{hint})")
+    return path, path.stem
 
 
 def parse_class_map(spec: str) -> dict[str, int]:
@@ -112,7 +162,9 @@ class UltralyticsDetector:
     def predict(self, images, *, imgsz: int, conf: float, iou: float, max_det: int):
         # ultralytics expects BGR numpy arrays; it letterboxes and maps boxes back itself.
         bgr = [np.ascontiguousarray(np.asarray(image)[..., ::-1]) for image in images]
-        kwargs = dict(imgsz=imgsz, conf=conf, iou=iou, max_det=max_det, verbose=False)
+        # classes=: dropped classes go before NMS and max_det, as in the ONNX and Darknet backends.
+        kwargs = dict(imgsz=imgsz, conf=conf, iou=iou, max_det=max_det, verbose=False,
+                      classes=np.flatnonzero(self.lookup >= 0).tolist())
         if self.device is not None:
             kwargs["device"] = self.device
         results = self.model.predict(bgr, **kwargs)
@@ -134,22 +186,373 @@ class UltralyticsDetector:
         return outputs
 
 
+def letterbox(image: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, float, tuple[float, float]]:
+    """Resize ``image`` (H, W, 3) keeping its aspect ratio into a ``shape`` (h, w) canvas, centred,
+    padded with grey 114. Returns ``(canvas (h, w, 3) uint8, gain, (pad_x, pad_y))``: a point
+    (x, y) of the image lands at ``(x * gain + pad_x, y * gain + pad_y)`` on the canvas."""
+    import cv2
+
+    height, width = image.shape[:2]
+    gain = min(shape[0] / height, shape[1] / width)
+    new_w, new_h = int(round(width * gain)), int(round(height * gain))
+    pad_x, pad_y = (shape[1] - new_w) / 2, (shape[0] - new_h) / 2
+    resized = image if (new_w, new_h) == (width, height) else cv2.resize(
+        image, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
+    top, left = int(round(pad_y - 0.1)), int(round(pad_x - 0.1))
+    canvas = np.full((shape[0], shape[1], 3), LETTERBOX_FILL, dtype=np.uint8)
+    canvas[top:top + new_h, left:left + new_w] = resized
+    return canvas, gain, (float(left), float(top))
+
+
+def rect_shape(height: int, width: int, imgsz: int, stride: int = 32) -> tuple[int, int]:
+    """The smallest ``stride`` multiple (h, w) holding the image scaled to ``imgsz`` on its long
+    side (ultralytics' rectangular inference shape): 800x600 at 640 -> (480, 640)."""
+    gain = imgsz / max(height, width)
+    return (int(np.ceil(round(height * gain) / stride) * stride),
+            int(np.ceil(round(width * gain) / stride) * stride))
+
+
+def unletterbox(boxes: np.ndarray, gain: float, pad: tuple[float, float], width: int, height: int) -> np.ndarray:
+    """Boxes (K, 4) xyxy on the letterboxed canvas -> (K, 4) float32 xyxy in original pixels,
+    clipped to the ``width`` x ``height`` image."""
+    out = np.asarray(boxes, np.float64).reshape(-1, 4).copy()
+    out[:, [0, 2]] = np.clip((out[:, [0, 2]] - pad[0]) / gain, 0, width)
+    out[:, [1, 3]] = np.clip((out[:, [1, 3]] - pad[1]) / gain, 0, height)
+    return out.astype(np.float32)
+
+
+def decode_yolo(output: np.ndarray, layout: str) -> tuple[np.ndarray, np.ndarray]:
+    """One image's raw head output -> (boxes (N, 4) float32 xyxy in input pixels, class scores (N, nc)).
+
+    ``layout``: ``"v8"`` for (4 + nc, N) rows cx, cy, w, h, class scores; ``"v5"`` for
+    (N, 5 + nc) columns cx, cy, w, h, objectness, class scores (score = objectness x class).
+    """
+    if layout == "v8":
+        rows = np.asarray(output, np.float32).T
+        centres, scores = rows[:, :4], rows[:, 4:]
+    elif layout == "v5":
+        rows = np.asarray(output, np.float32)
+        centres, scores = rows[:, :4], rows[:, 5:] * rows[:, 4:5]
+    else:
+        raise ValueError(f"layout: expected 'v8' or 'v5', got {layout!r}")
+    boxes = np.empty_like(centres)
+    boxes[:, :2] = centres[:, :2] - centres[:, 2:4] / 2
+    boxes[:, 2:] = centres[:, :2] + centres[:, 2:4] / 2
+    return boxes, scores
+
+
+def select_detections(boxes: np.ndarray, scores: np.ndarray, lookup: np.ndarray, *, conf: float,
+                      iou: float, max_det: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidates -> detections as ultralytics predicts with ``classes=``: each box takes its best
+    class; boxes whose best class is dropped, or whose score is not above ``conf``, go; then
+    per-class NMS at ``iou`` and the ``max_det`` best. ``boxes`` (N, 4) xyxy, ``scores`` (N, nc),
+    ``lookup`` (nc,) model class -> rainbench id (-1 dropped). Returns (boxes (K, 4) float32,
+    scores (K,) float32, ids (K,) int64)."""
+    import torch
+    import torchvision
+
+    best = scores.argmax(axis=1)
+    best_scores = scores[np.arange(len(scores)), best]
+    mapped = lookup[best] if len(best) else np.zeros(0, np.int64)
+    rows = np.flatnonzero((best_scores > conf) & (mapped >= 0))
+    candidate_boxes = boxes[rows]
+    candidate_scores = best_scores[rows]
+    candidate_ids = mapped[rows]
+    order = torchvision.ops.batched_nms(torch.from_numpy(np.ascontiguousarray(candidate_boxes, np.float32)),
+                                        torch.from_numpy(np.ascontiguousarray(candidate_scores, np.float32)),
+                                        torch.from_numpy(candidate_ids.astype(np.int64)), iou).numpy()[:max_det]
+    return (candidate_boxes[order].astype(np.float32).reshape(-1, 4),
+            candidate_scores[order].astype(np.float32), candidate_ids[order].astype(np.int64))
+
+
+@dataclass
+class OnnxDetector:
+    """A YOLO ONNX export run by onnxruntime; see :func:`load_detector`."""
+
+    name: str
+    session: Any
+    names: list[str] | dict[int, str] | None  # from the file's metadata (ultralytics exports)
+    class_map: str | None
+    input_shape: tuple[int | None, int | None]  # fixed (h, w), or None where dynamic
+    fixed_batch: int | None
+    layout: str | None = None  # "v8" or "v5"; decided from the output shape (:meth:`configure`)
+    lookup: np.ndarray | None = None  # model class -> rainbench id (-1 dropped)
+
+    def configure(self, output_shape: list) -> None:
+        """Decide the output layout and class table from an output shape (B, A, C)."""
+        nc = len(self.names) if self.names is not None else None
+        self.layout, nc = output_layout(output_shape, nc, Path(f"{self.name}.onnx"))
+        names = self.names
+        if names is None:
+            names = list(COCO_PREFIX) + [f"coco{i}" for i in range(4, 80)] if nc == 80 else \
+                [str(i) for i in range(nc)]
+        self.lookup = class_lookup(names, self.class_map, f"--weights {self.name}.onnx")
+
+    def _shape(self, height: int, width: int, imgsz: int) -> tuple[int, int]:
+        fixed_h, fixed_w = self.input_shape
+        if fixed_h is None or fixed_w is None:
+            return rect_shape(height, width, imgsz)
+        if max(fixed_h, fixed_w) != imgsz:
+            raise BackendError(f"--imgsz {imgsz}: {self.name}.onnx has a fixed {fixed_w}x{fixed_h} input; "
+                               f"pass --imgsz {max(fixed_h, fixed_w)} or export it with a dynamic input")
+        return fixed_h, fixed_w
+
+    def predict(self, images, *, imgsz: int, conf: float, iou: float, max_det: int):
+        prepared = []
+        for image in images:
+            image = np.asarray(image)
+            height, width = image.shape[:2]
+            canvas, gain, pad = letterbox(image, self._shape(height, width, imgsz))
+            prepared.append((canvas, gain, pad, width, height))
+        outputs: list = [None] * len(prepared)
+        groups: dict[tuple[int, int], list[int]] = {}
+        for index, item in enumerate(prepared):
+            groups.setdefault(item[0].shape[:2], []).append(index)
+        step = self.fixed_batch or len(prepared)
+        input_name = self.session.get_inputs()[0].name
+        for indices in groups.values():
+            for start in range(0, len(indices), step):
+                chunk = indices[start:start + step]
+                blob = np.stack([prepared[i][0] for i in chunk]).transpose(0, 3, 1, 2)
+                blob = np.ascontiguousarray(blob, dtype=np.float32) / 255.0
+                raw = self.session.run(None, {input_name: blob})[0]
+                if self.layout is None:
+                    self.configure(list(raw.shape))
+                for i, head in zip(chunk, raw, strict=True):
+                    _, gain, pad, width, height = prepared[i]
+                    boxes, scores = decode_yolo(head, self.layout)
+                    boxes, kept_scores, ids = select_detections(boxes, scores, self.lookup, conf=conf,
+                                                                iou=iou, max_det=max_det)
+                    outputs[i] = (unletterbox(boxes, gain, pad, width, height), kept_scores, ids)
+        return outputs
+
+
+def _onnx_names(session: Any) -> list[str] | dict[int, str] | None:
+    metadata = session.get_modelmeta().custom_metadata_map or {}
+    if "names" not in metadata:
+        return None
+    try:
+        names = ast.literal_eval(metadata["names"])
+    except (ValueError, SyntaxError):
+        return None
+    return names if isinstance(names, (dict, list)) else None
+
+
+def output_layout(dims: list, nc: int | None, path: Path) -> tuple[str, int]:
+    """(layout ``"v8"``/``"v5"``, class count) of an ONNX output shape ``(B, A, C)``; symbolic
+    dimensions are allowed where ``nc`` (from names metadata) decides."""
+    rows, cols = (d if isinstance(d, int) and d > 0 else None for d in dims[1:3])
+    if nc is not None and rows == 4 + nc:
+        layout = "v8"
+    elif nc is not None and cols == 5 + nc:
+        layout = "v5"
+    elif nc is None and rows and (not cols or rows < cols):
+        layout, nc = "v8", rows - 4
+    elif nc is None and cols:
+        layout, nc = "v5", cols - 5
+    else:
+        raise BackendError(f"--weights: {path}: output {list(dims)} is neither YOLOv8-style (B, 4 + nc, N) "
+                           "nor YOLOv5/v7-style (B, N, 5 + nc)")
+    if nc < 1:
+        raise BackendError(f"--weights: {path}: output {list(dims)} leaves no class scores")
+    return layout, nc
+
+
+def _load_onnx(path: Path, class_map: str | None, device: str | None) -> OnnxDetector:
+    try:
+        import onnxruntime
+    except ImportError:
+        raise BackendError(f"--weights: {path}: ONNX models need onnxruntime (pip install onnxruntime)") from None
+    providers = ["CPUExecutionProvider"]
+    if device not in (None, "cpu") and "CUDAExecutionProvider" in onnxruntime.get_available_providers():
+        providers.insert(0, "CUDAExecutionProvider")
+    options = onnxruntime.SessionOptions()
+    options.log_severity_level = 3
+    try:
+        session = onnxruntime.InferenceSession(str(path), options, providers=providers)
+    except Exception as error:  # onnxruntime raises its own exception types (Fail, InvalidGraph, ...)
+        reason = " ".join(str(error).split())[:200]
+        raise BackendError(f"--weights: {path} is not a loadable ONNX model ({reason})") from None
+    inputs, outputs = session.get_inputs(), session.get_outputs()
+    input_dims = list(inputs[0].shape)
+    output_dims = list(outputs[0].shape)
+    if len(input_dims) != 4 or len(output_dims) != 3:
+        raise BackendError(f"--weights: {path}: expected a YOLO detection model with an (N, 3, H, W) input "
+                           f"and an (N, A, B) output, got input {input_dims} and output {output_dims}")
+
+    def fixed(value: Any) -> int | None:
+        return value if isinstance(value, int) and value > 0 else None
+
+    names = _onnx_names(session)
+    detector = OnnxDetector(name=path.stem, session=session, names=names, class_map=class_map,
+                            input_shape=(fixed(input_dims[2]), fixed(input_dims[3])),
+                            fixed_batch=fixed(input_dims[0]))
+    if names is not None:  # a bad --class-map fails now, not at the first batch
+        detector.lookup = class_lookup(names, class_map, f"--weights {path}")
+    if fixed(output_dims[1]) and fixed(output_dims[2]):
+        detector.configure(output_dims)
+    elif names is None and class_map is not None:
+        raise BackendError(f"--weights: {path}: --class-map needs class names or a fixed output shape; "
+                           "this model has neither")
+    return detector
+
+
+def parse_darknet_cfg(text: str) -> list[tuple[str, dict[str, str]]]:
+    """Darknet cfg text -> ``[(section, {key: value})]`` in file order (comments dropped)."""
+    sections: list[tuple[str, dict[str, str]]] = []
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].split(";", 1)[0].strip()
+        if not line:
+            continue
+        if line.startswith("[") and line.endswith("]"):
+            sections.append((line[1:-1].strip().lower(), {}))
+        elif "=" in line and sections:
+            key, value = line.split("=", 1)
+            sections[-1][1][key.strip()] = value.strip()
+    return sections
+
+
+def darknet_weight_count(sections: list[tuple[str, dict[str, str]]]) -> int | None:
+    """Number of float32 values a Darknet ``.weights`` file must hold for a parsed cfg; None when
+    the cfg has a layer type this count does not know (then the file size is not checked)."""
+    channels: list[int] = []
+    current = int(sections[0][1].get("channels", 3))
+    count = 0
+    for name, keys in sections[1:]:
+        if name in ("convolutional", "conv"):
+            filters, size = int(keys.get("filters", 1)), int(keys.get("size", 1))
+            groups = int(keys.get("groups", 1))
+            batch_norm = int(keys.get("batch_normalize", 0))
+            count += filters * (1 + 3 * batch_norm) + filters * (current // groups) * size * size
+            current = filters
+        elif name == "route":
+            indices = [int(v) for v in keys.get("layers", "-1").split(",")]
+            total = sum(channels[i if i >= 0 else len(channels) + i] for i in indices)
+            current = total // int(keys.get("groups", 1))
+        elif name not in ("shortcut", "upsample", "maxpool", "yolo", "region", "dropout", "sam",
+                          "scale_channels", "avgpool", "reorg"):
+            return None
+        elif name == "reorg":
+            current *= int(keys.get("stride", 2)) ** 2
+        channels.append(current)
+    return count
+
+
+def _darknet_header_bytes(path: Path) -> int:
+    with open(path, "rb") as handle:
+        head = handle.read(12)
+    if len(head) < 12:
+        return 0
+    major, minor, _ = np.frombuffer(head, "<i4")
+    return 20 if (major * 10 + minor >= 2 and major < 1000 and minor < 1000) else 16
+
+
+@dataclass
+class DarknetDetector:
+    """A Darknet (YOLOv4-style) network run by OpenCV DNN; see :func:`load_detector`."""
+
+    name: str
+    net: Any
+    lookup: np.ndarray
+    input_size: tuple[int, int]  # (h, w) from the cfg's [net] section
+    letterboxed: bool
+
+    def predict(self, images, *, imgsz: int, conf: float, iou: float, max_det: int):
+        import cv2
+
+        height_in, width_in = self.input_size
+        outputs = []
+        names = self.net.getUnconnectedOutLayersNames()
+        for image in images:
+            image = np.asarray(image)
+            height, width = image.shape[:2]
+            if self.letterboxed:
+                canvas, gain, pad = letterbox(image, (height_in, width_in))
+                scale = (gain, gain)
+            else:
+                canvas = cv2.resize(image, (width_in, height_in), interpolation=cv2.INTER_LINEAR)
+                scale, pad = (width_in / width, height_in / height), (0.0, 0.0)
+            blob = np.ascontiguousarray(canvas.transpose(2, 0, 1)[None], dtype=np.float32) / 255.0
+            self.net.setInput(blob)
+            raw = np.concatenate([np.asarray(o, np.float32).reshape(-1, o.shape[-1])
+                                  for o in self.net.forward(names)])
+            boxes, scores = decode_darknet(raw, (height_in, width_in))
+            boxes, kept_scores, ids = select_detections(boxes, scores, self.lookup, conf=conf, iou=iou,
+                                                        max_det=max_det)
+            boxes = boxes.astype(np.float64)
+            boxes[:, [0, 2]] = np.clip((boxes[:, [0, 2]] - pad[0]) / scale[0], 0, width)
+            boxes[:, [1, 3]] = np.clip((boxes[:, [1, 3]] - pad[1]) / scale[1], 0, height)
+            outputs.append((boxes.astype(np.float32), kept_scores, ids))
+        return outputs
+
+
+def decode_darknet(rows: np.ndarray, input_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV DNN YOLO rows (N, 5 + nc): cx, cy, w, h as fractions of the network input,
+    objectness, class scores (already objectness x class probability) -> (boxes (N, 4) float32
+    xyxy in input pixels, class scores (N, nc))."""
+    rows = np.asarray(rows, np.float32)
+    height_in, width_in = input_size
+    cx, cy = rows[:, 0] * width_in, rows[:, 1] * height_in
+    half_w, half_h = rows[:, 2] * width_in / 2, rows[:, 3] * height_in / 2
+    boxes = np.stack([cx - half_w, cy - half_h, cx + half_w, cy + half_h], axis=1)
+    return boxes, rows[:, 5:]
+
+
+def _load_darknet(path: Path, class_map: str | None) -> DarknetDetector:
+    import cv2
+
+    cfg = path.with_suffix(".cfg")
+    if not cfg.is_file():
+        raise BackendError(f"--weights: {path}: the Darknet cfg {cfg.name} must sit beside the .weights file")
+    if not hasattr(cv2.dnn, "readNetFromDarknet"):
+        raise BackendError(f"--weights: {path}: this OpenCV ({cv2.__version__}) has no Darknet importer; "
+                           "install opencv-python-headless<5")
+    sections = parse_darknet_cfg(cfg.read_text(errors="replace"))
+    net_section = next((keys for name, keys in sections if name in ("net", "network")), None)
+    classes = {int(keys.get("classes", -1)) for name, keys in sections if name in ("yolo", "region")}
+    if net_section is None or len(classes) != 1 or min(classes) < 1:
+        raise BackendError(f"--weights: {cfg} is not a Darknet YOLO cfg (expected a [net] section and "
+                           "[yolo] layers with one classes= value)")
+    expected = darknet_weight_count(sections)
+    size = path.stat().st_size
+    header = _darknet_header_bytes(path)
+    if header == 0 or (expected is not None and size != header + 4 * expected):
+        held = max(size - header, 0) // 4
+        raise BackendError(f"--weights: {path} does not load with {cfg.name} (it holds {held} weights, "
+                           f"the cfg needs {expected}: truncated, or another network's file)")
+    try:
+        net = cv2.dnn.readNetFromDarknet(str(cfg), str(path))
+    except cv2.error as error:
+        reason = " ".join(str(error).split())[-200:]
+        raise BackendError(f"--weights: {path} does not load with {cfg.name} ({reason})") from None
+    nc = classes.pop()
+    names = list(COCO_PREFIX) + [f"coco{i}" for i in range(4, 80)] if nc == 80 else [str(i) for i in range(nc)]
+    lookup = class_lookup(names, class_map, f"--weights {path}")
+    input_size = (int(net_section.get("height", 416)), int(net_section.get("width", 416)))
+    return DarknetDetector(name=path.stem, net=net, lookup=lookup, input_size=input_size,
+                           letterboxed=net_section.get("letter_box", "0") == "1")
+
+
 def load_detector(weights: str | Path, *, class_map: str | None = None,
-                  device: str | None = None) -> UltralyticsDetector:
-    """Load a detector from a local weights file; ``.name`` is the file stem.
+                  device: str | None = None) -> Detector:
+    """Load a detector from a weights spec (:func:`resolve_weights`); ``.name`` is the model name.
 
     Raises :class:`BackendError` (one line, naming the file) for a missing file, an unsupported
-    format, a file that is not a loadable checkpoint, a non-detection model, or class names that
-    are neither COCO-80 nor covered by ``class_map``.
+    format, a file that does not load, a non-detection model, or class names that are neither
+    COCO-80 nor covered by ``class_map``.
     """
-    path = Path(weights)
-    if not path.is_file():
-        raise BackendError(f"--weights: {path} does not exist (weights are loaded from local files only)")
-    if path.suffix.lower() != ".pt":
-        raise BackendError(f"--weights: {path}: unsupported format {path.suffix or '(none)'!r}; "
-                           "expected an ultralytics .pt checkpoint")
+    path, name = resolve_weights(weights)
     if class_map is not None:
         parse_class_map(class_map)
+    suffix = path.suffix.lower()
+    if suffix == ".onnx":
+        return _load_onnx(path, class_map, device)
+    if suffix == ".weights":
+        return _load_darknet(path, class_map)
+    if suffix != ".pt":
+        raise BackendError(f"--weights: {path}: unsupported format {path.suffix or '(none)'!r}; expected "
+                           "an ultralytics .pt, an .onnx export, Darknet .cfg/.weights, or a shipped model "
+                           f"name ({', '.join(shipped_models()) or 'none shipped'})")
     ultralytics = _offline_ultralytics()
     try:
         model = ultralytics.YOLO(str(path))
@@ -160,4 +563,4 @@ def load_detector(weights: str | Path, *, class_map: str | None = None,
         raise BackendError(f"--weights: {path} is a {getattr(model, 'task', 'unknown')!r} model; "
                            "expected a detection model")
     lookup = class_lookup(model.names, class_map, f"--weights {path}")
-    return UltralyticsDetector(name=path.stem, model=model, lookup=lookup, device=device)
+    return UltralyticsDetector(name=name, model=model, lookup=lookup, device=device)

@@ -206,10 +206,6 @@ class EvalOutputs:
     """(model, rate) pairs whose detections were computed by a backend in this run (not cached)."""
 
 
-def _model_name(weights: str | Path) -> str:
-    return Path(weights).stem
-
-
 def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map) -> dict[str, Any]:
     stat = weights.stat()
     return {"weights": str(weights.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
@@ -273,18 +269,17 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     else:
         from . import backends
 
-        weights = [Path(w) for w in weights]
-        for path in weights:
-            if not path.is_file():
-                raise EvalError(f"--weights: {path} does not exist (weights are loaded from local files only)")
+        specs = list(weights)
+        resolved = [backends.resolve_weights(w) for w in specs]
+        weights = [path for path, _ in resolved]
         if class_map is not None:
             backends.parse_class_map(class_map)  # fail early on a bad spec
-        models = [_model_name(w) for w in weights]
+        models = [name for _, name in resolved]
         duplicates = sorted({m for m in models if models.count(m) > 1})
         if duplicates:
             raise EvalError(f"--weights: several weights files are named {duplicates[0]!r}; model names "
                             "(file stems) must be unique")
-        for path, model in zip(weights, models, strict=True):
+        for spec, path, model in zip(specs, weights, models, strict=True):
             settings = _cache_settings(path, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det,
                                        class_map=class_map)
             cache_root = out_dir / "predictions"
@@ -301,7 +296,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
                     detections[(model, rate)] = load_predictions_file(cache, image_ids)
                     continue
                 if detector is None:
-                    detector = backends.load_detector(path, class_map=class_map, device=device)
+                    detector = backends.load_detector(spec, class_map=class_map, device=device)
                     if not reuse:  # settings changed or --force: older rate files are stale
                         meta_path.unlink(missing_ok=True)
                 with tqdm(total=len(images), unit="img", desc=f"{model} {rate_token(rate)} mm/h",

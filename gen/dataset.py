@@ -28,6 +28,8 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rainbench.mjcf.layout import ScenarioConfig
+
 from . import labels as lb
 from .generate import GenerateConfig, generate_shard
 from .shard import ShardFormatError, open_shard, shard_name
@@ -60,8 +62,12 @@ class DatasetConfig:
     rain_options: dict = field(default_factory=dict)
     store: tuple[str, ...] = ()
     label_filter: lb.LabelFilter = field(default_factory=lb.LabelFilter)
+    scenario: ScenarioConfig | None = None  # None: the paper's actor mix over frames / fps seconds
 
     def __post_init__(self) -> None:
+        if self.scenario is not None and abs(self.scenario.duration_s - self.frames / self.fps) > 1e-9:
+            raise DatasetError(f"scenario.duration_s: expected frames / fps = {self.frames / self.fps:g} s "
+                               f"(the clip's length), got {self.scenario.duration_s:g}")
         if not (isinstance(self.scenes, int) and 1 <= self.scenes <= 100_000):
             raise DatasetError(f"SCENES: expected an integer in 1..100000, got {self.scenes!r}")
         if not (isinstance(self.frames_per_shard, int) and self.frames_per_shard >= 1):
@@ -83,7 +89,7 @@ class DatasetConfig:
                     height=self.height, hfov_deg=self.hfov_deg, rates=tuple(self.rates),
                     rain_model=self.rain_model, rain_seed=self.rain_seed,
                     rain_options=dict(self.rain_options), store=tuple(self.store),
-                    label_filter=self.label_filter))
+                    label_filter=self.label_filter, scenario=self.scenario))
         return tasks
 
     def to_dict(self) -> dict:

@@ -1,0 +1,236 @@
+"""Detector backends: letterbox maths, ONNX (v5 and v8 layouts) and Darknet on models built here,
+shipped weights by name, and one-line errors. No file is downloaded."""
+
+import struct
+
+import numpy as np
+import pytest
+
+from rainbench.eval import backends
+
+# Import torch's lazy modules before anything renders in this process (see test_eval_pipeline).
+backends._offline_ultralytics()
+import onnx  # noqa: E402
+import torch  # noqa: E402
+import torch._dynamo  # noqa: E402,F401
+
+# Boxes of the synthetic case, xyxy in the original 800x600 image, with their class and score.
+ORIGINAL_BOXES = np.array([[100, 50, 300, 250], [400.5, 300, 520, 590], [10, 20, 30, 60]], np.float32)
+CLASS_OF_BOX = [2, 0, 3]  # car, person, motorcycle (model class index = COCO index here)
+SCORE_OF_BOX = [0.9, 0.8, 0.6]
+
+
+class ConstantHead(torch.nn.Module):
+    """A 'detector' whose raw output is a fixed tensor (plus 0 x input, so the graph uses it)."""
+
+    def __init__(self, output: np.ndarray):
+        super().__init__()
+        self.register_buffer("output", torch.from_numpy(output.astype(np.float32)))
+
+    def forward(self, images):
+        return self.output.expand(images.shape[0], *self.output.shape) + 0 * images.mean()
+
+
+def _head_rows(gain, pad, nc, objectness, anchors=200):
+    """The synthetic boxes as rows cx, cy, w, h (canvas pixels), [objectness], class scores,
+    then empty rows up to ``anchors`` (real heads have thousands of anchors)."""
+    rows = []
+    for box, class_id, score in zip(ORIGINAL_BOXES, CLASS_OF_BOX, SCORE_OF_BOX):
+        x0, y0, x1, y1 = box * gain + np.array([pad[0], pad[1], pad[0], pad[1]])
+        classes = np.zeros(nc, np.float32)
+        classes[class_id] = score / 0.5 if objectness else score
+        classes[(class_id + 1) % nc] = 0.05  # a weaker second class: not reported (best class only)
+        head = [(x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0] + ([0.5] if objectness else [])
+        rows.append(np.concatenate([head, classes]))
+    rows += [np.full(len(rows[0]), 1.0, np.float32) * (np.arange(len(rows[0])) < 4)] * (anchors - len(rows))
+    return np.array(rows, np.float32)
+
+
+def _export(module, path, size, dynamic, names=None, anchors_axis=2):
+    kwargs = {}
+    if dynamic:  # ultralytics' exporter: symbolic batch, image size and anchor count
+        kwargs["dynamic_axes"] = {"images": {0: "batch", 2: "height", 3: "width"},
+                                  "output0": {0: "batch", anchors_axis: "anchors"}}
+    torch.onnx.export(module, torch.zeros(1, 3, *size), str(path), dynamo=False, opset_version=17,
+                      input_names=["images"], output_names=["output0"], **kwargs)
+    if names is not None:  # what ultralytics' exporter writes
+        model = onnx.load(str(path))
+        entry = model.metadata_props.add()
+        entry.key, entry.value = "names", str(dict(enumerate(names)))
+        onnx.save(model, str(path))
+    return path
+
+
+def _image():
+    return np.random.default_rng(0).integers(0, 255, (600, 800, 3), dtype=np.uint8)
+
+
+def test_letterbox_maps_points_exactly():
+    image = _image()
+    canvas, gain, pad = backends.letterbox(image, (640, 640))
+    assert canvas.shape == (640, 640, 3) and gain == pytest.approx(0.8) and pad == (0.0, 80.0)
+    assert (canvas[:80] == backends.LETTERBOX_FILL).all() and (canvas[560:] == backends.LETTERBOX_FILL).all()
+    assert backends.rect_shape(600, 800, 640) == (480, 640)
+    assert backends.rect_shape(72, 96, 96) == (96, 96)
+    moved = ORIGINAL_BOXES * gain + np.array([0, 80, 0, 80], np.float32)
+    np.testing.assert_allclose(backends.unletterbox(moved, gain, pad, 800, 600), ORIGINAL_BOXES, atol=1e-4)
+    # Clipping to the original image.
+    assert backends.unletterbox(np.array([[-10, 0, 700, 700]]), gain, pad, 800, 600).tolist() == [[0, 0, 800, 600]]
+
+
+@pytest.mark.parametrize("layout,dynamic", [("v8", True), ("v8", False), ("v5", True), ("v5", False)])
+def test_onnx_boxes_back_in_the_original_frame(tmp_path, layout, dynamic):
+    nc = 80
+    shape = (480, 640) if dynamic else (640, 640)
+    gain, pad = 0.8, ((0.0, 0.0) if dynamic else (0.0, 80.0))
+    rows = _head_rows(gain, pad, nc, objectness=layout == "v5")
+    output = rows.T if layout == "v8" else rows
+    path = _export(ConstantHead(output), tmp_path / f"const_{layout}.onnx", shape, dynamic,
+                   anchors_axis=2 if layout == "v8" else 1)
+    detector = backends.load_detector(path)
+    assert detector.name == f"const_{layout}" and detector.layout == layout
+    (boxes, scores, ids), (boxes2, _, _) = detector.predict([_image(), _image()], imgsz=640, conf=0.25,
+                                                            iou=0.7, max_det=300)
+    # COCO-80 without names metadata: ids 0..3 kept; the weak second classes fall under conf.
+    order = np.argsort(-scores)
+    np.testing.assert_allclose(boxes[order], ORIGINAL_BOXES, atol=1e-3)
+    np.testing.assert_allclose(scores[order], SCORE_OF_BOX, atol=1e-6)
+    assert ids[order].tolist() == CLASS_OF_BOX
+    np.testing.assert_array_equal(boxes, boxes2)
+    # max_det and the confidence floor.
+    boxes, scores, _ = detector.predict([_image()], imgsz=640, conf=0.7, iou=0.7, max_det=1)[0]
+    assert scores.tolist() == pytest.approx([0.9])
+    if not dynamic:
+        with pytest.raises(backends.BackendError, match="fixed 640x640 input; pass --imgsz 640"):
+            detector.predict([_image()], imgsz=320, conf=0.25, iou=0.7, max_det=300)
+
+
+def test_onnx_names_metadata_and_class_map(tmp_path):
+    names = ["pedestrian", "auto", "bike", "truck"]
+    rows = _head_rows(1.0, (0.0, 0.0), 4, objectness=False)
+    rows[:, 4:] = 0
+    rows[0, 4 + 1], rows[1, 4 + 0], rows[2, 4 + 2] = 0.9, 0.8, 0.6  # auto, pedestrian, bike
+    path = _export(ConstantHead(rows.T), tmp_path / "custom.onnx", (608, 800), True, names=names)
+    with pytest.raises(backends.BackendError, match="not COCO-80; pass --class-map"):
+        backends.load_detector(path)
+    detector = backends.load_detector(path, class_map="auto=2,pedestrian=0")
+    boxes, scores, ids = detector.predict([_image()], imgsz=800, conf=0.1, iou=0.7, max_det=300)[0]
+    order = np.argsort(ids)
+    assert ids[order].tolist() == [0, 2]  # bike dropped
+    np.testing.assert_allclose(scores[order], [0.8, 0.9], atol=1e-6)
+
+
+def test_onnx_export_of_an_ultralytics_model_matches_its_checkpoint(tmp_path):
+    """The same random-weights yolo11n through .pt and through ONNX: the same detections."""
+    from ultralytics import YOLO
+    from ultralytics.nn.tasks import DetectionModel
+
+    model = YOLO("yolo11n.yaml")
+    model.model = DetectionModel("yolo11n.yaml", nc=4, verbose=False)  # rainbench's four classes
+    names = ["person", "bicycle", "car", "motorcycle"]
+    model.model.names = dict(enumerate(names))
+    torch.manual_seed(0)
+    with torch.no_grad():  # varied, non-trivial scores instead of the initial constant ones
+        for parameter in model.model.parameters():
+            parameter.add_(0.05 * torch.randn_like(parameter))
+        for branch in model.model.model[-1].cv3:
+            branch[-1].bias.add_(6.0)
+    pt_path = tmp_path / "net.pt"
+    model.save(str(pt_path))
+    net = model.model.eval()
+    for module in net.modules():
+        if hasattr(module, "export"):
+            module.export = True
+            module.format = "onnx"
+    onnx_path = _export(net, tmp_path / "net.onnx", (480, 640), True, names=names)
+    image = np.ascontiguousarray(np.random.default_rng(1).integers(0, 255, (600, 800, 3), dtype=np.uint8))
+    settings = dict(imgsz=640, conf=0.001, iou=0.7, max_det=300)
+    pt_boxes, pt_scores, pt_ids = backends.load_detector(pt_path, device="cpu").predict([image], **settings)[0]
+    on_boxes, on_scores, on_ids = backends.load_detector(onnx_path).predict([image], **settings)[0]
+    assert len(pt_boxes) > 5
+    top = np.argsort(-pt_scores)[:5]
+    for index in top:  # each of the .pt model's best detections has its ONNX twin
+        distance = np.abs(on_boxes - pt_boxes[index]).max(axis=1) + 10 * (on_ids != pt_ids[index])
+        twin = int(np.argmin(distance))
+        assert distance[twin] < 1.0 and abs(on_scores[twin] - pt_scores[index]) < 2e-3
+
+
+def _darknet_files(folder, classes=4, width=64, height=64):
+    """A tiny Darknet YOLO network (one conv, one [yolo] head) with random weights."""
+    filters = 3 * (5 + classes)
+    cfg = folder / "tiny.cfg"
+    cfg.write_text(f"""[net]
+batch=1
+width={width}
+height={height}
+channels=3
+
+[convolutional]
+batch_normalize=0
+filters=8
+size=3
+stride=2
+pad=1
+activation=leaky
+
+[convolutional]
+filters={filters}
+size=1
+stride=1
+pad=1
+activation=linear
+
+[yolo]
+mask=0,1,2
+anchors=10,14, 23,27, 37,58
+classes={classes}
+num=3
+""")
+    rng = np.random.default_rng(0)
+    count = (8 + 8 * 3 * 3 * 3) + (filters + filters * 8)
+    weights = folder / "tiny.weights"
+    weights.write_bytes(struct.pack("<iiiq", 0, 2, 0, 0) + (rng.normal(0, 0.1, count)).astype("<f4").tobytes())
+    return cfg, weights
+
+
+def test_darknet_backend_runs_through_opencv(tmp_path):
+    cfg, weights = _darknet_files(tmp_path, classes=4)
+    with pytest.raises(backends.BackendError, match="not COCO-80; pass --class-map"):
+        backends.load_detector(weights)
+    detector = backends.load_detector(cfg, class_map="0=0,1=1,2=2,3=3")  # the cfg resolves to its .weights
+    assert detector.name == "tiny" and detector.input_size == (64, 64)
+    outputs = detector.predict([_image(), _image()[:300]], imgsz=640, conf=0.0, iou=0.7, max_det=20)
+    for (boxes, scores, ids), (height, width) in zip(outputs, [(600, 800), (300, 800)]):
+        assert boxes.dtype == np.float32 and boxes.shape == (len(scores), 4) and 0 < len(boxes) <= 20
+        assert set(ids.tolist()) <= {0, 1, 2, 3}
+        assert (boxes[:, 0] >= 0).all() and (boxes[:, 2] <= width).all() and (boxes[:, 3] <= height).all()
+
+
+def test_darknet_decode_is_exact():
+    rows = np.array([[0.5, 0.25, 0.1, 0.2, 0.9, 0.1, 0.7]], np.float32)
+    boxes, scores = backends.decode_darknet(rows, (416, 608))
+    np.testing.assert_allclose(boxes, [[0.45 * 608, 0.15 * 416, 0.55 * 608, 0.35 * 416]], rtol=1e-6)
+    np.testing.assert_allclose(scores, [[0.1, 0.7]])
+
+
+def test_weights_errors_are_one_line(tmp_path):
+    with pytest.raises(backends.BackendError, match=r"nope\.onnx does not exist"):
+        backends.load_detector(tmp_path / "nope.onnx")
+    with pytest.raises(backends.BackendError, match="does not exist .*shipped models"):
+        backends.load_detector("no-such-model")
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not a model")
+    with pytest.raises(backends.BackendError, match=r"bad\.onnx is not a loadable ONNX model"):
+        backends.load_detector(bad)
+    lonely = tmp_path / "lonely.weights"
+    lonely.write_bytes(b"\0" * 20)
+    with pytest.raises(backends.BackendError, match=r"lonely\.cfg must sit beside"):
+        backends.load_detector(lonely)
+    cfg, weights = _darknet_files(tmp_path)
+    weights.write_bytes(weights.read_bytes()[:40])  # truncated
+    with pytest.raises(backends.BackendError, match=r"tiny\.weights does not load with tiny\.cfg"):
+        backends.load_detector(weights, class_map="0=0")
+    other = tmp_path / "model.tflite"
+    other.write_bytes(b"x")
+    with pytest.raises(backends.BackendError, match="unsupported format '.tflite'"):
+        backends.load_detector(other)
