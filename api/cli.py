@@ -198,6 +198,30 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_paper(args: argparse.Namespace) -> int:
+    from rainbench.rain import parse_rates
+
+    rates = tuple(parse_rates(args.rates))
+    out = _writable_dir(Path(args.out), "--out")
+    # Load torch's lazy modules before Mesa renders in this process (triton after llvmpipe crashes).
+    from rainbench.eval.backends import _offline_ultralytics
+
+    _offline_ultralytics()
+    import torch
+    import torch._dynamo  # noqa: F401
+
+    from rainbench.eval.paper import PaperConfig, default_models, run_paper
+
+    models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
+    config = PaperConfig(seed=args.seed, scenes=args.scenes, frames=args.frames, width=args.width,
+                         height=args.height, rates=rates, rain_models=tuple(args.rain_models.split(",")),
+                         weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
+                         n_boot=args.n_boot, device=args.device)
+    print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
+                    force=args.force, progress=not args.quiet))
+    return 0
+
+
 def _add_scene_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=_seed, default=0,
                         help="scene seed: layout, actors, colours, speeds, sun, camera height")
@@ -300,6 +324,26 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_argument("--workers", type=_positive_int("WORKERS"), default=1,
                           help="processes generating the training scenes")
     training.set_defaults(run=cmd_train)
+    paper = sub.add_parser("paper", help="the seed paper's experiment: generate, evaluate, report beside the paper")
+    _add_scene_args(paper)
+    paper.add_argument("--scenes", type=_positive_int("SCENES"), default=1)
+    paper.add_argument("--rates", default="0:100:10", help="RATES spec (default 0:100:10, the paper's)")
+    paper.add_argument("--rain-models", default="jeon2022,physical",
+                       help="comma-separated rain models (default: jeon2022,physical)")
+    paper.add_argument("--model", action="append", default=None,
+                       help="shipped model to evaluate (repeatable; default rainbench-yolo11n, plus "
+                       "rainbench-yolo11s on a GPU)")
+    paper.add_argument("--weights", action="append", default=None, help="extra weights to evaluate (repeatable)")
+    paper.add_argument("--data", default="data/paper", help="dataset root (default data/paper)")
+    paper.add_argument("--out", default="results/paper", help="results directory (default results/paper)")
+    paper.add_argument("--imgsz", type=_positive_int("IMGSZ"), default=640)
+    paper.add_argument("--batch", type=_positive_int("BATCH"), default=32)
+    paper.add_argument("--n-boot", type=_positive_int("N_BOOT"), default=1000)
+    paper.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
+    paper.add_argument("--workers", type=_positive_int("WORKERS"), default=1, help="generation processes")
+    paper.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
+    paper.add_argument("--quiet", action="store_true", help="no progress bars")
+    paper.set_defaults(run=cmd_paper)
     return parser
 
 

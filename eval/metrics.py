@@ -973,6 +973,38 @@ def rpc(values_by_rate: Mapping[float, float]) -> float:
     return mpc(values_by_rate) / performance_clean
 
 
+def half_value_rate(values_by_rate: Mapping[float, float], fraction: float = 0.5) -> float:
+    """The rain rate at which a metric first falls to ``fraction`` of its clean (rate 0) value.
+
+    Linear interpolation between the two measured rates around the crossing. Returns inf when
+    the metric stays above ``fraction x clean`` at every measured rate, and nan when the clean
+    value is 0 or nan.
+
+    Args:
+        values_by_rate: ``{rate_mm_h: metric}`` including rate 0.
+        fraction: Level, in (0, 1), relative to the clean value.
+    """
+    if not 0 < fraction < 1:
+        raise ValueError(f"fraction: expected a value in (0, 1), got {fraction}")
+    rates, values = _rates_and_values(values_by_rate)
+    order = np.argsort(rates)
+    rates, values = rates[order], values[order]
+    if rates[0] != 0:
+        raise ValueError(f"values_by_rate: expected rate 0 (clean), got rates {rates.tolist()}")
+    clean = values[0]
+    if clean == 0 or math.isnan(clean):
+        return float("nan")
+    level = fraction * clean
+    for index in range(1, len(rates)):
+        if values[index] <= level:
+            previous, current = values[index - 1], values[index]
+            if previous == current:
+                return float(rates[index])
+            step = (previous - level) / (previous - current)
+            return float(rates[index - 1] + step * (rates[index] - rates[index - 1]))
+    return float("inf")
+
+
 # --------------------------------------------------------------------------------------------
 # Bootstrap
 # --------------------------------------------------------------------------------------------

@@ -398,6 +398,118 @@ def render_report_md(
     return "\n".join(lines) + "\n"
 
 
+PAPER_TABLE_I: dict[str, tuple[int, int]] = {
+    "car": (6, 838), "person": (8, 350), "bicycle": (2, 67), "motorcycle": (1, 10),
+}
+"""The seed paper's Table I: (objects placed, labelled instances over the 200 frames) per class."""
+
+
+def _fmt_rate(value: float) -> str:
+    if math.isinf(value):
+        return "> max rate"
+    return "n/a" if math.isnan(value) else f"{value:.0f}"
+
+
+def render_paper_md(
+    *,
+    setup_lines: Sequence[str],
+    table_one: Mapping[str, tuple[int, int]],
+    records_by_rain: Mapping[str, Sequence[Mapping[str, Any]]],
+    half_rates: Mapping[tuple[str, str, str], float],
+    breakdowns: Mapping[str, Mapping[float, Mapping[str, Mapping[str, Any]]]],
+    breakdown_model: str,
+    paper_rain_model: str = "jeon2022",
+) -> str:
+    """The ``make paper`` report: our Tables I, III and IV beside the seed paper's, plots of both
+    rain models, and the analyses beyond the paper.
+
+    Args:
+        setup_lines: Markdown lines describing the run (data, models, hardware, times).
+        table_one: ``{class: (objects, instances)}`` of our dataset.
+        records_by_rain: ``{rain model: metric records}`` (:func:`metric_records`), each with the
+            plots ``<rain model>/ap50_vs_rate.png`` and ``f1_vs_rate.png`` beside the report.
+        half_rates: ``{(rain model, model, class): rate}`` where AP@0.5 falls to half its clean
+            value (inf: never within the measured rates).
+        breakdowns: ``{"visible fraction" | "box size": {rate: {bin: {class: BreakdownAP}}}}`` of
+            ``breakdown_model`` under ``paper_rain_model`` rain.
+        breakdown_model: The model of ``breakdowns``.
+        paper_rain_model: The rain model of the paper's Tables III and IV comparison.
+    """
+    lines = ["# rainbench: the seed paper's experiment on rainbench data", ""]
+    lines += list(setup_lines) + [""]
+    lines += ["## Table I. Objects and instances per class", ""]
+    rows = []
+    for class_name in TABLE_CLASS_ORDER:
+        ours = table_one.get(class_name, (0, 0))
+        paper = PAPER_TABLE_I[class_name]
+        rows.append([class_name, str(ours[0]), str(ours[1]), str(paper[0]), str(paper[1])])
+    lines += _table(["Class", "Objects", "Instances", "Objects (paper)", "Instances (paper)"], rows)
+    for rain_model, records in records_by_rain.items():
+        models, rates, classes, by_key = _index(records)
+        heavy, clean = max(rates), min(rates)
+        label = "the paper's calibrated drop law" if rain_model == paper_rain_model else "physically based rain"
+        rows_models = list(models)
+        by_key = dict(by_key)
+        if rain_model == paper_rain_model:  # the paper's published rows under ours
+            for metric, by_model in PAPER_TABLES.items():
+                for paper_model, by_rate in by_model.items():
+                    name = f"{paper_model} (paper)"
+                    if name not in rows_models:
+                        rows_models.append(name)
+                    for rate, by_class in by_rate.items():
+                        for class_name, value in by_class.items():
+                            by_key.setdefault((name, float(rate), class_name), {})[metric] = value
+        for metric, table, metric_label in (("ap50", "III", "AP@0.5"), ("f1", "IV", "F1")):
+            lines += ["", f"## Table {table}. {metric_label}, Normal vs {_rate_label(heavy, clean)}: "
+                      f"{rain_model} ({label})", ""]
+            lines += _degradation_table(metric, rows_models, classes, by_key, clean, heavy, None, None)
+        if rain_model == paper_rain_model:
+            lines += ["", "Rows marked (paper): the seed paper's published Tables III and IV (COCO-pretrained "
+                      "YOLOv4, YOLOv5x, YOLOv7x on its CARLA Town04 clip), for reference."]
+        lines += ["", f"AP@0.5 and F1 against rain rate ({rain_model}):", "",
+                  f"![AP@0.5 vs rate, {rain_model}]({rain_model}/ap50_vs_rate.png) "
+                  f"![F1 vs rate, {rain_model}]({rain_model}/f1_vs_rate.png)", "",
+                  f"Full rate-by-rate tables with bootstrap intervals: [{rain_model}/report.md]({rain_model}/report.md)."]
+    lines += ["", "## Beyond the paper", ""]
+    lines += ["### Rain rate (mm/h) at which AP@0.5 falls to half its clean value", ""]
+    rain_models = list(records_by_rain)
+    models = _index(next(iter(records_by_rain.values())))[0]
+    rows = []
+    for model in models:
+        for position, class_name in enumerate(TABLE_CLASS_ORDER):
+            rows.append([model if position == 0 else "", class_name]
+                        + [_fmt_rate(half_rates.get((rain, model, class_name), math.nan)) for rain in rain_models])
+    lines += _table(["Model", "Class"] + rain_models, rows)
+    if len(rain_models) > 1:
+        lines += ["", f"### {' vs '.join(rain_models)}: AP@0.5 by rate, side by side", ""]
+        indexed = {rain: _index(records) for rain, records in records_by_rain.items()}
+        rates = indexed[rain_models[0]][1]
+        rows = []
+        for model in models:
+            for position, class_name in enumerate(TABLE_CLASS_ORDER):
+                row = [model if position == 0 else "", class_name]
+                for rate in rates:
+                    row.append(" / ".join(_fmt(indexed[rain][3].get((model, rate, class_name), {}).get("ap50"))
+                                          for rain in rain_models))
+                rows.append(row)
+        lines += _table(["Model", "Class"] + [_rate_label(r, rates[0]) for r in rates], rows)
+    for what, by_rate in breakdowns.items():
+        lines += ["", f"### AP@0.5 by {what}, {breakdown_model}, {paper_rain_model} rain", ""]
+        rates = sorted(by_rate)
+        bins = list(next(iter(by_rate.values())))
+        rows = []
+        for class_name in TABLE_CLASS_ORDER:
+            for position, bin_label in enumerate(bins):
+                row = [class_name if position == 0 else "", bin_label]
+                for rate in rates:
+                    entry = by_rate[rate][bin_label].get(class_name)
+                    row.append("n/a" if entry is None or entry.n_gt == 0 else f"{_fmt(entry.ap50)} ({entry.n_gt})")
+                rows.append(row)
+        lines += _table(["Class", what.capitalize()] + [f"{r:g} mm/h" for r in rates], rows)
+        lines += ["", "Cells: AP@0.5 (ground-truth boxes in the bin)."]
+    return "\n".join(lines) + "\n"
+
+
 # --------------------------------------------------------------------------------------------
 # Plots
 # --------------------------------------------------------------------------------------------
