@@ -19,8 +19,13 @@ WORKERS ?=
 RESULTS ?= results/eval
 WEIGHTS ?=
 PREDICTIONS ?=
+# make train / make paper variables (docs/models.md)
+RECIPE ?= rainbench-yolo11n
+TRAIN_OUT ?=
+MODELS ?=
+PAPER_OUT ?= results/paper
 
-.PHONY: venv dataset scene verify eval test test-slow bench clean
+.PHONY: venv dataset scene verify eval train paper test test-slow bench clean
 
 venv: $(STAMP)
 
@@ -42,6 +47,16 @@ eval: $(STAMP)
 	$(BIN)/rainbench eval --data $(OUT) --out $(RESULTS) \
 		$(foreach w,$(WEIGHTS),--weights $(w)) $(if $(PREDICTIONS),--predictions $(PREDICTIONS),)
 
+# Trains the recipe's model from scratch on clean scenes (resumes a cut-off run when re-run).
+train: $(STAMP)
+	$(BIN)/rainbench train --recipe $(RECIPE) $(if $(TRAIN_OUT),--out $(TRAIN_OUT),)
+
+# The seed paper's experiment: generate both rain models, evaluate the shipped models, report.
+paper: $(STAMP)
+	$(BIN)/rainbench paper --out $(PAPER_OUT) --data $(OUT)/paper --seed $(SEED) --scenes $(SCENES) \
+		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
+		$(foreach m,$(MODELS),--model $(m)) $(foreach w,$(WEIGHTS),--weights $(w))
+
 verify: $(STAMP)
 	$(BIN)/rainbench verify $(OUT)
 
@@ -60,6 +75,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/rain.py --json results/bench/rain.json
 	$(BIN)/python bench/eval_metrics.py --json results/bench/eval_metrics.json
 	$(BIN)/python bench/dataset.py --json results/bench/dataset.json
+	$(BIN)/python bench/inference.py --json results/bench/inference.json
 
 clean:
 	rm -rf $(VENV) build *.egg-info

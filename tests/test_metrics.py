@@ -715,3 +715,17 @@ def test_bad_inputs_give_one_line_errors(call, message):
     with pytest.raises(ValueError, match=message) as error:
         call()
     assert "\n" not in str(error.value)
+
+
+def test_half_value_rate_interpolates_the_crossing():
+    # 0.8 -> 0.6 -> 0.2: half of 0.8 (0.4) is crossed halfway between 10 and 20 mm/h.
+    assert M.half_value_rate({0.0: 0.8, 10.0: 0.6, 20.0: 0.2}) == pytest.approx(15.0)
+    assert M.half_value_rate({0.0: 0.8, 10.0: 0.4}) == pytest.approx(10.0)  # exactly half
+    assert M.half_value_rate({20.0: 0.1, 0.0: 0.8, 10.0: 0.7}) == pytest.approx(10 + 10 * 0.3 / 0.6)  # unsorted
+    assert math.isinf(M.half_value_rate({0.0: 0.8, 100.0: 0.5}))
+    assert math.isnan(M.half_value_rate({0.0: 0.0, 100.0: 0.0}))
+    assert M.half_value_rate({0.0: 1.0, 50.0: 0.8, 100.0: 0.7}, fraction=0.75) == pytest.approx(50 + 50 * 0.05 / 0.1)
+    with pytest.raises(ValueError, match="expected rate 0"):
+        M.half_value_rate({10.0: 0.5, 20.0: 0.1})
+    with pytest.raises(ValueError, match="fraction"):
+        M.half_value_rate({0.0: 0.5}, fraction=1.0)

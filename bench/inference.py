@@ -1,0 +1,162 @@
+"""Inference images/s of each ``rainbench eval`` backend at 640, against ultralytics' own predict.
+
+Workload: ``--images`` frames of 800x600 rendered from the default scene (seed 0, clean), in
+batches of ``--batch`` (the eval default, 32), letterboxed to 640 (640x480, rectangular).
+
+Timed (best of ``--repeats``):
+
+- baseline: ``ultralytics.YOLO(weights).predict(frames, imgsz=640, conf=0.001)`` directly;
+- ultralytics backend: ``load_detector(weights).predict`` (the same model through rainbench:
+  BGR conversion, class filtering, clipping);
+- onnx backend: the same model exported to ONNX (dynamic input), run by onnxruntime;
+- darknet backend: a YOLOv4-tiny-sized Darknet network (random weights, built here: no download)
+  through OpenCV DNN at 416x416 (its cfg size), for scale only: not the same network.
+
+``weights`` is the shipped ``rainbench-yolo11n`` when present, else a yolo11n from its yaml.
+
+Usage: ``python bench/inference.py [--json OUT] [--images 32] [--batch 32] [--repeats 2]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import struct
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from rainbench.eval import backends
+
+backends._offline_ultralytics()
+import torch  # noqa: E402
+import torch._dynamo  # noqa: E402,F401  (before Mesa renders: see tests/test_eval_pipeline.py)
+
+YOLOV4_TINY_BODY = [  # (filters, size, stride) of the yolov4-tiny backbone's plain convolutions
+    (32, 3, 2), (64, 3, 2), (64, 3, 1), (128, 3, 2), (128, 3, 1), (256, 3, 2), (256, 3, 1), (512, 3, 1),
+]
+
+
+def frames(count: int) -> list[np.ndarray]:
+    from rainbench.gen.generate import GenerateConfig, render_clip
+
+    config = GenerateConfig(seed=0, frames=count, fps=count / 20.0, rates=(0.0,))
+    return [frame.rgb.copy() for _, frame, _ in render_clip(config)]
+
+
+def darknet_files(folder: Path, classes: int = 80) -> Path:
+    """A 416x416 Darknet network of yolov4-tiny's size (plain convolutions, one [yolo] head)."""
+    lines = ["[net]", "width=416", "height=416", "channels=3", ""]
+    count, channels = 0, 3
+    for filters, size, stride in YOLOV4_TINY_BODY:
+        lines += ["[convolutional]", "batch_normalize=1", f"filters={filters}", f"size={size}",
+                  f"stride={stride}", "pad=1", "activation=leaky", ""]
+        count += filters * 4 + filters * channels * size * size
+        channels = filters
+    head = 3 * (5 + classes)
+    lines += ["[convolutional]", f"filters={head}", "size=1", "stride=1", "pad=1", "activation=linear", "",
+              "[yolo]", "mask=0,1,2", "anchors=10,14, 23,27, 37,58, 81,82, 135,169, 344,319",
+              f"classes={classes}", "num=6", ""]
+    count += head + head * channels
+    (folder / "tiny4.cfg").write_text("\n".join(lines))
+    values = np.random.default_rng(0).normal(0, 0.05, count).astype("<f4")
+    weights = folder / "tiny4.weights"
+    weights.write_bytes(struct.pack("<iiiq", 0, 2, 0, 0) + values.tobytes())
+    return weights
+
+
+def onnx_export(weights: str, folder: Path) -> Path:
+    from ultralytics import YOLO
+
+    model = YOLO(weights)
+    net = model.model.float().eval()
+    for module in net.modules():
+        if hasattr(module, "export"):
+            module.export = True
+            module.format = "onnx"
+    path = folder / "model.onnx"
+    torch.onnx.export(net, torch.zeros(1, 3, 480, 640), str(path), dynamo=False, opset_version=17,
+                      input_names=["images"], output_names=["output0"],
+                      dynamic_axes={"images": {0: "batch", 2: "height", 3: "width"},
+                                    "output0": {0: "batch", 2: "anchors"}})
+    import onnx
+
+    proto = onnx.load(str(path))
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = "names", str(model.names)
+    onnx.save(proto, str(path))
+    return path
+
+
+def best_rate(run, images: list[np.ndarray], batch: int, repeats: int) -> float:
+    """Images per second of ``run(batch_of_images)`` over all images, best of ``repeats``."""
+    run(images[:batch])  # warm-up (lazy init, thread pools)
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for index in range(0, len(images), batch):
+            run(images[index:index + batch])
+        best = min(best, time.perf_counter() - start)
+    return len(images) / best
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--images", type=int, default=32)
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--repeats", type=int, default=2)
+    args = parser.parse_args(argv)
+
+    from ultralytics import YOLO
+
+    images = frames(args.images)
+    settings = dict(imgsz=640, conf=0.001, iou=0.7, max_det=300)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        if "rainbench-yolo11n" in backends.shipped_models():
+            weights, label = str(backends.WEIGHTS_DIR / "rainbench-yolo11n.pt"), "rainbench-yolo11n"
+        else:
+            from ultralytics.nn.tasks import DetectionModel
+
+            weights, label = str(folder / "yolo11n.pt"), "yolo11n, 4 classes (random weights)"
+            model = YOLO("yolo11n.yaml")
+            model.model = DetectionModel("yolo11n.yaml", nc=4, verbose=False)
+            model.model.names = {0: "person", 1: "bicycle", 2: "car", 3: "motorcycle"}
+            model.save(weights)
+        direct = YOLO(weights)
+        bgr = [np.ascontiguousarray(image[..., ::-1]) for image in images]
+        rates = {"baseline ultralytics predict": best_rate(
+            lambda chunk: direct.predict(chunk, verbose=False, **settings), bgr, args.batch, args.repeats)}
+        detector = backends.load_detector(weights, device="cpu")
+        rates["ultralytics backend"] = best_rate(lambda chunk: detector.predict(chunk, **settings), images,
+                                                 args.batch, args.repeats)
+        onnx_detector = backends.load_detector(onnx_export(weights, folder))
+        rates["onnx backend"] = best_rate(lambda chunk: onnx_detector.predict(chunk, **settings), images,
+                                          args.batch, args.repeats)
+        darknet = backends.load_detector(darknet_files(folder))
+        rates["darknet backend (yolov4-tiny-sized, 416)"] = best_rate(
+            lambda chunk: darknet.predict(chunk, **settings), images, args.batch, args.repeats)
+    baseline = rates["baseline ultralytics predict"]
+    result = {
+        "benchmark": "inference", "model": label, "images": len(images), "batch": args.batch,
+        "imgsz": 640, "machine": platform.machine(), "cpus": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(), "cuda": torch.cuda.is_available(),
+        "images_per_s": {k: round(v, 2) for k, v in rates.items()},
+        "ratio_vs_baseline": {k: round(v / baseline, 3) for k, v in rates.items()},
+    }
+    text = json.dumps(result, indent=1)
+    print(text)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
