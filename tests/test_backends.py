@@ -1,6 +1,7 @@
 """Detector backends: letterbox maths, ONNX (v5 and v8 layouts) and Darknet on models built here,
 shipped weights by name, and one-line errors. No file is downloaded."""
 
+import json
 import struct
 
 import numpy as np
@@ -234,3 +235,28 @@ def test_weights_errors_are_one_line(tmp_path):
     other.write_bytes(b"x")
     with pytest.raises(backends.BackendError, match="unsupported format '.tflite'"):
         backends.load_detector(other)
+
+
+def test_onnx_and_darknet_backends_through_run_eval_on_a_tiny_shard(tmp_path):
+    from rainbench.eval import pipeline
+    from rainbench.gen.generate import GenerateConfig, generate_shard
+
+    data = tmp_path / "data"
+    generate_shard(GenerateConfig(frames=2, width=96, height=72, rates=(0.0, 50.0)), data)
+    # Boxes scaled into the 96x72 frame, on its 96x96 canvas (12 px of padding above).
+    rows = _head_rows(96 / 800, (0.0, 12.0), 4, objectness=True)
+    onnx_path = _export(ConstantHead(rows), tmp_path / "const.onnx", (96, 96), True, anchors_axis=1)
+    _cfg, darknet_weights = _darknet_files(tmp_path, classes=4)
+    # Neither model has class names: their class indices are mapped (one map for both models).
+    result = pipeline.run_eval(data, tmp_path / "out", weights=[onnx_path, darknet_weights], imgsz=96,
+                               n_boot=3, class_map="0=0,1=1,2=2,3=3", progress=False)
+    assert {r["model"] for r in result.records} == {"const", "tiny"}
+    assert sorted({r["rate"] for r in result.records}) == [0.0, 50.0]
+    for model in ("const", "tiny"):
+        for rate in ("0", "50"):
+            detections = json.loads((tmp_path / "out" / "predictions" / model / f"rate_{rate}.json").read_text())
+            assert detections and {d["category_id"] for d in detections} <= {0, 1, 2, 3}
+            assert {d["image_id"] for d in detections} <= {1, 2}
+    const = json.loads((tmp_path / "out" / "predictions" / "const" / "rate_0.json").read_text())
+    car = next(d for d in const if d["category_id"] == 2)
+    np.testing.assert_allclose(car["bbox"], [12, 6, 24, 24], atol=1e-3)  # (100, 50, 300, 250) x 0.12
