@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from rainbench.gen.dataset import DatasetConfig, run_dataset
-from rainbench.mjcf.layout import ScenarioConfig
+from rainbench.mjcf.layout import CLASS_NAMES, ScenarioConfig
 
 TRAIN_SEED_START = 1_000_000
 """Seeds of training and validation scenes are >= this; evaluation seeds are below it."""
@@ -160,7 +160,7 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
             export_yolo(data_dir, yolo / split, rates=[0.0], image_format="png", overwrite=True)
             done_marker.write_text(manifest.read_text())
     dataset_yaml = out / "dataset.yaml"
-    names = "\n".join(f"  {i}: {n}" for i, n in enumerate(("person", "bicycle", "car", "motorcycle")))
+    names = "\n".join(f"  {i}: {n}" for i, n in enumerate(CLASS_NAMES))
     dataset_yaml.write_text(f"path: {yolo.resolve()}\ntrain: train/rate_0/images\n"
                             f"val: val/rate_0/images\nnames:\n{names}\n")
     return dataset_yaml
