@@ -203,12 +203,7 @@ def cmd_paper(args: argparse.Namespace) -> int:
 
     rates = tuple(parse_rates(args.rates))
     out = _writable_dir(Path(args.out), "--out")
-    # Load torch's lazy modules before Mesa renders in this process (triton after llvmpipe crashes).
-    from rainbench.eval.backends import _offline_ultralytics
-
-    _offline_ultralytics()
     import torch
-    import torch._dynamo  # noqa: F401
 
     from rainbench.eval.paper import PaperConfig, default_models, run_paper
 

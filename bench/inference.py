@@ -33,9 +33,8 @@ import numpy as np
 
 from rainbench.eval import backends
 
-backends._offline_ultralytics()
+backends.preload_torch()  # before Mesa renders the frames
 import torch  # noqa: E402
-import torch._dynamo  # noqa: E402,F401  (before Mesa renders: see tests/test_eval_pipeline.py)
 
 YOLOV4_TINY_BODY = [  # (filters, size, stride) of the yolov4-tiny backbone's plain convolutions
     (32, 3, 2), (64, 3, 2), (64, 3, 1), (128, 3, 2), (128, 3, 1), (256, 3, 2), (256, 3, 1), (512, 3, 1),

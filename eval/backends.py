@@ -47,7 +47,6 @@ from .metrics import CLASS_IDS, CLASS_NAMES
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Shipped weights: ``<name>.pt``, selectable by name (docs/models.md)."""
 LETTERBOX_FILL = 114
-COCO_PREFIX = CLASS_NAMES  # COCO-80 names 0..3; the rest of COCO is dropped anyway
 
 
 class BackendError(ValueError):
@@ -141,6 +140,31 @@ def class_lookup(names: dict[int, str] | list[str], class_map: str | None, sourc
                        "NAME=ID,... mapping its class names to 0 person, 1 bicycle, 2 car, 3 motorcycle")
 
 
+def index_names(nc: int) -> list[str]:
+    """Class names of a model that carries none: COCO-80 (our four names first) when it has 80
+    classes, else its class indices as text (``"0"``, ``"1"``, ...)."""
+    if nc == 80:
+        return list(CLASS_NAMES) + [f"coco{i}" for i in range(len(CLASS_NAMES), 80)]
+    return [str(i) for i in range(nc)]
+
+
+def _fixed_dim(value: Any) -> int | None:
+    """An ONNX dimension as an int, or None when it is symbolic (dynamic)."""
+    return value if isinstance(value, int) and value > 0 else None
+
+
+def preload_torch() -> Any:
+    """Import ultralytics (offline) and torch's lazily loaded modules; returns ultralytics.
+
+    torch's triton segfaults when it is first loaded after Mesa's llvmpipe has rendered in the
+    same process, so anything that renders and then runs a detector calls this first.
+    """
+    ultralytics = _offline_ultralytics()
+    import torch._dynamo  # noqa: F401
+
+    return ultralytics
+
+
 def _offline_ultralytics() -> Any:
     """Import ultralytics with downloads off and its settings outside the home folder."""
     os.environ.setdefault("YOLO_OFFLINE", "1")
@@ -212,12 +236,15 @@ def rect_shape(height: int, width: int, imgsz: int, stride: int = 32) -> tuple[i
             int(np.ceil(round(width * gain) / stride) * stride))
 
 
-def unletterbox(boxes: np.ndarray, gain: float, pad: tuple[float, float], width: int, height: int) -> np.ndarray:
+def unletterbox(boxes: np.ndarray, gain: float | tuple[float, float], pad: tuple[float, float],
+                width: int, height: int) -> np.ndarray:
     """Boxes (K, 4) xyxy on the letterboxed canvas -> (K, 4) float32 xyxy in original pixels,
-    clipped to the ``width`` x ``height`` image."""
+    clipped to the ``width`` x ``height`` image. ``gain``: one scale, or (x, y) scales of a
+    stretched (not letterboxed) resize."""
+    gain_x, gain_y = gain if isinstance(gain, tuple) else (gain, gain)
     out = np.asarray(boxes, np.float64).reshape(-1, 4).copy()
-    out[:, [0, 2]] = np.clip((out[:, [0, 2]] - pad[0]) / gain, 0, width)
-    out[:, [1, 3]] = np.clip((out[:, [1, 3]] - pad[1]) / gain, 0, height)
+    out[:, [0, 2]] = np.clip((out[:, [0, 2]] - pad[0]) / gain_x, 0, width)
+    out[:, [1, 3]] = np.clip((out[:, [1, 3]] - pad[1]) / gain_y, 0, height)
     return out.astype(np.float32)
 
 
@@ -253,7 +280,7 @@ def select_detections(boxes: np.ndarray, scores: np.ndarray, lookup: np.ndarray,
 
     best = scores.argmax(axis=1)
     best_scores = scores[np.arange(len(scores)), best]
-    mapped = lookup[best] if len(best) else np.zeros(0, np.int64)
+    mapped = lookup[best]
     rows = np.flatnonzero((best_scores > conf) & (mapped >= 0))
     candidate_boxes = boxes[rows]
     candidate_scores = best_scores[rows]
@@ -282,10 +309,7 @@ class OnnxDetector:
         """Decide the output layout and class table from an output shape (B, A, C)."""
         nc = len(self.names) if self.names is not None else None
         self.layout, nc = output_layout(output_shape, nc, Path(f"{self.name}.onnx"))
-        names = self.names
-        if names is None:
-            names = list(COCO_PREFIX) + [f"coco{i}" for i in range(4, 80)] if nc == 80 else \
-                [str(i) for i in range(nc)]
+        names = self.names if self.names is not None else index_names(nc)
         self.lookup = class_lookup(names, self.class_map, f"--weights {self.name}.onnx")
 
     def _shape(self, height: int, width: int, imgsz: int) -> tuple[int, int]:
@@ -341,7 +365,7 @@ def _onnx_names(session: Any) -> list[str] | dict[int, str] | None:
 def output_layout(dims: list, nc: int | None, path: Path) -> tuple[str, int]:
     """(layout ``"v8"``/``"v5"``, class count) of an ONNX output shape ``(B, A, C)``; symbolic
     dimensions are allowed where ``nc`` (from names metadata) decides."""
-    rows, cols = (d if isinstance(d, int) and d > 0 else None for d in dims[1:3])
+    rows, cols = (_fixed_dim(d) for d in dims[1:3])
     if nc is not None and rows == 4 + nc:
         layout = "v8"
     elif nc is not None and cols == 5 + nc:
@@ -380,16 +404,13 @@ def _load_onnx(path: Path, class_map: str | None, device: str | None) -> OnnxDet
         raise BackendError(f"--weights: {path}: expected a YOLO detection model with an (N, 3, H, W) input "
                            f"and an (N, A, B) output, got input {input_dims} and output {output_dims}")
 
-    def fixed(value: Any) -> int | None:
-        return value if isinstance(value, int) and value > 0 else None
-
     names = _onnx_names(session)
     detector = OnnxDetector(name=path.stem, session=session, names=names, class_map=class_map,
-                            input_shape=(fixed(input_dims[2]), fixed(input_dims[3])),
-                            fixed_batch=fixed(input_dims[0]))
+                            input_shape=(_fixed_dim(input_dims[2]), _fixed_dim(input_dims[3])),
+                            fixed_batch=_fixed_dim(input_dims[0]))
     if names is not None:  # a bad --class-map fails now, not at the first batch
         detector.lookup = class_lookup(names, class_map, f"--weights {path}")
-    if fixed(output_dims[1]) and fixed(output_dims[2]):
+    if _fixed_dim(output_dims[1]) and _fixed_dim(output_dims[2]):
         detector.configure(output_dims)
     elif names is None and class_map is not None:
         raise BackendError(f"--weights: {path}: --class-map needs class names or a fixed output shape; "
@@ -479,10 +500,7 @@ class DarknetDetector:
             boxes, scores = decode_darknet(raw, (height_in, width_in))
             boxes, kept_scores, ids = select_detections(boxes, scores, self.lookup, conf=conf, iou=iou,
                                                         max_det=max_det)
-            boxes = boxes.astype(np.float64)
-            boxes[:, [0, 2]] = np.clip((boxes[:, [0, 2]] - pad[0]) / scale[0], 0, width)
-            boxes[:, [1, 3]] = np.clip((boxes[:, [1, 3]] - pad[1]) / scale[1], 0, height)
-            outputs.append((boxes.astype(np.float32), kept_scores, ids))
+            outputs.append((unletterbox(boxes, scale, pad, width, height), kept_scores, ids))
         return outputs
 
 
@@ -526,8 +544,7 @@ def _load_darknet(path: Path, class_map: str | None) -> DarknetDetector:
         reason = " ".join(str(error).split())[-200:]
         raise BackendError(f"--weights: {path} does not load with {cfg.name} ({reason})") from None
     nc = classes.pop()
-    names = list(COCO_PREFIX) + [f"coco{i}" for i in range(4, 80)] if nc == 80 else [str(i) for i in range(nc)]
-    lookup = class_lookup(names, class_map, f"--weights {path}")
+    lookup = class_lookup(index_names(nc), class_map, f"--weights {path}")
     input_size = (int(net_section.get("height", 416)), int(net_section.get("width", 416)))
     return DarknetDetector(name=path.stem, net=net, lookup=lookup, input_size=input_size,
                            letterboxed=net_section.get("letter_box", "0") == "1")

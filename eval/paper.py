@@ -14,7 +14,7 @@ import math
 import platform
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +46,7 @@ class PaperConfig:
     batch: int = 32
     n_boot: int = 1000
     device: str | None = None
-    breakdown_rates: tuple[float, ...] = field(default=(0.0, 50.0, 100.0))
+    breakdown_rates: tuple[float, ...] = (0.0, 50.0, 100.0)
 
     def __post_init__(self) -> None:
         if not self.weights:
@@ -67,13 +67,27 @@ def default_models(cuda: bool) -> tuple[str, ...]:
     return tuple(name for name in wanted if name in shipped_models()) or ("rainbench-yolo11n",)
 
 
+def _frame_labels(images):
+    """Yield ``(shard, labels)`` of every image of :func:`dataset_images`, in order, opening each
+    shard once."""
+    handle, current = None, None
+    try:
+        for _, shard, frame in images:
+            if shard != current:
+                if handle is not None:
+                    handle.close()
+                handle, current = open_shard(shard), shard
+            yield shard, read_frame_labels(handle, frame)
+    finally:
+        if handle is not None:
+            handle.close()
+
+
 def table_one(data_dir: Path) -> dict[str, tuple[int, int]]:
     """``{class: (objects, instances)}``: distinct actors per scene and labelled boxes, per class."""
     objects: dict[str, set] = {name: set() for name in CLASS_NAMES}
     instances = dict.fromkeys(CLASS_NAMES, 0)
-    for _, shard, frame in dataset_images(data_dir):
-        with open_shard(shard) as handle:
-            labels = read_frame_labels(handle, frame)
+    for shard, labels in _frame_labels(dataset_images(data_dir)):
         for class_id, instance_id in zip(labels["class_id"].tolist(), labels["instance_id"].tolist()):
             name = CLASS_NAMES[class_id]
             objects[name].add((shard.name.split("_")[0], instance_id))  # ids are per scene
@@ -81,21 +95,13 @@ def table_one(data_dir: Path) -> dict[str, tuple[int, int]]:
     return {name: (len(objects[name]), instances[name]) for name in CLASS_NAMES}
 
 
-def _visible_fractions(images) -> np.ndarray:
-    """(A,) visible fraction of every ground-truth box, in :func:`ground_truth` annotation order."""
-    values = []
-    for _, shard, frame in images:
-        with open_shard(shard) as handle:
-            values.append(np.asarray(read_frame_labels(handle, frame)["visible_fraction"], np.float64))
-    return np.concatenate(values) if values else np.zeros(0)
-
-
 def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[float]) -> dict:
     """``{"visible fraction" | "box size": {rate: {bin: {class name: BreakdownAP}}}}`` of one model,
     from the cached predictions of :func:`run_eval` in ``results_dir``."""
     images = dataset_images(data_dir)
     gt = ground_truth(images)
-    visible = _visible_fractions(images)
+    visible = np.concatenate([np.asarray(labels["visible_fraction"], np.float64)
+                              for _, labels in _frame_labels(images)] or [np.zeros(0)])
     if len(visible) != len(gt["annotations"]):
         raise EvalError(f"{data_dir}: {len(visible)} visible fractions for {len(gt['annotations'])} boxes")
     image_ids = {image_id for image_id, _, _ in images}
@@ -114,6 +120,9 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
               force: bool = False, progress: bool = True) -> Path:
     """Generate, evaluate and report; returns ``OUT/report.md``. Datasets go to
     ``data_root/<rain model>/`` and are reused (resumed) by later runs with the same config."""
+    from .backends import preload_torch
+
+    preload_torch()  # before generating: triton after Mesa rendering crashes
     out_dir, data_root = Path(out_dir), Path(data_root)
     records_by_rain: dict[str, list] = {}
     timings: dict[str, float] = {}

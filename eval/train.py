@@ -166,13 +166,11 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
     return dataset_yaml
 
 
-def _checkpoint_state(path: Path) -> tuple[int, bool]:
-    """(epoch of the checkpoint, finished?) of an ultralytics ``last.pt`` (finished: epoch -1)."""
+def _finished(path: Path) -> bool:
+    """Whether an ultralytics ``last.pt`` is of a finished run (its epoch is then -1)."""
     import torch
 
-    checkpoint = torch.load(path, map_location="cpu", weights_only=False)
-    epoch = int(checkpoint.get("epoch", -1))
-    return epoch, epoch == -1
+    return int(torch.load(path, map_location="cpu", weights_only=False).get("epoch", -1)) == -1
 
 
 def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers: int = 1,
@@ -182,13 +180,10 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     ``device``: torch device (``cpu``, ``0``); None picks CUDA device 0 when present, else CPU.
     ``workers``: processes generating the datasets.
     """
-    from .backends import _offline_ultralytics
+    from .backends import preload_torch
 
-    # torch's lazily loaded triton segfaults when it is first loaded after Mesa's llvmpipe has
-    # rendered in the same process, so load it (through torch._dynamo) before generating.
-    ultralytics = _offline_ultralytics()
+    ultralytics = preload_torch()  # before generating: triton after Mesa rendering crashes
     import torch
-    import torch._dynamo  # noqa: F401
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -200,7 +195,7 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     dataset_yaml = prepare_data(recipe, out, workers=workers, progress=progress)
     run_dir = out / "run"
     last = run_dir / "weights" / "last.pt"
-    if last.is_file() and not _checkpoint_state(last)[1]:
+    if last.is_file() and not _finished(last):
         model = ultralytics.YOLO(str(last))
         model.train(resume=True, device=device)
     elif not last.is_file():
