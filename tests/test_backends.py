@@ -126,11 +126,11 @@ def test_onnx_export_of_an_ultralytics_model_matches_its_checkpoint(tmp_path):
     from ultralytics import YOLO
     from ultralytics.nn.tasks import DetectionModel
 
+    torch.manual_seed(0)  # the initial weights too: the same network every run
     model = YOLO("yolo11n.yaml")
     model.model = DetectionModel("yolo11n.yaml", nc=4, verbose=False)  # rainbench's four classes
     names = ["person", "bicycle", "car", "motorcycle"]
     model.model.names = dict(enumerate(names))
-    torch.manual_seed(0)
     with torch.no_grad():  # varied, non-trivial scores instead of the initial constant ones
         for parameter in model.model.parameters():
             parameter.add_(0.05 * torch.randn_like(parameter))
@@ -138,14 +138,17 @@ def test_onnx_export_of_an_ultralytics_model_matches_its_checkpoint(tmp_path):
             branch[-1].bias.add_(6.0)
     pt_path = tmp_path / "net.pt"
     model.save(str(pt_path))
-    net = model.model.eval()
+    net = YOLO(str(pt_path)).model.float().eval()  # the saved (fp16-rounded) weights, as the .pt backend sees them
     for module in net.modules():
         if hasattr(module, "export"):
             module.export = True
             module.format = "onnx"
     onnx_path = _export(net, tmp_path / "net.onnx", (480, 640), True, names=names)
     image = np.ascontiguousarray(np.random.default_rng(1).integers(0, 255, (600, 800, 3), dtype=np.uint8))
-    settings = dict(imgsz=640, conf=0.001, iou=0.7, max_det=300)
+    # A random network's scores nearly tie (1e-7 apart), and which of two overlapping near-tied
+    # boxes NMS keeps then depends on rounding; with NMS almost off this compares decoding and the
+    # letterbox (NMS itself is checked on the synthetic heads above).
+    settings = dict(imgsz=640, conf=0.001, iou=0.99, max_det=300)
     pt_boxes, pt_scores, pt_ids = backends.load_detector(pt_path, device="cpu").predict([image], **settings)[0]
     on_boxes, on_scores, on_ids = backends.load_detector(onnx_path).predict([image], **settings)[0]
     assert len(pt_boxes) > 5
