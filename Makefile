@@ -15,6 +15,7 @@ RAIN_MODEL ?= jeon2022
 STORE ?=
 SCENES ?= 1
 WORKERS ?=
+THREADS ?=
 # make eval variables
 RESULTS ?= results/eval
 WEIGHTS ?=
@@ -41,7 +42,7 @@ dataset: $(STAMP)
 	$(BIN)/rainbench generate --out $(OUT) --seed $(SEED) --scenes $(SCENES) \
 		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
 		--rain-model $(RAIN_MODEL) $(if $(STORE),--store $(STORE),) \
-		$(if $(WORKERS),--workers $(WORKERS),)
+		$(if $(WORKERS),--workers $(WORKERS),) $(if $(THREADS),--threads $(THREADS),)
 
 eval: $(STAMP)
 	$(BIN)/rainbench eval --data $(OUT) --out $(RESULTS) \

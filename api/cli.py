@@ -85,10 +85,15 @@ def cmd_generate(args: argparse.Namespace) -> int:
                            height=args.height, rates=rates, rain_model=args.rain_model,
                            rain_seed=args.rain_seed, store=args.store, fps=args.fps)
     workers = args.workers or min(os.cpu_count() or 1, len(config.tasks()))
+    if args.threads is not None:
+        import cv2  # noqa: PLC0415 -- OpenCV's own thread pool follows --threads as well
+
+        cv2.setNumThreads(args.threads)
     with tqdm(total=config.scenes * config.frames, unit="frame", desc="rainbench generate",
               disable=args.quiet, dynamic_ncols=True) as bar:
         manifest = run_dataset(config, out, workers=workers, executor=args.executor,
                                ray_address=args.ray_address, render_threads=args.render_threads,
+                               threads=args.threads,
                                overwrite=args.overwrite, progress=bar.update)
     print(manifest)
     return 0
@@ -252,6 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="parallel worker processes (default: cores, at most one per shard)")
     generate.add_argument("--render-threads", type=_positive_int("RENDER_THREADS"), default=None,
                           help="Mesa software-render threads per worker (LP_NUM_THREADS)")
+    generate.add_argument("--threads", type=_positive_int("THREADS"), default=None,
+                          help="rain, statistics and compression threads per worker (default: "
+                               "cores / workers; 1 = each worker on one core)")
     generate.add_argument("--executor", choices=("local", "ray"), default="local")
     generate.add_argument("--ray-address", default=None,
                           help="address of an existing Ray cluster (default: start a local one)")

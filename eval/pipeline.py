@@ -27,7 +27,7 @@ import numpy as np
 
 from rainbench.gen.dataset import DatasetError, image_index, list_shards, read_manifest
 from rainbench.gen.export import rate_token
-from rainbench.gen.shard import open_shard, read_frame_labels
+from rainbench.gen.shard import open_shard, read_frame_labels, read_rgb
 
 from .metrics import CLASS_IDS, CLASS_NAMES, bootstrap_ci, coco_ground_truth, evaluate, metric_records
 from .report import PAPER_TABLES, plot_detection_strip, plot_metric_vs_rate, render_report_md, write_metrics
@@ -116,10 +116,10 @@ def _read_rgb(images: Sequence[tuple[int, Path, int]], rate_index: int, batch: i
         by_shard.setdefault(shard, []).append((image_id, frame))
     for shard, items in by_shard.items():
         with open_shard(shard) as handle:
-            rgb = handle["rgb"]
             for start in range(0, len(items), batch):
                 chunk = items[start:start + batch]
-                yield [i for i, _ in chunk], [rgb[rate_index, frame] for _, frame in chunk]
+                yield ([i for i, _ in chunk],
+                       [read_rgb(handle, rate_index, frame) for _, frame in chunk])
 
 
 # --------------------------------------------------------------------------------------------
@@ -344,7 +344,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     strip_id = max(sorted(image_ids), key=lambda i: counts.get(i, 0))
     _, strip_shard, strip_frame = images[strip_id - 1]
     with open_shard(strip_shard) as handle:
-        frames_by_rate = {rate: handle["rgb"][index, strip_frame] for index, rate in enumerate(rates)}
+        frames_by_rate = {rate: read_rgb(handle, index, strip_frame)
+                          for index, rate in enumerate(rates)}
     strip_dets = {rate: [d for d in detections[(models[0], rate)] if d["image_id"] == strip_id] for rate in rates}
     paths["detections_strip.png"] = plot_detection_strip(frames_by_rate, strip_dets,
                                                          out_dir / "detections_strip.png",

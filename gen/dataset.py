@@ -228,11 +228,14 @@ def verify_dataset(root: str | Path) -> list[str]:
 _progress_queue = None
 
 
-def _init_worker(progress_queue, render_threads: int | None) -> None:
+def _init_worker(progress_queue, render_threads: int | None, threads: int) -> None:
     global _progress_queue
     _progress_queue = progress_queue
     if render_threads is not None:
         os.environ["LP_NUM_THREADS"] = str(render_threads)
+    import cv2  # noqa: PLC0415 -- this process is ours: OpenCV's own pool takes its share too
+
+    cv2.setNumThreads(threads)
 
 
 def _generate_task(task: GenerateConfig, out: str, threads: int | None = None) -> str:
@@ -264,19 +267,25 @@ def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> di
 
 def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
                 executor: str = "local", ray_address: str | None = None,
-                render_threads: int | None = None, overwrite: bool = False,
+                render_threads: int | None = None, threads: int | None = None,
+                overwrite: bool = False,
                 progress: Callable[[int], None] | None = None) -> Path:
     """Generate (or finish) the dataset ``config`` in ``out``; returns the manifest path.
 
     ``workers`` processes (local) or Ray tasks render one shard each; the bytes do not depend on
     the worker count. ``render_threads`` sets ``LP_NUM_THREADS`` (Mesa's software renderer
-    threads) in local workers; None keeps Mesa's default (all cores). ``progress(n)`` receives
+    threads) in local workers; None keeps Mesa's default (all cores). ``threads``: rain,
+    statistics and compression threads per worker (see :func:`generate_shard`; 1 = one core
+    per worker); None gives each local worker cores / workers. ``progress(n)`` receives
     finished frames, skipped shards included.
     """
     if executor not in EXECUTORS:
         raise DatasetError(f"executor: expected one of {', '.join(EXECUTORS)}, got {executor!r}")
     if not (isinstance(workers, int) and workers >= 1):
         raise DatasetError(f"WORKERS: expected an integer >= 1, got {workers!r}")
+    if threads is not None and not (isinstance(threads, int) and threads >= 1):
+        raise DatasetError(f"THREADS: expected an integer >= 1, got {threads!r}")
+    threads = threads or max(1, (os.cpu_count() or 1) // workers)
     root = Path(out)
     reusable = _prepare_directory(root, config, overwrite)
     tasks = config.tasks()
@@ -305,20 +314,19 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
         _run_ray(tasks, pending, root, ray_address, record, progress)
     elif workers == 1:
         for index in pending:
-            record(index, generate_shard(tasks[index], root, progress=progress))
+            record(index, generate_shard(tasks[index], root, progress=progress, threads=threads))
     else:
-        _run_local_pool(tasks, pending, root, workers, render_threads, record, progress)
+        _run_local_pool(tasks, pending, root, workers, render_threads, threads, record, progress)
     return root / MANIFEST
 
 
-def _run_local_pool(tasks, pending, root, workers, render_threads, record, progress) -> None:
+def _run_local_pool(tasks, pending, root, workers, render_threads, threads, record,
+                    progress) -> None:
     context = multiprocessing.get_context("spawn")  # a fresh GL context in every worker
     progress_queue = context.Queue()
     with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=context,
                              initializer=_init_worker,
-                             initargs=(progress_queue, render_threads)) as pool:
-        # Each worker's post-processing threads share the cores with the other workers.
-        threads = max(1, (os.cpu_count() or 1) // workers)
+                             initargs=(progress_queue, render_threads, threads)) as pool:
         futures = {pool.submit(_generate_task, tasks[i], str(root), threads): i for i in pending}
         remaining = set(futures)
         try:

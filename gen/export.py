@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from .dataset import DatasetError, image_index, list_shards
-from .shard import open_shard, read_frame_labels
+from .shard import open_shard, read_frame_labels, read_rgb
 
 IMAGE_FORMATS = ("png", "jpg")
 _JPEG_QUALITY = 95
@@ -149,7 +149,7 @@ def _walk(shards: Sequence[Path], rates: Sequence[float]):
             for key in ("rain_coverage", "contrast_loss"):
                 if key in labels:
                     labels[key] = labels[key][positions]
-            rgb = [handle["rgb"][position, frame] for position in positions]
+            rgb = [read_rgb(handle, position, frame) for position in positions]
             size = (int(handle.attrs["height"]), int(handle.attrs["width"]))
             yield image_id, path, frame, rgb, labels, size
     finally:

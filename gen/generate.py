@@ -7,6 +7,7 @@ call it. Its result depends only on the :class:`GenerateConfig` (and the GL back
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import json
 import math
@@ -168,11 +169,11 @@ def render_clip(config: GenerateConfig, setup: SceneSetup | None = None):
 
 
 def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int,
-                    pool: ThreadPoolExecutor):
+                    pool: ThreadPoolExecutor | None):
     """(R, H, W, 3) images and per-rate statistics of one frame.
 
     The sweep shares rate-independent work; the per-rate statistics run in ``pool`` threads
-    (OpenCV and numpy release the GIL).
+    (OpenCV and numpy release the GIL), or in this thread when ``pool`` is None.
     """
     rates = config.rates
     num_rates, num_boxes = len(rates), len(frame.labels)
@@ -202,7 +203,7 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
         coverage[row], contrast[row] = rain.box_rain_labels(frame.rgb, rainy.rgb, rainy.coverage,
                                                             frame.labels.bbox)
 
-    list(pool.map(statistics, zip(rainy_rows, frames)))
+    list((pool.map if pool is not None else map)(statistics, zip(rainy_rows, frames)))
     return images, drop_count, ssim, psnr, coverage, contrast
 
 
@@ -212,10 +213,14 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     """Render ``config`` into ``out_dir/<shard name>``; returns the shard path.
 
     Rain, statistics and compression of frame i run in background threads (``threads`` of
-    them, default one per core) while frame i + 1 renders. ``progress(n)`` is called with the
-    number of frames finished since the last call. The bytes do not depend on ``threads``.
+    them, default one per core) while frame i + 1 renders; ``threads=1`` runs everything in
+    this thread, one frame after the other (one core per worker). ``progress(n)`` is called
+    with the number of frames finished since the last call. The bytes do not depend on
+    ``threads``.
     """
     threads = threads or os.cpu_count() or 1
+    if not (isinstance(threads, int) and threads >= 1):
+        raise ValueError(f"threads: expected an integer >= 1, got {threads!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     setup = build_scene(config)
@@ -239,8 +244,13 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
         if progress is not None:
             progress(1)
 
-    with ThreadPoolExecutor(1, thread_name_prefix="rainbench-frame") as frame_pool, \
-            ThreadPoolExecutor(threads, thread_name_prefix="rainbench-rate") as stats_pool:
+    with contextlib.ExitStack() as pools:
+        frame_pool = stats_pool = None
+        if threads > 1:
+            frame_pool = pools.enter_context(
+                ThreadPoolExecutor(1, thread_name_prefix="rainbench-frame"))
+            stats_pool = pools.enter_context(
+                ThreadPoolExecutor(threads, thread_name_prefix="rainbench-rate"))
         try:
             for index, frame, renderer in render_clip(config, setup):
                 if writer is None:
@@ -248,6 +258,9 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
                                          num_frames=config.frames, width=config.width,
                                          height=config.height, K=renderer.K, store=config.store,
                                          threads=threads)
+                if frame_pool is None:
+                    finish(index, frame, renderer.K)
+                    continue
                 if pending is not None:
                     pending.result()  # at most one frame in flight: bounded memory
                 pending = frame_pool.submit(finish, index, frame, renderer.K)

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .dataset import DatasetError, list_shards
-from .shard import open_shard
+from .shard import open_shard, read_rgb
 
 _LABEL_KEYS = ("bbox", "class_id", "instance_id", "visible_fraction", "truncation")
 
@@ -106,7 +106,7 @@ class ShardReader:
         """Image (H, W, 3) uint8 RGB and its target (numpy; keys in the module docstring)."""
         shard, frame, rate_number = self.locate(index)
         handle = self._handle(shard)
-        image = handle["rgb"][int(self._rate_rows[shard][rate_number]), frame]
+        image = read_rgb(handle, int(self._rate_rows[shard][rate_number]), frame)
         labels = self._shard_labels(shard)
         rows = slice(int(labels["offsets"][frame]), int(labels["offsets"][frame + 1]))
         keep = labels["visible_fraction"][rows] >= self.min_visible_fraction
@@ -142,13 +142,15 @@ except ImportError:  # pragma: no cover -- torch is a dependency; the numpy read
 class ShardDataset(_TorchDataset):
     """``torch.utils.data.Dataset`` of (image, target) in torchvision detection style.
 
-    ``image`` is a (3, H, W) uint8 tensor; ``target`` holds tensors ``boxes`` (M, 4) float32
-    xyxy, ``labels`` (M,) int64, ``instance_id`` (M,) int64, ``visible_fraction`` (M,),
-    ``truncation`` (M,), ``rate`` (float32 scalar) and the plain ``image_id``, ``shard``,
-    ``frame``. Arguments as :class:`ShardReader`.
+    ``image`` is a (3, H, W) uint8 tensor: a channels-last view of the decoded (H, W, 3) RGB
+    memory (``image.contiguous()`` packs it; models take it as it is). ``target`` holds tensors
+    ``boxes`` (M, 4) float32 xyxy, ``labels`` (M,) int64, ``instance_id`` (M,) int64,
+    ``visible_fraction`` (M,), ``truncation`` (M,), ``rate`` (float32 scalar) and the plain
+    ``image_id``, ``shard``, ``frame``. Arguments as :class:`ShardReader`.
 
     With ``DataLoader(num_workers > 0)`` use ``collate_fn=ShardDataset.collate_fn``: workers
-    hand targets over as numpy arrays (cheaper between processes) and it makes them tensors.
+    hand targets over as numpy arrays (cheaper between processes), and the images of a batch
+    cross as one shared-memory block.
     """
 
     def __init__(self, data, rates=None, *, min_visible_fraction: float = 0.0,
@@ -165,22 +167,47 @@ class ShardDataset(_TorchDataset):
 
     def __getitem__(self, index: int):
         image, target = self.reader.sample(index)
-        image = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))
+        image = torch.from_numpy(image).permute(2, 0, 1)  # CHW view, no copy
         if torch.utils.data.get_worker_info() is not None:
-            # In a DataLoader worker, small arrays cross to the main process far cheaper as
-            # numpy than as tensors (each tensor costs a shared-memory segment: measured 250 vs
-            # 160 images/s); collate_fn turns them into tensors there.
+            # In a DataLoader worker the target stays numpy: collate_fn makes one tensor block
+            # per key for the whole batch (each tensor costs a shared-memory segment).
             return image, target
         return image, _to_tensors(target)
 
     @staticmethod
     def collate_fn(batch):
-        """Keep variable box counts: (tuple of images, tuple of targets with tensors)."""
+        """Keep variable box counts: (tuple of (3, H, W) images, tuple of targets of tensors).
+
+        Runs in the DataLoader worker. Every tensor crossing to the main process costs a
+        shared-memory segment, so the batch's images of one size are packed into one
+        (B, H, W, 3) block and each target key into one block, and each sample gets views of
+        them (measured 2x more images/s through two workers than one tensor per array).
+        """
         images, targets = zip(*batch)
-        return images, tuple(_to_tensors(target) for target in targets)
+        if len({image.shape for image in images}) == 1:
+            block = torch.stack([image.permute(1, 2, 0) for image in images])
+            images = tuple(block.permute(0, 3, 1, 2))
+        return images, _targets_to_tensors(targets)
 
 
 def _to_tensors(target: dict) -> dict:
     return {key: torch.from_numpy(np.asarray(value))
             if isinstance(value, (np.ndarray, np.floating)) else value
             for key, value in target.items()}
+
+
+def _targets_to_tensors(targets: Sequence[dict]) -> tuple[dict, ...]:
+    """Numpy targets of one batch as tensors that are views of one block per key."""
+    out = [dict(target) for target in targets]
+    for key, value in targets[0].items():
+        values = [target[key] for target in targets]
+        if isinstance(value, np.ndarray) and value.ndim >= 1:
+            parts = torch.split(torch.from_numpy(np.concatenate(values)),
+                                [len(v) for v in values])
+        elif isinstance(value, (np.ndarray, np.floating)):
+            parts = torch.from_numpy(np.stack(values))
+        else:  # already tensors (a DataLoader without workers) or plain values
+            continue
+        for target, part in zip(out, parts):
+            target[key] = part
+    return tuple(out)

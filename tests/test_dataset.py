@@ -17,7 +17,7 @@ from torch.utils.data import DataLoader
 from rainbench import ShardDataset, cli
 from rainbench.gen import dataset as ds
 from rainbench.gen.reader import ShardReader
-from rainbench.gen.shard import ShardWriter, read_frame_labels
+from rainbench.gen.shard import ShardFormatError, ShardWriter, read_frame_labels, read_rgb
 
 SMALL = dict(scenes=2, frames=4, frames_per_shard=2, width=96, height=72, rates=(0.0, 50.0))
 
@@ -56,9 +56,14 @@ def test_split_shards_continue_one_clip(dataset_dir, tmp_path):
         np.testing.assert_array_equal(one["camera/T_world_cam"][2:4], part["camera/T_world_cam"][()])
 
 
-def test_two_workers_give_the_same_bytes(dataset_dir, tmp_path):
-    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=2)
-    assert _hashes(tmp_path) == _hashes(dataset_dir)
+def test_worker_and_thread_counts_give_the_same_bytes(dataset_dir, tmp_path):
+    # dataset_dir: 1 worker with the default threads (one per core, frames pipelined)
+    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path / "two", workers=2, threads=1)
+    assert _hashes(tmp_path / "two") == _hashes(dataset_dir)
+    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path / "serial", workers=1, threads=1)
+    assert _hashes(tmp_path / "serial") == _hashes(dataset_dir)
+    with pytest.raises(ds.DatasetError, match="THREADS: expected an integer >= 1, got 0"):
+        ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path / "bad", threads=0)
 
 
 def test_ray_executor_on_a_local_cluster(dataset_dir, tmp_path):
@@ -178,6 +183,29 @@ def test_shard_dataset_through_a_two_worker_dataloader(dataset_dir):
     assert sorted(seen) == sorted((i, r) for i in range(1, 9) for r in (0.0, 50.0))
 
 
+@pytest.mark.parametrize("workers", [0, 2])
+def test_collate_fn_views_equal_every_sample(dataset_dir, workers):
+    """The batch packing (one block per key, views per sample) changes no value."""
+    reader = ShardReader(dataset_dir)
+    expected = {}
+    for index in range(len(reader)):
+        image, target = reader.sample(index)
+        expected[(target["image_id"], float(target["rate"]))] = (image, target)
+    loader = DataLoader(ShardDataset(dataset_dir), batch_size=5, num_workers=workers,
+                        collate_fn=ShardDataset.collate_fn)
+    count = 0
+    for images, targets in loader:
+        for image, target in zip(images, targets):
+            want_image, want = expected[(target["image_id"], float(target["rate"]))]
+            np.testing.assert_array_equal(image.permute(1, 2, 0).numpy(), want_image)
+            assert target["rate"].shape == () and target["shard"] == want["shard"]
+            for key in ("boxes", "labels", "instance_id", "visible_fraction", "truncation"):
+                assert target[key].dtype == torch.from_numpy(want[key]).dtype
+                np.testing.assert_array_equal(target[key].numpy(), want[key])
+            count += 1
+    assert count == len(reader)
+
+
 def test_reader_filters_and_rate_selection(dataset_dir):
     everything = ShardReader(dataset_dir, rates=[50])
     cars_only = ShardReader(dataset_dir, rates=[50], classes=[2], min_visible_fraction=0.5)
@@ -203,3 +231,23 @@ def test_reader_names_corrupt_and_future_shards(dataset_dir, tmp_path):
         handle.attrs["format_version"] = 9
     with pytest.raises(ValueError, match="scene000000_f00002.h5: unknown format_version 9"):
         ShardDataset([future])
+
+
+def test_read_rgb_equals_h5py_and_names_a_corrupt_chunk(dataset_dir, tmp_path):
+    shard = dataset_dir / "scene000000_f00000.h5"
+    with h5py.File(shard, "r") as handle:
+        for rate_row, frame in ((0, 0), (1, 1)):
+            image = read_rgb(handle, rate_row, frame)
+            assert image.shape == handle["rgb"].shape[2:] and image.dtype == np.uint8
+            np.testing.assert_array_equal(image, handle["rgb"][rate_row, frame])
+        info = handle["rgb"].id.get_chunk_info_by_coord((1, 1, 0, 0, 0))
+    copy = tmp_path / shard.name
+    data = bytearray(shard.read_bytes())
+    for offset in range(info.byte_offset + 100, info.byte_offset + 120):
+        data[offset] ^= 0xFF
+    copy.write_bytes(bytes(data))
+    reader = ShardReader(copy, rates=None)
+    reader.sample(0)  # other chunks still read
+    with pytest.raises(ShardFormatError, match=r"scene000000_f00000.h5: /rgb chunk of rate row 1, "
+                                               r"frame 1 is corrupt"):
+        reader.sample(len(reader.rates) + 1)  # frame 1, rate row 1
