@@ -41,8 +41,12 @@ def read_rgb(handle: h5py.File, rate_row: int, frame: int) -> np.ndarray:
     raises :class:`ShardFormatError` naming the file.
     """
     rgb = handle["rgb"]
+    if not (0 <= rate_row < rgb.shape[0] and 0 <= frame < rgb.shape[1]):
+        raise IndexError(f"{handle.filename}: /rgb[{rate_row}, {frame}] is outside its "
+                         f"{rgb.shape[0]} rates x {rgb.shape[1]} frames")
     shape = rgb.shape[2:]
-    if rgb.chunks != (1, 1) + shape or rgb.compression != "gzip" or rgb.shuffle:
+    if (rgb.chunks != (1, 1) + shape or rgb.compression != "gzip" or rgb.shuffle
+            or rgb.fletcher32 or rgb.scaleoffset is not None):
         return rgb[rate_row, frame]
     try:
         filter_mask, chunk = rgb.id.read_direct_chunk((rate_row, frame, 0, 0, 0))

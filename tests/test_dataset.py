@@ -241,6 +241,8 @@ def test_read_rgb_equals_h5py_and_names_a_corrupt_chunk(dataset_dir, tmp_path):
             assert image.shape == handle["rgb"].shape[2:] and image.dtype == np.uint8
             np.testing.assert_array_equal(image, handle["rgb"][rate_row, frame])
         info = handle["rgb"].id.get_chunk_info_by_coord((1, 1, 0, 0, 0))
+        with pytest.raises(IndexError, match=r"/rgb\[2, 0\] is outside its 2 rates x 2 frames"):
+            read_rgb(handle, 2, 0)
     copy = tmp_path / shard.name
     data = bytearray(shard.read_bytes())
     for offset in range(info.byte_offset + 100, info.byte_offset + 120):
