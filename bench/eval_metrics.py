@@ -94,33 +94,24 @@ def make_detections(rng: np.random.Generator, frames, rate: float) -> list[dict]
     return detections
 
 
-def run_direct(gt: dict, detections: list[dict]) -> COCOeval:
-    """The textbook pycocotools evaluation (default params: 4 area ranges, maxDets [1, 10, 100])."""
+def run_direct(gt: dict, detections: list[dict], *, matched_params: bool = False) -> COCOeval:
+    """pycocotools COCOeval run directly. By default the textbook evaluation (4 area ranges,
+    maxDets [1, 10, 100], evaluate + accumulate + summarize); ``matched_params``: our params
+    (area range "all" only, maxDets [100]), evaluate + accumulate."""
     with contextlib.redirect_stdout(io.StringIO()):
         coco_gt = COCO()
         coco_gt.dataset = gt
         coco_gt.createIndex()
         coco_dt = coco_gt.loadRes(detections)
         evaluator = COCOeval(coco_gt, coco_dt, "bbox")
+        if matched_params:
+            evaluator.params.areaRng = [list(M.AREA_ALL)]
+            evaluator.params.areaRngLbl = ["all"]
+            evaluator.params.maxDets = [M.MAX_DETECTIONS]
         evaluator.evaluate()
         evaluator.accumulate()
-        evaluator.summarize()
-    return evaluator
-
-
-def run_direct_matched_params(gt: dict, detections: list[dict]) -> COCOeval:
-    """pycocotools with our params (area range "all" only, maxDets [100]); evaluate + accumulate."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        coco_gt = COCO()
-        coco_gt.dataset = gt
-        coco_gt.createIndex()
-        coco_dt = coco_gt.loadRes(detections)
-        evaluator = COCOeval(coco_gt, coco_dt, "bbox")
-        evaluator.params.areaRng = [list(M.AREA_ALL)]
-        evaluator.params.areaRngLbl = ["all"]
-        evaluator.params.maxDets = [M.MAX_DETECTIONS]
-        evaluator.evaluate()
-        evaluator.accumulate()
+        if not matched_params:
+            evaluator.summarize()
     return evaluator
 
 
@@ -155,7 +146,7 @@ def main(argv: list[str] | None = None) -> dict:
         inputs = {rate: (copy.deepcopy(gt), copy.deepcopy(d)) for rate, d in detections_by_rate.items()}
         start = time.perf_counter()
         for rate in RATES:
-            run_direct_matched_params(*inputs[rate])
+            run_direct(*inputs[rate], matched_params=True)
         matched_times.append(time.perf_counter() - start)
 
     for rate in RATES:

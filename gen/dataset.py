@@ -276,7 +276,8 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
     the worker count. ``render_threads`` sets ``LP_NUM_THREADS`` (Mesa's software renderer
     threads) in local workers; None keeps Mesa's default (all cores). ``threads``: rain,
     statistics and compression threads per worker (see :func:`generate_shard`; 1 = one core
-    per worker); None gives each local worker cores / workers. ``progress(n)`` receives
+    per worker); None gives each local worker cores / workers and each Ray task its node's
+    cores. ``progress(n)`` receives
     finished frames, skipped shards included.
     """
     if executor not in EXECUTORS:
@@ -285,7 +286,7 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
         raise DatasetError(f"WORKERS: expected an integer >= 1, got {workers!r}")
     if threads is not None and not (isinstance(threads, int) and threads >= 1):
         raise DatasetError(f"THREADS: expected an integer >= 1, got {threads!r}")
-    threads = threads or max(1, (os.cpu_count() or 1) // workers)
+    local_threads = threads or max(1, (os.cpu_count() or 1) // workers)
     root = Path(out)
     reusable = _prepare_directory(root, config, overwrite)
     tasks = config.tasks()
@@ -311,12 +312,14 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
     if not pending:
         return write_manifest(root, config, [entries[i] for i in sorted(entries)], complete=True)
     if executor == "ray":
-        _run_ray(tasks, pending, root, ray_address, record, progress)
+        _run_ray(tasks, pending, root, ray_address, threads, record, progress)
     elif workers == 1:
         for index in pending:
-            record(index, generate_shard(tasks[index], root, progress=progress, threads=threads))
+            record(index, generate_shard(tasks[index], root, progress=progress,
+                                         threads=local_threads))
     else:
-        _run_local_pool(tasks, pending, root, workers, render_threads, threads, record, progress)
+        _run_local_pool(tasks, pending, root, workers, render_threads, local_threads, record,
+                        progress)
     return root / MANIFEST
 
 
@@ -353,7 +356,7 @@ def _drain(progress_queue, progress) -> None:
             progress(frames)
 
 
-def _run_ray(tasks, pending, root, ray_address, record, progress) -> None:
+def _run_ray(tasks, pending, root, ray_address, threads, record, progress) -> None:
     try:
         import ray  # noqa: PLC0415 -- optional extra rainbench[ray]
     except ImportError as error:
@@ -366,7 +369,7 @@ def _run_ray(tasks, pending, root, ray_address, record, progress) -> None:
     gpus = ray.cluster_resources().get("GPU", 0)
     options = {"num_cpus": 1, "num_gpus": 0.25 if gpus else 0}
     remote = ray.remote(_generate_task).options(**options)
-    refs = {remote.remote(tasks[i], str(root)): i for i in pending}
+    refs = {remote.remote(tasks[i], str(root), threads): i for i in pending}
     remaining = list(refs)
     while remaining:
         done, remaining = ray.wait(remaining, num_returns=1)

@@ -172,7 +172,7 @@ class ShardDataset(_TorchDataset):
             # In a DataLoader worker the target stays numpy: collate_fn makes one tensor block
             # per key for the whole batch (each tensor costs a shared-memory segment).
             return image, target
-        return image, _to_tensors(target)
+        return image, _targets_to_tensors((target,))[0]
 
     @staticmethod
     def collate_fn(batch):
@@ -188,12 +188,6 @@ class ShardDataset(_TorchDataset):
             block = torch.stack([image.permute(1, 2, 0) for image in images])
             images = tuple(block.permute(0, 3, 1, 2))
         return images, _targets_to_tensors(targets)
-
-
-def _to_tensors(target: dict) -> dict:
-    return {key: torch.from_numpy(np.asarray(value))
-            if isinstance(value, (np.ndarray, np.floating)) else value
-            for key, value in target.items()}
 
 
 def _targets_to_tensors(targets: Sequence[dict]) -> tuple[dict, ...]:
