@@ -10,10 +10,14 @@ training run depends on:
   :class:`~rainbench.mjcf.layout.ScenarioConfig` fields;
 - ``train``: ultralytics ``train()`` arguments; ``cpu``: overrides of ``train`` used when no CUDA
   device is present (smaller images, fewer epochs).
+- ``restarts`` (optional, in ``train`` or ``cpu``; the ``cpu`` one wins on CPU): a list of argument
+  overrides, one per further stage. Stage k starts from stage k-1's best weights with a fresh
+  optimizer and learning-rate schedule (a warm restart) and trains into ``OUT/restart<k>``; the
+  last stage's best weights are the result.
 
 :func:`train` generates both datasets (resuming a partial one), exports them as YOLO folders,
 and trains, resuming from ``last.pt`` when a previous run of the same recipe was cut off. The
-finished weights are copied to ``OUT/<name>.pt``. Nothing is downloaded: ``YOLO_OFFLINE=1``,
+finished weights of the last stage are copied to ``OUT/<name>.pt``. Nothing is downloaded: ``YOLO_OFFLINE=1``,
 ``plots=False`` (no font fetch) and ``amp=False`` (no AMP-check download).
 
 Seed split (docs/models.md): evaluation datasets use seeds below :data:`TRAIN_SEED_START`;
@@ -59,8 +63,15 @@ class Recipe:
     source: str
 
     def arguments(self, cuda: bool) -> dict[str, Any]:
-        """ultralytics ``train()`` arguments from the recipe (``cpu`` overrides when not ``cuda``)."""
-        return dict(self.train_args) if cuda else {**self.train_args, **self.cpu_args}
+        """ultralytics ``train()`` arguments of the first stage (``cpu`` overrides when not ``cuda``)."""
+        return self.stages(cuda)[0]
+
+    def stages(self, cuda: bool) -> list[dict[str, Any]]:
+        """ultralytics ``train()`` arguments of every stage: the first stage's, then one per restart
+        (the first stage's arguments with that restart's overrides)."""
+        merged = dict(self.train_args) if cuda else {**self.train_args, **self.cpu_args}
+        restarts = merged.pop("restarts", None) or []
+        return [merged] + [{**merged, **overrides} for overrides in restarts]
 
 
 def recipe_path(recipe: str | Path) -> Path:
@@ -129,6 +140,14 @@ def load_recipe(recipe: str | Path) -> Recipe:
         reserved = sorted(set(args) & RESERVED_TRAIN_ARGS)
         if reserved:
             raise TrainError(f"{source}: `{key}.{reserved[0]}` is set by rainbench train itself; remove it")
+        restarts = args.get("restarts")
+        if restarts is not None and not (isinstance(restarts, list) and all(isinstance(r, dict) for r in restarts)):
+            raise TrainError(f"{source}: `{key}.restarts` must be a list of mappings of train() arguments, "
+                             f"one per stage")
+        for number, overrides in enumerate(restarts or [], start=1):
+            bad = sorted(set(overrides) & (RESERVED_TRAIN_ARGS | {"restarts"}))
+            if bad:
+                raise TrainError(f"{source}: `{key}.restarts[{number}].{bad[0]}` cannot be set in a restart")
     train_data = _dataset_config(raw["train_data"], "train_data", source)
     val_data = _dataset_config(raw["val_data"], "val_data", source)
     if _seed_range(train_data) & _seed_range(val_data):
@@ -173,12 +192,20 @@ def _finished(path: Path) -> bool:
     return int(torch.load(path, map_location="cpu", weights_only=False).get("epoch", -1)) == -1
 
 
+def _stage_dir(out: Path, stage: int) -> Path:
+    return out / ("run" if stage == 0 else f"restart{stage}")
+
+
 def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers: int = 1,
           progress: Callable[[int], None] | None = None) -> Path:
     """Run ``recipe`` into ``out`` (resuming a cut-off run there); returns ``OUT/<name>.pt``.
 
     ``device``: torch device (``cpu``, ``0``); None picks CUDA device 0 when present, else CPU.
     ``workers``: processes generating the datasets.
+
+    Stages run in order into ``OUT/run``, ``OUT/restart1``, ...: a finished stage is skipped, a
+    cut-off one resumes from its ``last.pt``, and a restart starts from the previous stage's
+    ``best.pt``.
     """
     from .backends import preload_torch
 
@@ -189,22 +216,27 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     out.mkdir(parents=True, exist_ok=True)
     cuda = torch.cuda.is_available() if device is None else device != "cpu"
     device = device if device is not None else ("0" if cuda else "cpu")
-    arguments = recipe.arguments(cuda)
+    stages = recipe.stages(cuda)
     (out / "recipe.json").write_text(json.dumps(
-        {"recipe": recipe.source, "device": device, "train_args": arguments}, indent=1, sort_keys=True))
+        {"recipe": recipe.source, "device": device, "train_args": stages[0], "restarts": stages[1:]},
+        indent=1, sort_keys=True))
     dataset_yaml = prepare_data(recipe, out, workers=workers, progress=progress)
-    run_dir = out / "run"
-    last = run_dir / "weights" / "last.pt"
-    if last.is_file() and not _finished(last):
-        model = ultralytics.YOLO(str(last))
-        model.train(resume=True, device=device)
-    elif not last.is_file():
-        model = ultralytics.YOLO(recipe.architecture)
-        model.train(data=str(dataset_yaml), project=str(out.resolve()), name="run", exist_ok=True,
-                    pretrained=False, plots=False, amp=False, device=device, **arguments)
-    best = run_dir / "weights" / "best.pt"
-    if not best.is_file():
-        raise TrainError(f"training finished without {best}; see the log above")
+    best = None
+    for stage, arguments in enumerate(stages):
+        stage_dir = _stage_dir(out, stage)
+        last = stage_dir / "weights" / "last.pt"
+        if last.is_file() and not _finished(last):
+            model = ultralytics.YOLO(str(last))
+            model.train(resume=True, device=device)
+        elif not last.is_file():
+            model = ultralytics.YOLO(recipe.architecture)
+            if best is not None:  # a warm restart: the previous stage's weights, a fresh schedule
+                model.load(str(best))
+            model.train(data=str(dataset_yaml), project=str(out.resolve()), name=stage_dir.name, exist_ok=True,
+                        pretrained=best is not None, plots=False, amp=False, device=device, **arguments)
+        best = stage_dir / "weights" / "best.pt"
+        if not best.is_file():
+            raise TrainError(f"training finished without {best}; see the log above")
     final = out / f"{recipe.name}.pt"
     shutil.copyfile(best, final)
     return final

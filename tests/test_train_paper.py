@@ -25,6 +25,8 @@ val_data: {seed: 2000000, scenes: 1, frames: 2, fps: 0.1, width: 160, height: 12
 train: {epochs: 2, imgsz: 96, batch: 4, seed: 0, deterministic: true, workers: 0, cache: false}
 cpu: {epochs: 1, imgsz: 64}
 """
+# A warm restart with a zero learning rate: its parameters must stay the first stage's.
+RESTART = "cpu: {epochs: 1, imgsz: 64, restarts: [{optimizer: AdamW, lr0: 0.0, warmup_epochs: 0, warmup_bias_lr: 0.0}]}"
 
 
 def _run(capsys, *argv):
@@ -64,6 +66,18 @@ def test_bad_recipes_are_one_line_errors(tmp_path):
         train.load_recipe(write(TINY_RECIPE.replace("train: {epochs", "train: {data: x, epochs")))
     with pytest.raises(train.TrainError, match="`val_data.colour` is not a dataset setting"):
         train.load_recipe(write(TINY_RECIPE.replace("val_data: {seed", "val_data: {colour: 1, seed")))
+    with pytest.raises(train.TrainError, match="`cpu.restarts` must be a list of mappings"):
+        train.load_recipe(write(TINY_RECIPE.replace("imgsz: 64}", "imgsz: 64, restarts: {epochs: 3}}")))
+    with pytest.raises(train.TrainError, match=r"`train.restarts\[1\].resume` cannot be set in a restart"):
+        train.load_recipe(write(TINY_RECIPE.replace("cache: false}", "cache: false, restarts: [{resume: true}]}")))
+
+
+def test_restarts_override_the_first_stage_and_cpu_wins():
+    recipe = train.load_recipe("rainbench-yolo11n")
+    cpu_stages, gpu_stages = recipe.stages(cuda=False), recipe.stages(cuda=True)
+    assert len(gpu_stages) == 1 and "restarts" not in gpu_stages[0]
+    assert len(cpu_stages) == 2 and cpu_stages[1]["imgsz"] == cpu_stages[0]["imgsz"] == 416
+    assert cpu_stages[1]["epochs"] == 15 and cpu_stages[0]["epochs"] == 10
 
 
 def test_tiny_training_run_writes_weights_the_evaluator_loads(tmp_path, capsys):
@@ -89,6 +103,36 @@ def test_tiny_training_run_writes_weights_the_evaluator_loads(tmp_path, capsys):
     code, _, err = _run(capsys, "train", "--recipe", recipe_path, "--out", out, "--device", "cpu")
     assert code == 0, err
     assert (out / "run" / "weights" / "last.pt").stat().st_mtime_ns == before
+
+
+def test_warm_restart_starts_from_the_first_stage_weights(tmp_path, capsys):
+    import torch
+
+    recipe_path = tmp_path / "tiny.yaml"
+    recipe_path.write_text(TINY_RECIPE.replace("cpu: {epochs: 1, imgsz: 64}", RESTART))
+    out = tmp_path / "run"
+    code, stdout, err = _run(capsys, "train", "--recipe", recipe_path, "--out", out, "--device", "cpu")
+    assert code == 0, err
+    first, restart = out / "run" / "weights" / "best.pt", out / "restart1" / "weights" / "best.pt"
+    assert (out / "tiny-yolo.pt").read_bytes() == restart.read_bytes()
+    assert json.loads((out / "recipe.json").read_text())["restarts"][0]["lr0"] == 0.0
+
+    def parameters(path):
+        return dict(torch.load(path, map_location="cpu", weights_only=False)["model"].named_parameters())
+
+    # With lr 0 the restart moves nothing, so it ends where it began. A cold start would end at
+    # the random initialisation, which the first stage's AdamW steps moved in every tensor.
+    # (ultralytics' set-up changes the class-logit convs of the head by about 1e-3: tolerated.)
+    before, after = parameters(first), parameters(restart)
+    assert before.keys() == after.keys()
+    unchanged = [name for name in before if torch.equal(before[name], after[name])]
+    assert len(unchanged) >= 0.95 * len(before), len(unchanged)
+    assert max((before[n].float() - after[n].float()).abs().max().item() for n in before) < 0.01
+    # A second run skips both finished stages.
+    stamps = [p.stat().st_mtime_ns for p in (first, restart)]
+    code, _, err = _run(capsys, "train", "--recipe", recipe_path, "--out", out, "--device", "cpu")
+    assert code == 0, err
+    assert [p.stat().st_mtime_ns for p in (first, restart)] == stamps
 
 
 def test_shipped_weights_load_by_name_and_find_cars(tmp_path):
