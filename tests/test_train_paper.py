@@ -136,7 +136,8 @@ def test_warm_restart_starts_from_the_first_stage_weights(tmp_path, capsys):
 
 
 def test_shipped_weights_load_by_name_and_find_cars(tmp_path):
-    """A guard against shipping broken weights: an unseen clean scene, car AP@0.5 >= 0.6."""
+    """A guard against shipping broken or older weights: an unseen clean scene, car AP@0.5 >= 0.75
+    and person AP@0.5 >= 0.45."""
     from rainbench.eval import pipeline
     from rainbench.gen.generate import GenerateConfig, generate_shard
 
@@ -149,8 +150,12 @@ def test_shipped_weights_load_by_name_and_find_cars(tmp_path):
     generate_shard(GenerateConfig(seed=7, frames=20, fps=1.0, width=800, height=600, rates=(0.0,)), data)
     result = pipeline.run_eval(data, tmp_path / "out", weights=["rainbench-yolo11n"], n_boot=1,
                                device="cpu", progress=False)
-    car = next(r for r in result.records if r["class"] == "car")
-    assert car["n_gt"] >= 20 and car["ap50"] >= 0.6, car
+    by_class = {r["class"]: r for r in result.records}
+    # Shipped model: car 0.852, person 0.528 here (the stage-1 model it replaced: 0.813, 0.347).
+    # Bicycles (9 boxes) and motorcycles (3) are too few here to guard.
+    car, person = by_class["car"], by_class["person"]
+    assert car["n_gt"] >= 20 and car["ap50"] >= 0.75, car
+    assert person["n_gt"] >= 20 and person["ap50"] >= 0.45, person
 
 
 def test_paper_reduced_end_to_end(tmp_path, capsys):
