@@ -17,8 +17,8 @@ training run depends on:
 
 :func:`train` generates both datasets (resuming a partial one), exports them as YOLO folders,
 and trains, resuming from ``last.pt`` when a previous run of the same recipe was cut off. The
-finished weights of the last stage are copied to ``OUT/<name>.pt``. Nothing is downloaded: ``YOLO_OFFLINE=1``,
-``plots=False`` (no font fetch) and ``amp=False`` (no AMP-check download).
+last stage's best weights are copied to ``OUT/<name>.pt``. Nothing is downloaded:
+``YOLO_OFFLINE=1``, ``plots=False`` (no font fetch) and ``amp=False`` (no AMP-check download).
 
 Seed split (docs/models.md): evaluation datasets use seeds below :data:`TRAIN_SEED_START`;
 training and validation scenes must not.
