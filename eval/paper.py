@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rainbench.gen.dataset import DatasetConfig, run_dataset
-from rainbench.gen.shard import open_shard, read_frame_labels
+from rainbench.gen.dataset import DatasetConfig, open_in_turn, run_dataset
+from rainbench.gen.shard import read_frame_labels
 
 from .metrics import CLASS_NAMES, ap_by_size, ap_by_visibility, half_value_rate
 from .pipeline import EvalError, dataset_images, ground_truth, load_predictions_file, predictions_path, run_eval
@@ -67,27 +67,12 @@ def default_models(cuda: bool) -> tuple[str, ...]:
     return tuple(name for name in wanted if name in shipped_models()) or ("rainbench-yolo11n",)
 
 
-def _frame_labels(images):
-    """Yield ``(shard, labels)`` of every image of :func:`dataset_images`, in order, opening each
-    shard once."""
-    handle, current = None, None
-    try:
-        for _, shard, frame in images:
-            if shard != current:
-                if handle is not None:
-                    handle.close()
-                handle, current = open_shard(shard), shard
-            yield shard, read_frame_labels(handle, frame)
-    finally:
-        if handle is not None:
-            handle.close()
-
-
 def table_one(data_dir: Path) -> dict[str, tuple[int, int]]:
     """``{class: (objects, instances)}``: distinct actors per scene and labelled boxes, per class."""
     objects: dict[str, set] = {name: set() for name in CLASS_NAMES}
     instances = dict.fromkeys(CLASS_NAMES, 0)
-    for shard, labels in _frame_labels(dataset_images(data_dir)):
+    for _, shard, frame, handle in open_in_turn(dataset_images(data_dir)):
+        labels = read_frame_labels(handle, frame)
         for class_id, instance_id in zip(labels["class_id"].tolist(), labels["instance_id"].tolist()):
             name = CLASS_NAMES[class_id]
             objects[name].add((shard.name.split("_")[0], instance_id))  # ids are per scene
@@ -100,8 +85,8 @@ def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[fl
     from the cached predictions of :func:`run_eval` in ``results_dir``."""
     images = dataset_images(data_dir)
     gt = ground_truth(images)
-    visible = np.concatenate([np.asarray(labels["visible_fraction"], np.float64)
-                              for _, labels in _frame_labels(images)] or [np.zeros(0)])
+    visible = np.concatenate([np.asarray(read_frame_labels(handle, frame)["visible_fraction"], np.float64)
+                              for _, _, frame, handle in open_in_turn(images)] or [np.zeros(0)])
     if len(visible) != len(gt["annotations"]):
         raise EvalError(f"{data_dir}: {len(visible)} visible fractions for {len(gt['annotations'])} boxes")
     image_ids = {image_id for image_id, _, _ in images}

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from rainbench.gen.dataset import DatasetError, image_index, list_shards, read_manifest
+from rainbench.gen.dataset import DatasetError, image_index, list_shards, open_in_turn, read_manifest
 from rainbench.gen.export import rate_token
 from rainbench.gen.shard import open_shard, read_frame_labels, read_rgb
 
@@ -93,19 +93,11 @@ def dataset_rates(data_dir: str | Path) -> list[float]:
 def ground_truth(images: Sequence[tuple[int, Path, int]]) -> dict[str, list[dict]]:
     """COCO ground-truth dict of ``images`` (from :func:`dataset_images`); valid at every rate."""
     entries = []
-    handles: dict[Path, Any] = {}
-    try:
-        for image_id, shard, frame in images:
-            if shard not in handles:
-                handles[shard] = open_shard(shard)
-            handle = handles[shard]
-            labels = read_frame_labels(handle, frame)
-            entries.append((image_id, int(handle.attrs["width"]), int(handle.attrs["height"]),
-                            np.asarray(labels["bbox"], np.float32).reshape(-1, 4),
-                            np.asarray(labels["class_id"]).astype(np.int64)))
-    finally:
-        for handle in handles.values():
-            handle.close()
+    for image_id, _, frame, handle in open_in_turn(images):
+        labels = read_frame_labels(handle, frame)
+        entries.append((image_id, int(handle.attrs["width"]), int(handle.attrs["height"]),
+                        np.asarray(labels["bbox"], np.float32).reshape(-1, 4),
+                        np.asarray(labels["class_id"]).astype(np.int64)))
     return coco_ground_truth(entries)
 
 

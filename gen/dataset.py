@@ -191,6 +191,23 @@ def image_index(shards: Sequence[Path]) -> list[tuple[int, Path, int]]:
     return index
 
 
+def open_in_turn(index: Sequence[tuple[int, Path, int]]):
+    """Yield ``(image_id, shard_path, frame, handle)`` for the entries of :func:`image_index` (or a
+    slice of it), in order: each shard is opened once while its frames follow each other, and
+    closed when the walk moves on or ends. ``handle`` is an open :func:`open_shard` file."""
+    handle, current = None, None
+    try:
+        for image_id, path, frame in index:
+            if path != current:
+                if handle is not None:
+                    handle.close()
+                handle, current = open_shard(path), path
+            yield image_id, path, frame, handle
+    finally:
+        if handle is not None:
+            handle.close()
+
+
 def verify_dataset(root: str | Path) -> list[str]:
     """Problems of dataset ``root``, one line each, naming the file (empty list: all good)."""
     root = Path(root)

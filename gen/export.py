@@ -24,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .dataset import DatasetError, image_index, list_shards
+from .dataset import DatasetError, image_index, list_shards, open_in_turn
 from .shard import open_shard, read_frame_labels, read_rgb
 
 IMAGE_FORMATS = ("png", "jpg")
@@ -135,26 +135,19 @@ def _walk(shards: Sequence[Path], rates: Sequence[float]):
     pixel-edge float32, ``class_id`` (M,) int32, ...; ``rain_coverage`` and ``contrast_loss``
     (R, M) sliced to the rates of ``rates``).
     """
-    index = image_index(shards)
-    handle, current, positions = None, None, None
-    try:
-        for image_id, path, frame in index:
-            if path != current:
-                if handle is not None:
-                    handle.close()
-                handle, current = open_shard(path), path
-                shard_rates = handle["rates"][:].astype(np.float32)
-                positions = [int(np.flatnonzero(shard_rates == np.float32(r))[0]) for r in rates]
-            labels = read_frame_labels(handle, frame)
-            for key in ("rain_coverage", "contrast_loss"):
-                if key in labels:
-                    labels[key] = labels[key][positions]
-            rgb = [read_rgb(handle, position, frame) for position in positions]
-            size = (int(handle.attrs["height"]), int(handle.attrs["width"]))
-            yield image_id, path, frame, rgb, labels, size
-    finally:
-        if handle is not None:
-            handle.close()
+    current, positions = None, None
+    for image_id, path, frame, handle in open_in_turn(image_index(shards)):
+        if path != current:
+            shard_rates = handle["rates"][:].astype(np.float32)
+            positions = [int(np.flatnonzero(shard_rates == np.float32(r))[0]) for r in rates]
+            current = path
+        labels = read_frame_labels(handle, frame)
+        for key in ("rain_coverage", "contrast_loss"):
+            if key in labels:
+                labels[key] = labels[key][positions]
+        rgb = [read_rgb(handle, position, frame) for position in positions]
+        size = (int(handle.attrs["height"]), int(handle.attrs["width"]))
+        yield image_id, path, frame, rgb, labels, size
 
 
 def _yolo_lines(boxes: np.ndarray, class_ids: np.ndarray, width: int, height: int) -> str:

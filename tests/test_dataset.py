@@ -46,6 +46,18 @@ def test_manifest_lists_every_shard_in_order(dataset_dir):
     assert ids == list(range(1, 9))
 
 
+def test_open_in_turn_opens_each_shard_once_and_closes_it(dataset_dir):
+    index = ds.image_index(ds.list_shards(dataset_dir))
+    seen, handles = [], {}
+    for image_id, path, frame, handle in ds.open_in_turn(index):
+        seen.append((image_id, path, frame))
+        handles.setdefault(path, []).append(handle)
+        assert Path(handle.filename) == path and handle.id.valid
+    assert seen == index
+    assert all(len({id(h) for h in per_shard}) == 1 for per_shard in handles.values())
+    assert len(handles) == 4 and not any(h[0].id.valid for h in handles.values())
+
+
 def test_split_shards_continue_one_clip(dataset_dir, tmp_path):
     """Frames 2..3 of scene 0 equal frames 2..3 of the same scene rendered as one shard."""
     whole = dict(SMALL, scenes=1, frames_per_shard=4)
