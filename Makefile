@@ -77,6 +77,8 @@ bench: $(STAMP)
 	$(BIN)/python bench/eval_metrics.py --json results/bench/eval_metrics.json
 	$(BIN)/python bench/dataset.py --json results/bench/dataset.json
 	$(BIN)/python bench/inference.py --json results/bench/inference.json
+	$(BIN)/python bench/inference.py --imgsz 960 --json results/bench/inference_960.json
+	$(BIN)/python bench/quality.py --json results/bench/quality.json
 
 clean:
 	rm -rf $(VENV) build *.egg-info

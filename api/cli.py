@@ -302,7 +302,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--predictions", default=None,
                           help="instead of --weights: DIR/<model>/rate_<rate>.json COCO results files")
     evaluate.add_argument("--out", required=True, help="results directory")
-    evaluate.add_argument("--imgsz", type=_positive_int("IMGSZ"), default=640)
+    evaluate.add_argument("--imgsz", type=_positive_int("IMGSZ"), default=None,
+                          help="letterbox size (default: a shipped model's own, 960 for rainbench-yolo11n; "
+                               "640 for other models)")
     evaluate.add_argument("--batch", type=_positive_int("BATCH"), default=32)
     evaluate.add_argument("--conf", type=float, default=0.001, help="detector confidence floor")
     evaluate.add_argument("--iou", type=float, default=0.7, help="detector NMS IoU")
@@ -339,7 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--weights", action="append", default=None, help="extra weights to evaluate (repeatable)")
     paper.add_argument("--data", default="data/paper", help="dataset root (default data/paper)")
     paper.add_argument("--out", default="results/paper", help="results directory (default results/paper)")
-    paper.add_argument("--imgsz", type=_positive_int("IMGSZ"), default=640)
+    paper.add_argument("--imgsz", type=_positive_int("IMGSZ"), default=None,
+                       help="letterbox size (default: each model's own, as rainbench eval)")
     paper.add_argument("--batch", type=_positive_int("BATCH"), default=32)
     paper.add_argument("--n-boot", type=_positive_int("N_BOOT"), default=1000)
     paper.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")

@@ -1,20 +1,22 @@
-"""Inference images/s of each ``rainbench eval`` backend at 640, against ultralytics' own predict.
+"""Inference images/s of each ``rainbench eval`` backend, against ultralytics' own predict.
 
 Workload: ``--images`` frames of 800x600 rendered from the default scene (seed 0, clean), in
-batches of ``--batch`` (the eval default, 32), letterboxed to 640 (640x480, rectangular).
+batches of ``--batch`` (the eval default, 32), letterboxed to ``--imgsz`` (default 640: 640x480,
+rectangular; the shipped nano model's card size is 960: 960x736).
 
 Timed (best of ``--repeats``):
 
-- baseline: ``ultralytics.YOLO(weights).predict(frames, imgsz=640, conf=0.001)`` directly;
+- baseline: ``ultralytics.YOLO(weights).predict(frames, imgsz=IMGSZ, conf=0.001)`` directly;
 - ultralytics backend: ``load_detector(weights).predict`` (the same model through rainbench:
   BGR conversion, class filtering, clipping);
-- onnx backend: the same model exported to ONNX (dynamic input), run by onnxruntime;
+- onnx backend: the same model exported to ONNX (``backends.export_onnx``, dynamic input), run by
+  onnxruntime: what a shipped model runs on CPU;
 - darknet backend: a YOLOv4-tiny-sized Darknet network (random weights, built here: no download)
   through OpenCV DNN at 416x416 (its cfg size), for scale only: not the same network.
 
 ``weights`` is the shipped ``rainbench-yolo11n`` when present, else a yolo11n from its yaml.
 
-Usage: ``python bench/inference.py [--json OUT] [--images 32] [--batch 32] [--repeats 2]``
+Usage: ``python bench/inference.py [--json OUT] [--imgsz 640] [--images 32] [--batch 32] [--repeats 2]``
 """
 
 from __future__ import annotations
@@ -69,29 +71,6 @@ def darknet_files(folder: Path, classes: int = 80) -> Path:
     return weights
 
 
-def onnx_export(weights: str, folder: Path) -> Path:
-    from ultralytics import YOLO
-
-    model = YOLO(weights)
-    net = model.model.float().eval()
-    for module in net.modules():
-        if hasattr(module, "export"):
-            module.export = True
-            module.format = "onnx"
-    path = folder / "model.onnx"
-    torch.onnx.export(net, torch.zeros(1, 3, 480, 640), str(path), dynamo=False, opset_version=17,
-                      input_names=["images"], output_names=["output0"],
-                      dynamic_axes={"images": {0: "batch", 2: "height", 3: "width"},
-                                    "output0": {0: "batch", 2: "anchors"}})
-    import onnx
-
-    proto = onnx.load(str(path))
-    entry = proto.metadata_props.add()
-    entry.key, entry.value = "names", str(model.names)
-    onnx.save(proto, str(path))
-    return path
-
-
 def best_rate(run, images: list[np.ndarray], batch: int, repeats: int) -> float:
     """Images per second of ``run(batch_of_images)`` over all images, best of ``repeats``."""
     run(images[:batch])  # warm-up (lazy init, thread pools)
@@ -107,6 +86,7 @@ def best_rate(run, images: list[np.ndarray], batch: int, repeats: int) -> float:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", default=None)
+    parser.add_argument("--imgsz", type=int, default=640)
     parser.add_argument("--images", type=int, default=32)
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--repeats", type=int, default=2)
@@ -115,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     from ultralytics import YOLO
 
     images = frames(args.images)
-    settings = dict(imgsz=640, conf=0.001, iou=0.7, max_det=300)
+    settings = dict(imgsz=args.imgsz, conf=0.001, iou=0.7, max_det=300)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         if "rainbench-yolo11n" in backends.shipped_models():
@@ -132,10 +112,10 @@ def main(argv: list[str] | None = None) -> int:
         bgr = [np.ascontiguousarray(image[..., ::-1]) for image in images]
         rates = {"baseline ultralytics predict": best_rate(
             lambda chunk: direct.predict(chunk, verbose=False, **settings), bgr, args.batch, args.repeats)}
-        detector = backends.load_detector(weights, device="cpu")
+        detector = backends.load_detector(weights, device="cpu")  # a .pt path: the ultralytics backend
         rates["ultralytics backend"] = best_rate(lambda chunk: detector.predict(chunk, **settings), images,
                                                  args.batch, args.repeats)
-        onnx_detector = backends.load_detector(onnx_export(weights, folder))
+        onnx_detector = backends.load_detector(backends.export_onnx(weights, folder / "model.onnx"))
         rates["onnx backend"] = best_rate(lambda chunk: onnx_detector.predict(chunk, **settings), images,
                                           args.batch, args.repeats)
         darknet = backends.load_detector(darknet_files(folder))
@@ -144,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     baseline = rates["baseline ultralytics predict"]
     result = {
         "benchmark": "inference", "model": label, "images": len(images), "batch": args.batch,
-        "imgsz": 640, "machine": platform.machine(), "cpus": os.cpu_count(),
+        "imgsz": args.imgsz, "machine": platform.machine(), "cpus": os.cpu_count(),
         "torch_threads": torch.get_num_threads(), "cuda": torch.cuda.is_available(),
         "images_per_s": {k: round(v, 2) for k, v in rates.items()},
         "ratio_vs_baseline": {k: round(v / baseline, 3) for k, v in rates.items()},

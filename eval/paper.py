@@ -42,7 +42,7 @@ class PaperConfig:
     rates: tuple[float, ...] = tuple(float(r) for r in range(0, 101, 10))
     rain_models: tuple[str, ...] = RAIN_MODELS
     weights: tuple[str, ...] = ("rainbench-yolo11n",)
-    imgsz: int = 640
+    imgsz: int | None = None  # None: each model's own (backends.model_imgsz)
     batch: int = 32
     n_boot: int = 1000
     device: str | None = None
@@ -105,7 +105,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
               force: bool = False, progress: bool = True) -> Path:
     """Generate, evaluate and report; returns ``OUT/report.md``. Datasets go to
     ``data_root/<rain model>/`` and are reused (resumed) by later runs with the same config."""
-    from .backends import preload_torch
+    from .backends import model_imgsz, preload_torch
 
     preload_torch()  # before generating: triton after Mesa rendering crashes
     out_dir, data_root = Path(out_dir), Path(data_root)
@@ -140,8 +140,9 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     setup = [
         f"Data: {config.scenes} scene(s) from seed {config.seed}, {config.frames} frames of "
         f"{config.width}x{config.height} each, rates {', '.join(f'{r:g}' for r in config.rates)} mm/h, "
-        f"rain models {', '.join(config.rain_models)}. Models: {', '.join(models)} (letterboxed to "
-        f"{config.imgsz}, conf 0.001, NMS IoU 0.7). Intervals: {config.n_boot} bootstrap resamples of frames.",
+        f"rain models {', '.join(config.rain_models)}. Models: "
+        f"{', '.join(f'{model} (letterboxed to {config.imgsz or model_imgsz(spec)})' for model, spec in zip(models, config.weights))}; "
+        f"conf 0.001, NMS IoU 0.7. Intervals: {config.n_boot} bootstrap resamples of frames.",
         "",
         f"Machine: {platform.machine()}, {platform.processor() or 'cpu'}; device {config.device or 'auto'}. "
         "Wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()) + ".",

@@ -219,7 +219,7 @@ def _infer(detector, images, rate_index: int, *, batch, imgsz, conf, iou, max_de
 
 
 def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str | Path | None = None,
-             weights: Sequence[str | Path] = (), imgsz: int = 640, batch: int = 32, conf: float = 0.001,
+             weights: Sequence[str | Path] = (), imgsz: int | None = None, batch: int = 32, conf: float = 0.001,
              iou: float = 0.7, max_det: int = 300, report_conf: float = 0.25, n_boot: int = 1000,
              class_map: str | None = None, device: str | None = None, force: bool = False,
              progress: bool = True) -> EvalOutputs:
@@ -231,6 +231,9 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     ``out_dir/predictions/<model>/rate_<rate>.json`` and reused by later runs with the same
     weights file and settings unless ``force``.
 
+    ``imgsz``: letterbox size of every model; None gives each model its own
+    (:func:`rainbench.eval.backends.model_imgsz`: a shipped model's card, else 640).
+
     Outputs: ``metrics.json``, ``metrics.csv``, ``images.json``, ``report.md``,
     ``ap50_vs_rate.png``, ``f1_vs_rate.png``, ``detections_strip.png``.
     """
@@ -239,7 +242,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     if (predictions_dir is None) == (not weights):
         raise EvalError("expected exactly one of --weights or --predictions")
     for name, value in (("--imgsz", imgsz), ("--batch", batch), ("--max-det", max_det), ("n_boot", n_boot)):
-        if int(value) < 1:
+        if value is not None and int(value) < 1:
             raise EvalError(f"{name}: expected >= 1, got {value}")
     for name, value in (("--conf", conf), ("--iou", iou), ("--report-conf", report_conf)):
         if not 0.0 <= float(value) <= 1.0:
@@ -262,7 +265,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
         from . import backends
 
         specs = list(weights)
-        resolved = [backends.resolve_weights(w) for w in specs]
+        resolved = [backends.resolve_weights(w, device) for w in specs]
         weights = [path for path, _ in resolved]
         if class_map is not None:
             backends.parse_class_map(class_map)  # fail early on a bad spec
@@ -272,7 +275,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
             raise EvalError(f"--weights: several weights files are named {duplicates[0]!r}; model names "
                             "(file stems) must be unique")
         for spec, path, model in zip(specs, weights, models, strict=True):
-            settings = _cache_settings(path, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det,
+            model_imgsz = backends.model_imgsz(spec) if imgsz is None else imgsz
+            settings = _cache_settings(path, imgsz=model_imgsz, conf=conf, iou=iou, max_det=max_det,
                                        class_map=class_map)
             cache_root = out_dir / "predictions"
             meta_path = cache_root / model / "settings.json"
@@ -293,7 +297,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
                         meta_path.unlink(missing_ok=True)
                 with tqdm(total=len(images), unit="img", desc=f"{model} {rate_token(rate)} mm/h",
                           disable=not progress, dynamic_ncols=True) as bar:
-                    records = _infer(detector, images, rate_index, batch=batch, imgsz=imgsz, conf=conf,
+                    records = _infer(detector, images, rate_index, batch=batch, imgsz=model_imgsz, conf=conf,
                                      iou=iou, max_det=max_det, bar=bar)
                 _write_json(cache, records)
                 detections[(model, rate)] = records

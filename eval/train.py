@@ -14,10 +14,16 @@ training run depends on:
   overrides, one per further stage. Stage k starts from stage k-1's best weights with a fresh
   optimizer and learning-rate schedule (a warm restart) and trains into ``OUT/restart<k>``; the
   last stage's best weights are the result.
+- ``eval_imgsz`` (optional, default 640): the letterbox size the model is evaluated at, written
+  to its card ``<name>.json`` (``rainbench eval`` uses it for a shipped model);
+- ``tiles`` (optional, in any stage): a :class:`~rainbench.eval.tiles.TileConfig` mapping. That
+  stage trains on tiles of the rescaled frames (:func:`prepare_tiles`) instead of whole frames,
+  and must set ``imgsz`` to ``tiles.size``.
 
 :func:`train` generates both datasets (resuming a partial one), exports them as YOLO folders,
 and trains, resuming from ``last.pt`` when a previous run of the same recipe was cut off. The
-last stage's best weights are copied to ``OUT/<name>.pt``. Nothing is downloaded:
+last stage's best weights are copied to ``OUT/<name>.pt``, with ``OUT/<name>.onnx`` and
+``OUT/<name>.json`` beside it (:func:`write_companions`). Nothing is downloaded:
 ``YOLO_OFFLINE=1``, ``plots=False`` (no font fetch) and ``amp=False`` (no AMP-check download).
 
 Seed split (docs/models.md): evaluation datasets use seeds below :data:`TRAIN_SEED_START`;
@@ -37,10 +43,13 @@ from typing import Any
 from rainbench.gen.dataset import DatasetConfig, run_dataset
 from rainbench.mjcf.layout import CLASS_NAMES, ScenarioConfig
 
+from .backends import DEFAULT_IMGSZ
+from .tiles import TileConfig, TileError, export_tiles
+
 TRAIN_SEED_START = 1_000_000
 """Seeds of training and validation scenes are >= this; evaluation seeds are below it."""
 RECIPES_DIR = Path(__file__).resolve().parent / "recipes"
-RECIPE_KEYS = {"name", "architecture", "train_data", "val_data", "train", "cpu"}
+RECIPE_KEYS = {"name", "architecture", "train_data", "val_data", "train", "cpu", "eval_imgsz"}
 # Arguments rainbench sets itself (offline, paths, resume); a recipe may not set them.
 RESERVED_TRAIN_ARGS = {"data", "project", "name", "exist_ok", "pretrained", "plots", "amp", "resume",
                        "device", "model"}
@@ -61,17 +70,38 @@ class Recipe:
     train_args: dict[str, Any]
     cpu_args: dict[str, Any]
     source: str
+    eval_imgsz: int = DEFAULT_IMGSZ
 
     def arguments(self, cuda: bool) -> dict[str, Any]:
         """ultralytics ``train()`` arguments of the first stage (``cpu`` overrides when not ``cuda``)."""
         return self.stages(cuda)[0]
 
     def stages(self, cuda: bool) -> list[dict[str, Any]]:
-        """ultralytics ``train()`` arguments of every stage: the first stage's, then one per restart
-        (the first stage's arguments with that restart's overrides)."""
-        merged = dict(self.train_args) if cuda else {**self.train_args, **self.cpu_args}
-        restarts = merged.pop("restarts", None) or []
-        return [merged] + [{**merged, **overrides} for overrides in restarts]
+        """Arguments of every stage: the first stage's, then one per restart (the first stage's
+        arguments with that restart's overrides). Each is ultralytics ``train()`` arguments plus,
+        for a tile stage, ``tiles`` (a mapping of :class:`~rainbench.eval.tiles.TileConfig`)."""
+        return _stage_arguments(dict(self.train_args) if cuda else {**self.train_args, **self.cpu_args})
+
+
+def _stage_arguments(merged: dict[str, Any]) -> list[dict[str, Any]]:
+    merged = dict(merged)
+    restarts = merged.pop("restarts", None) or []
+    return [merged] + [{**merged, **overrides} for overrides in restarts]
+
+
+def _stage_tiles(arguments: dict[str, Any], where: str) -> TileConfig | None:
+    """The stage's tile config (None: whole frames); a stage with tiles must train at
+    ``imgsz`` = ``tiles.size`` so that ultralytics does not rescale the tiles again."""
+    if arguments.get("tiles") is None:
+        return None
+    try:
+        config = TileConfig.from_mapping(arguments["tiles"], source="tiles")
+    except (TileError, TypeError) as error:
+        raise TrainError(f"{where}`: {error}") from None
+    if arguments.get("imgsz") != config.size:
+        raise TrainError(f"{where}.imgsz` must equal tiles.size ({config.size}) in a tile stage, "
+                         f"got {arguments.get('imgsz')!r}")
+    return config
 
 
 def recipe_path(recipe: str | Path) -> Path:
@@ -148,12 +178,20 @@ def load_recipe(recipe: str | Path) -> Recipe:
             bad = sorted(set(overrides) & (RESERVED_TRAIN_ARGS | {"restarts"}))
             if bad:
                 raise TrainError(f"{source}: `{key}.restarts[{number}].{bad[0]}` cannot be set in a restart")
+    for key, merged in (("train", train_args), ("cpu", {**train_args, **cpu_args})):
+        for number, arguments in enumerate(_stage_arguments(merged)):
+            where = key if number == 0 else f"{key}.restarts[{number}]"
+            _stage_tiles(arguments, f"{source}: `{where}")
+    eval_imgsz = raw.get("eval_imgsz", DEFAULT_IMGSZ)
+    if not (isinstance(eval_imgsz, int) and not isinstance(eval_imgsz, bool) and eval_imgsz >= 32):
+        raise TrainError(f"{source}: `eval_imgsz` must be an integer >= 32 (px), got {eval_imgsz!r}")
     train_data = _dataset_config(raw["train_data"], "train_data", source)
     val_data = _dataset_config(raw["val_data"], "val_data", source)
     if _seed_range(train_data) & _seed_range(val_data):
         raise TrainError(f"{source}: train_data and val_data seeds overlap; validation scenes must be unseen")
     return Recipe(name=str(raw["name"]), architecture=str(raw["architecture"]), train_data=train_data,
-                  val_data=val_data, train_args=dict(train_args), cpu_args=dict(cpu_args), source=source)
+                  val_data=val_data, train_args=dict(train_args), cpu_args=dict(cpu_args), source=source,
+                  eval_imgsz=eval_imgsz)
 
 
 def _seed_range(config: DatasetConfig) -> set[int]:
@@ -178,11 +216,35 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
             done_marker.unlink(missing_ok=True)
             export_yolo(data_dir, yolo / split, rates=[0.0], image_format="png", overwrite=True)
             done_marker.write_text(manifest.read_text())
-    dataset_yaml = out / "dataset.yaml"
+    return _dataset_yaml(out / "dataset.yaml", yolo, "train/rate_0/images", "val/rate_0/images")
+
+
+def _dataset_yaml(path: Path, root: Path, train_images: str, val_images: str) -> Path:
     names = "\n".join(f"  {i}: {n}" for i, n in enumerate(CLASS_NAMES))
-    dataset_yaml.write_text(f"path: {yolo.resolve()}\ntrain: train/rate_0/images\n"
-                            f"val: val/rate_0/images\nnames:\n{names}\n")
-    return dataset_yaml
+    path.write_text(f"path: {root.resolve()}\ntrain: {train_images}\nval: {val_images}\nnames:\n{names}\n")
+    return path
+
+
+def prepare_tiles(out: str | Path, config: TileConfig) -> Path:
+    """Cut the exported YOLO folders of :func:`prepare_data` (``OUT/yolo``) into tiles under
+    ``OUT/<config.token()>/{train,val}`` (sampled training tiles, a covering grid for validation);
+    returns that tile set's ultralytics dataset yaml. An export that matches the config and the
+    source export is kept."""
+    out = Path(out)
+    root = out / config.token()
+    for split in ("train", "val"):
+        source = out / "yolo" / split / "rate_0"
+        source_marker = out / "yolo" / split / ".exported"
+        if not source_marker.is_file():
+            raise TrainError(f"{source}: no finished export to cut into tiles; run prepare_data first")
+        stamp = json.dumps({"tiles": dataclasses.asdict(config), "source": source_marker.read_text()})
+        done_marker = root / split / ".exported"
+        if done_marker.is_file() and done_marker.read_text() == stamp:
+            continue
+        done_marker.unlink(missing_ok=True)
+        export_tiles(source, root / split, config, grid=split == "val", num_classes=len(CLASS_NAMES))
+        done_marker.write_text(stamp)
+    return _dataset_yaml(out / f"{config.token()}.yaml", root, "train/images", "val/images")
 
 
 def _finished(path: Path) -> bool:
@@ -221,8 +283,13 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
         {"recipe": recipe.source, "device": device, "train_args": stages[0], "restarts": stages[1:]},
         indent=1, sort_keys=True))
     dataset_yaml = prepare_data(recipe, out, workers=workers, progress=progress)
+    stage_data = []
+    for stage, arguments in enumerate(stages):
+        tiles = _stage_tiles(arguments, f"{recipe.source}: `stage {stage}")
+        stage_data.append(dataset_yaml if tiles is None else prepare_tiles(out, tiles))
     best = None
     for stage, arguments in enumerate(stages):
+        arguments = {key: value for key, value in arguments.items() if key != "tiles"}
         stage_dir = _stage_dir(out, stage)
         last = stage_dir / "weights" / "last.pt"
         if last.is_file() and not _finished(last):
@@ -232,11 +299,25 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
             model = ultralytics.YOLO(recipe.architecture)
             if best is not None:  # a warm restart: the previous stage's weights, a fresh schedule
                 model.load(str(best))
-            model.train(data=str(dataset_yaml), project=str(out.resolve()), name=stage_dir.name, exist_ok=True,
+            model.train(data=str(stage_data[stage]), project=str(out.resolve()), name=stage_dir.name, exist_ok=True,
                         pretrained=best is not None, plots=False, amp=False, device=device, **arguments)
         best = stage_dir / "weights" / "best.pt"
         if not best.is_file():
             raise TrainError(f"training finished without {best}; see the log above")
     final = out / f"{recipe.name}.pt"
     shutil.copyfile(best, final)
+    write_companions(final, recipe.eval_imgsz)
     return final
+
+
+def write_companions(weights: Path, eval_imgsz: int) -> tuple[Path, Path]:
+    """Beside ``<name>.pt``, write what a shipped model needs besides its checkpoint: ``<name>.onnx``
+    (:func:`~rainbench.eval.backends.export_onnx`, run on CPU) and the card ``<name>.json``
+    (``{"imgsz": eval_imgsz}``). Shipping a model is copying the three files to
+    ``eval/weights/`` (docs/models.md). Returns ``(onnx path, card path)``."""
+    from .backends import export_onnx
+
+    onnx = export_onnx(weights, weights.with_suffix(".onnx"))
+    card = weights.with_suffix(".json")
+    card.write_text(json.dumps({"imgsz": eval_imgsz}, indent=1) + "\n")
+    return onnx, card

@@ -37,6 +37,18 @@ def tiny_scene(boxes, width=160, height=120, camera_height=1.5, hfov=90.0):
     return model, table
 
 
+def assert_same_detections(reference, other, top=5):
+    """Each of the ``top`` best detections of ``reference`` has a twin in ``other``: the same
+    class, every box edge within 1 px, the score within 2e-3."""
+    ref_boxes, ref_scores, ref_ids = reference
+    boxes, scores, ids = other
+    assert len(ref_boxes) > top
+    for index in np.argsort(-ref_scores)[:top]:
+        distance = np.abs(boxes - ref_boxes[index]).max(axis=1) + 10 * (ids != ref_ids[index])
+        twin = int(np.argmin(distance))
+        assert distance[twin] < 1.0 and abs(scores[twin] - ref_scores[index]) < 2e-3
+
+
 @pytest.fixture
 def make_tiny_scene():
     return tiny_scene

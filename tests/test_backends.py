@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from rainbench.eval import backends
+from conftest import assert_same_detections
 
 # Import torch's lazy modules before anything renders in this process (see test_eval_pipeline).
 backends._offline_ultralytics()
@@ -138,25 +139,19 @@ def test_onnx_export_of_an_ultralytics_model_matches_its_checkpoint(tmp_path):
             branch[-1].bias.add_(6.0)
     pt_path = tmp_path / "net.pt"
     model.save(str(pt_path))
-    net = YOLO(str(pt_path)).model.float().eval()  # the saved (fp16-rounded) weights, as the .pt backend sees them
-    for module in net.modules():
-        if hasattr(module, "export"):
-            module.export = True
-            module.format = "onnx"
-    onnx_path = _export(net, tmp_path / "net.onnx", (480, 640), True, names=names)
+    onnx_path = backends.export_onnx(pt_path, tmp_path / "net.onnx")  # traced at 640x480
     image = np.ascontiguousarray(np.random.default_rng(1).integers(0, 255, (600, 800, 3), dtype=np.uint8))
     # A random network's scores nearly tie (1e-7 apart), and which of two overlapping near-tied
     # boxes NMS keeps then depends on rounding; with NMS almost off this compares decoding and the
-    # letterbox (NMS itself is checked on the synthetic heads above).
-    settings = dict(imgsz=640, conf=0.001, iou=0.99, max_det=300)
-    pt_boxes, pt_scores, pt_ids = backends.load_detector(pt_path, device="cpu").predict([image], **settings)[0]
-    on_boxes, on_scores, on_ids = backends.load_detector(onnx_path).predict([image], **settings)[0]
-    assert len(pt_boxes) > 5
-    top = np.argsort(-pt_scores)[:5]
-    for index in top:  # each of the .pt model's best detections has its ONNX twin
-        distance = np.abs(on_boxes - pt_boxes[index]).max(axis=1) + 10 * (on_ids != pt_ids[index])
-        twin = int(np.argmin(distance))
-        assert distance[twin] < 1.0 and abs(on_scores[twin] - pt_scores[index]) < 2e-3
+    # letterbox (NMS itself is checked on the synthetic heads above). 960 px checks that the
+    # anchors follow the input size rather than the traced one.
+    pt_detector = backends.load_detector(pt_path, device="cpu")
+    onnx_detector = backends.load_detector(onnx_path)
+    assert onnx_detector.names == dict(enumerate(names))
+    for imgsz in (640, 960):
+        settings = dict(imgsz=imgsz, conf=0.001, iou=0.99, max_det=300)
+        assert_same_detections(pt_detector.predict([image], **settings)[0],
+                               onnx_detector.predict([image], **settings)[0])
 
 
 def _darknet_files(folder, classes=4, width=64, height=64):
@@ -238,6 +233,29 @@ def test_weights_errors_are_one_line(tmp_path):
     other.write_bytes(b"x")
     with pytest.raises(backends.BackendError, match="unsupported format '.tflite'"):
         backends.load_detector(other)
+
+
+def test_shipped_names_resolve_by_device_and_carry_their_imgsz(tmp_path, monkeypatch):
+    monkeypatch.setattr(backends, "WEIGHTS_DIR", tmp_path)
+    (tmp_path / "m.pt").write_bytes(b"pt")
+    # Without an ONNX copy the checkpoint serves every device; without a card, 640.
+    assert backends.resolve_weights("m", "cpu") == (tmp_path / "m.pt", "m")
+    assert backends.model_imgsz("m") == backends.DEFAULT_IMGSZ == 640
+    (tmp_path / "m.onnx").write_bytes(b"onnx")
+    (tmp_path / "m.json").write_text('{"imgsz": 960}')
+    assert backends.resolve_weights("m", "cpu") == (tmp_path / "m.onnx", "m")
+    assert backends.resolve_weights("m", "0") == (tmp_path / "m.pt", "m")
+    assert backends.resolve_weights("m", "cuda:0") == (tmp_path / "m.pt", "m")
+    assert backends.resolve_weights("m", None)[0].suffix == (".pt" if torch.cuda.is_available() else ".onnx")
+    assert backends.model_imgsz("m") == 960
+    assert backends.model_imgsz(tmp_path / "m.pt") == 640  # a file path is not a shipped name
+    assert backends.model_imgsz("other") == 640
+    (tmp_path / "m.json").write_text('{"imgsz": "big"}')
+    with pytest.raises(backends.BackendError, match=r"m\.json: imgsz: expected an integer >= 32, got 'big'"):
+        backends.model_imgsz("m")
+    (tmp_path / "m.json").write_text("[]")
+    with pytest.raises(backends.BackendError, match=r"m\.json: expected a JSON object with an integer `imgsz`"):
+        backends.model_imgsz("m")
 
 
 def test_onnx_and_darknet_backends_through_run_eval_on_a_tiny_shard(tmp_path):
