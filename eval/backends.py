@@ -74,6 +74,16 @@ def shipped_models() -> list[str]:
     return sorted(p.stem for p in WEIGHTS_DIR.glob("*.pt"))
 
 
+def _shipped_file(spec: str | Path, suffix: str) -> Path | None:
+    """``WEIGHTS_DIR/<spec><suffix>`` when ``spec`` names a shipped model (a bare name whose
+    ``.pt`` is shipped) and that file exists; else None."""
+    text = str(spec)
+    if Path(text).suffix != "" or not (WEIGHTS_DIR / f"{text}.pt").is_file():
+        return None
+    path = WEIGHTS_DIR / f"{text}{suffix}"
+    return path if path.is_file() else None
+
+
 def _on_cuda(device: str | None) -> bool:
     """Whether ``device`` (a torch device string; None: CUDA when present) is a CUDA device."""
     if device is None:
@@ -94,11 +104,10 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
     """
     text = str(spec)
     path = Path(text)
-    if path.suffix == "" and (WEIGHTS_DIR / f"{text}.pt").is_file():
-        onnx = WEIGHTS_DIR / f"{text}.onnx"
-        if onnx.is_file() and not _on_cuda(device):
-            return onnx, text
-        return WEIGHTS_DIR / f"{text}.pt", text
+    checkpoint = _shipped_file(text, ".pt")
+    if checkpoint is not None:
+        onnx = _shipped_file(text, ".onnx")
+        return (onnx if onnx is not None and not _on_cuda(device) else checkpoint), text
     if path.suffix.lower() == ".cfg":
         path = path.with_suffix(".weights")
     if not path.is_file():
@@ -112,8 +121,8 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
 def model_imgsz(spec: str | Path) -> int:
     """The letterbox size a model is evaluated at by default: a shipped model's card ``imgsz``
     (``<name>.json``), else :data:`DEFAULT_IMGSZ`."""
-    card = WEIGHTS_DIR / f"{spec}.json"
-    if Path(str(spec)).suffix == "" and (WEIGHTS_DIR / f"{spec}.pt").is_file() and card.is_file():
+    card = _shipped_file(spec, ".json")
+    if card is not None:
         try:
             imgsz = json.loads(card.read_text())["imgsz"]
         except (ValueError, KeyError, TypeError):

@@ -85,6 +85,13 @@ class TileConfig:
                 f"_a{self.min_area_fraction:g}_r{self.seed}")
 
 
+def _check_fits(image_size: tuple[int, int], size: int) -> None:
+    height, width = image_size
+    if height < size or width < size:
+        raise TileError(f"tiles.size: {size} px is larger than the rescaled image ({width}x{height}); "
+                        f"lower tiles.size or raise tiles.scale")
+
+
 def cut_boxes(boxes: np.ndarray, class_ids: np.ndarray, origin: tuple[int, int], size: int,
               min_area_fraction: float) -> tuple[np.ndarray, np.ndarray]:
     """The labels of one tile.
@@ -125,9 +132,7 @@ def sample_tile_origins(boxes: np.ndarray, class_ids: np.ndarray, image_size: tu
     """
     height, width = image_size
     size = config.size
-    if height < size or width < size:
-        raise TileError(f"tiles.size: {size} px is larger than the rescaled image ({width}x{height}); "
-                        f"lower tiles.size or raise tiles.scale")
+    _check_fits(image_size, size)
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     class_ids = np.asarray(class_ids, dtype=np.int64).reshape(-1)
     weights = np.asarray(class_weights, dtype=np.float64)[class_ids] if len(class_ids) else np.zeros(0)
@@ -155,9 +160,7 @@ def grid_tile_origins(image_size: tuple[int, int], size: int) -> np.ndarray:
     """Top-left corners of the fewest ``size`` tiles, evenly spaced, that cover an image of
     ``image_size`` = ``(height, width)`` (each side >= ``size``); (N, 2) int ``(x0, y0)``, row-major."""
     height, width = image_size
-    if height < size or width < size:
-        raise TileError(f"tiles.size: {size} px is larger than the rescaled image ({width}x{height}); "
-                        f"lower tiles.size or raise tiles.scale")
+    _check_fits(image_size, size)
 
     def starts(extent: int) -> np.ndarray:
         count = math.ceil(extent / size)
