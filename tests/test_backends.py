@@ -137,9 +137,24 @@ def test_onnx_export_of_an_ultralytics_model_matches_its_checkpoint(tmp_path):
             parameter.add_(0.05 * torch.randn_like(parameter))
         for branch in model.model.model[-1].cv3:
             branch[-1].bias.add_(6.0)
+        for name, buffer in model.model.named_buffers():  # batch-norm statistics of a trained net
+            if name.endswith("running_mean"):
+                buffer.add_(0.1 * torch.randn_like(buffer))
+            elif name.endswith("running_var"):
+                buffer.mul_(torch.exp(0.2 * torch.randn_like(buffer)))
+        for tensor in [*model.model.parameters(), *model.model.buffers()]:
+            if tensor.is_floating_point():  # fp16 values, as in a stripped (shipped) checkpoint
+                tensor.copy_(tensor.half().float())
     pt_path = tmp_path / "net.pt"
     model.save(str(pt_path))
     onnx_path = backends.export_onnx(pt_path, tmp_path / "net.onnx")  # traced at 640x480
+    # Batch norms unfused, so every weight is stored as the checkpoint's fp16 value.
+    proto = onnx.load(str(onnx_path))
+    stored = {init.name: onnx.numpy_helper.to_array(init) for init in proto.graph.initializer}
+    weights = [*model.model.parameters(), *(b for b in model.model.buffers() if b.is_floating_point())]
+    assert sum(v.size for v in stored.values() if v.dtype == np.float16) == sum(w.numel() for w in weights)
+    assert not [name for name, v in stored.items() if v.dtype == np.float32 and v.size > 1]
+    assert "BatchNormalization" in {node.op_type for node in proto.graph.node}
     image = np.ascontiguousarray(np.random.default_rng(1).integers(0, 255, (600, 800, 3), dtype=np.uint8))
     # A random network's scores nearly tie (1e-7 apart), and which of two overlapping near-tied
     # boxes NMS keeps then depends on rounding; with NMS almost off this compares decoding and the
@@ -152,6 +167,38 @@ def test_onnx_export_of_an_ultralytics_model_matches_its_checkpoint(tmp_path):
         settings = dict(imgsz=imgsz, conf=0.001, iou=0.99, max_det=300)
         assert_same_detections(pt_detector.predict([image], **settings)[0],
                                onnx_detector.predict([image], **settings)[0])
+
+
+def test_store_exact_halves_keeps_the_graph_bit_exact():
+    """Y = X @ W + B with W exact in fp16 and B not: W is stored as fp16 behind a Cast, B stays
+    fp32, and onnxruntime computes the same bytes as before."""
+    import onnxruntime
+
+    from onnx import TensorProto, helper, numpy_helper
+
+    weight = np.array([[0.5, -2.0, 3.0], [1.25, 65504.0, -0.0009765625]], np.float32)  # all fp16
+    bias = np.array([0.1, 0.2, 1 / 3], np.float32)  # none fp16
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["x", "w"], ["xw"]), helper.make_node("Add", ["xw", "b"], ["y"])], "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 2])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 3])],
+        [numpy_helper.from_array(weight, "w"), numpy_helper.from_array(bias, "b")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    x = np.array([[0.7, -1.3]], np.float32)
+
+    def run(proto):
+        session = onnxruntime.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+        return session.run(None, {"x": x})[0]
+
+    before = run(model)
+    halved = backends._store_exact_halves(model)
+    onnx.checker.check_model(halved)
+    stored = {init.name: numpy_helper.to_array(init) for init in halved.graph.initializer}
+    assert stored.keys() == {"w__fp16", "b"}
+    assert stored["w__fp16"].dtype == np.float16 and stored["b"].dtype == np.float32
+    assert [(n.op_type, list(n.input), list(n.output)) for n in halved.graph.node][0] == ("Cast", ["w__fp16"], ["w"])
+    assert run(halved).tobytes() == before.tobytes()
 
 
 def _darknet_files(folder, classes=4, width=64, height=64):
