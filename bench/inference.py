@@ -14,9 +14,11 @@ Timed (best of ``--repeats``):
 - darknet backend: a YOLOv4-tiny-sized Darknet network (random weights, built here: no download)
   through OpenCV DNN at 416x416 (its cfg size), for scale only: not the same network.
 
-``weights`` is the shipped ``rainbench-yolo11n`` when present, else a yolo11n from its yaml.
+``weights`` is the shipped model ``--weights`` (default ``rainbench-yolo11n``; both shipped
+models have a 960 px card) when present, else a yolo11n from its yaml.
 
-Usage: ``python bench/inference.py [--json OUT] [--imgsz 640] [--images 32] [--batch 32] [--repeats 2]``
+Usage: ``python bench/inference.py [--weights rainbench-yolo11n] [--json OUT] [--imgsz 640]
+[--images 32] [--batch 32] [--repeats 2]``
 """
 
 from __future__ import annotations
@@ -85,6 +87,7 @@ def best_rate(run, images: list[np.ndarray], batch: int, repeats: int) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--weights", default="rainbench-yolo11n", help="shipped model name")
     parser.add_argument("--json", default=None)
     parser.add_argument("--imgsz", type=int, default=640)
     parser.add_argument("--images", type=int, default=32)
@@ -98,8 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = dict(imgsz=args.imgsz, conf=0.001, iou=0.7, max_det=300)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        if "rainbench-yolo11n" in backends.shipped_models():
-            weights, label = str(backends.WEIGHTS_DIR / "rainbench-yolo11n.pt"), "rainbench-yolo11n"
+        if args.weights in backends.shipped_models():
+            weights, label = str(backends.WEIGHTS_DIR / f"{args.weights}.pt"), args.weights
         else:
             from ultralytics.nn.tasks import DetectionModel
 

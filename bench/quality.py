@@ -3,8 +3,8 @@
 The quality check of docs/models.md: ``--scenes`` clean scenes from seed ``--seed`` (default
 5 scenes from seed 100: evaluation seeds, never trained on), ``--frames`` frames each spread
 over the 20 s clip (40 frames at 2 frames/s), the paper's actor mix, 800x600, evaluated with
-``rainbench eval`` defaults (each model at its own letterbox size: 960 for the shipped nano
-model's card) on CPU. Prints a table per model with the issue's quality
+``rainbench eval`` defaults (each model at its own letterbox size: 960 for both shipped
+models' cards) on CPU. Prints a table per model with the issue's quality
 bar (AP@0.5 >= 0.80 for car and person, >= 0.60 for bicycle and motorcycle) and exits 0 either
 way: it measures, it does not judge.
 
