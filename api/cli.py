@@ -303,7 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
                           help="instead of --weights: DIR/<model>/rate_<rate>.json COCO results files")
     evaluate.add_argument("--out", required=True, help="results directory")
     evaluate.add_argument("--imgsz", type=_positive_int("IMGSZ"), default=None,
-                          help="letterbox size (default: a shipped model's own, 960 for rainbench-yolo11n; "
+                          help="letterbox size (default: a shipped model's own, 960 for both shipped models; "
                                "640 for other models)")
     evaluate.add_argument("--batch", type=_positive_int("BATCH"), default=32)
     evaluate.add_argument("--conf", type=float, default=0.001, help="detector confidence floor")

@@ -141,8 +141,9 @@ def export_onnx(weights: str | Path, out: str | Path) -> Path:
     Batch norms are exported unfused, so every weight is the checkpoint's own value, and each
     float32 weight that fp16 holds exactly is stored as fp16 behind a Cast to float32
     (:func:`_store_exact_halves`): for a stripped ultralytics checkpoint (fp16 weights, as shipped)
-    the file is half the size of a fused fp32 export, with nothing lost. onnxruntime folds the casts and fuses the batch norms
-    when it loads the model, so it runs the same optimized graph as a fused fp32 export."""
+    the file is half the size of a fused fp32 export, with nothing lost. onnxruntime folds the
+    casts and fuses the batch norms when it loads the model, so it runs the same optimized graph
+    as a fused fp32 export."""
     import onnx
     import torch
 
