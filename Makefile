@@ -6,7 +6,9 @@ STAMP := $(VENV)/.installed
 
 # make dataset variables (see README.md)
 OUT ?= data
-SEED ?= 0
+SEED ?=
+SKY ?=
+WEATHER ?=
 FRAMES ?= 200
 WIDTH ?= 800
 HEIGHT ?= 600
@@ -26,6 +28,9 @@ TRAIN_OUT ?=
 MODELS ?=
 PAPER_OUT ?= results/paper
 
+# Neither SEED nor SKY: the paper's clip (seed 0, cloudy); SEED alone: that seed's own weather.
+SCENE_FLAGS = $(if $(SEED),--seed $(SEED),) $(if $(SKY),--sky $(SKY),)
+
 .PHONY: venv dataset scene verify eval train paper test test-slow bench clean
 
 venv: $(STAMP)
@@ -39,9 +44,11 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 dataset: $(STAMP)
-	$(BIN)/rainbench generate --out $(OUT) --seed $(SEED) --scenes $(SCENES) \
+	$(BIN)/rainbench generate --out $(OUT) $(SCENE_FLAGS) --scenes $(SCENES) \
 		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
 		--rain-model $(RAIN_MODEL) $(if $(STORE),--store $(STORE),) \
+		$(if $(filter on,$(WEATHER)),--weather-follows-rate,) \
+		$(if $(filter off,$(WEATHER)),--no-weather-follows-rate,) \
 		$(if $(WORKERS),--workers $(WORKERS),) $(if $(THREADS),--threads $(THREADS),)
 
 eval: $(STAMP)
@@ -54,7 +61,7 @@ train: $(STAMP)
 
 # The seed paper's experiment: generate both rain models, evaluate the shipped models, report.
 paper: $(STAMP)
-	$(BIN)/rainbench paper --out $(PAPER_OUT) --data $(OUT)/paper --seed $(SEED) --scenes $(SCENES) \
+	$(BIN)/rainbench paper --out $(PAPER_OUT) --data $(OUT)/paper $(SCENE_FLAGS) --scenes $(SCENES) \
 		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
 		$(foreach m,$(MODELS),--model $(m)) $(foreach w,$(WEIGHTS),--weights $(w))
 
@@ -62,7 +69,7 @@ verify: $(STAMP)
 	$(BIN)/rainbench verify $(OUT)
 
 scene: $(STAMP)
-	$(BIN)/rainbench scene --seed $(SEED) --out $(OUT)/scene_$(SEED)
+	$(BIN)/rainbench scene $(SCENE_FLAGS) --out $(OUT)/scene_$(or $(SEED),0)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

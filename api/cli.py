@@ -16,14 +16,41 @@ class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2."""
 
 
-def _positive_int(name: str):
+MAX_FRAMES = 100_000  # rainbench.gen.dataset.MAX_FRAMES (not imported here: it imports mujoco)
+
+
+def _shown(text) -> str:
+    text = repr(text) if isinstance(text, str) else str(text)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _positive_int(name: str, high: int | None = None, low: int = 1):
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: expected an integer, got {text!r}") from None
-        if value < 1:
-            raise argparse.ArgumentTypeError(f"{name}: expected >= 1, got {value}")
+            raise argparse.ArgumentTypeError(f"{name}: expected an integer, got {_shown(text)}") \
+                from None
+        if high is None and value < low:
+            raise argparse.ArgumentTypeError(f"{name}: expected >= {low}, got {_shown(value)}")
+        if high is not None and not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{name}: expected an integer in {low}..{high}, got "
+                                             f"{_shown(value)}")
+        return value
+    return parse
+
+
+def _number(name: str, low: float, high: float, low_open: bool = False):
+    """A float flag in [low, high] (or (low, high] with ``low_open``); NaN is refused."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name}: expected a number, got {_shown(text)}") \
+                from None
+        if not ((low < value) if low_open else (low <= value)) or not value <= high:
+            raise argparse.ArgumentTypeError(f"{name}: expected a number in {'(' if low_open else '['}"
+                                             f"{low:g}, {high:g}], got {_shown(text)}")
         return value
     return parse
 
@@ -32,9 +59,9 @@ def _seed(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"SEED: expected an integer, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"SEED: expected an integer, got {_shown(text)}") from None
     if not 0 <= value <= 2**31 - 1:
-        raise argparse.ArgumentTypeError(f"SEED: expected 0..2147483647, got {value}")
+        raise argparse.ArgumentTypeError(f"SEED: expected 0..2147483647, got {_shown(value)}")
     return value
 
 
@@ -48,10 +75,11 @@ def _store(text: str) -> tuple[str, ...]:
 
 
 def _choose_gl(requested: str | None) -> None:
-    """Honour --gl before anything imports mujoco."""
+    """Honour --gl before anything imports mujoco; refuse a MUJOCO_GL that cannot render."""
     if requested is None:
         if not os.environ.get("MUJOCO_GL"):
             gl.find_backend(None)  # raises the clear error naming the packages
+        gl.check_environment(os.environ)
         return
     if "mujoco" in sys.modules:
         raise CliError("--gl: mujoco is already imported; set MUJOCO_GL instead")
@@ -80,11 +108,14 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
     from rainbench.gen.dataset import DatasetConfig, run_dataset
 
-    config = DatasetConfig(seed=args.seed, scenes=args.scenes, frames=args.frames,
+    seed, sky = _seed_and_sky(args)
+    config = DatasetConfig(seed=seed, scenes=args.scenes, frames=args.frames,
                            frames_per_shard=args.frames_per_shard, width=args.width,
                            height=args.height, rates=rates, rain_model=args.rain_model,
-                           rain_seed=args.rain_seed, store=args.store, fps=args.fps)
-    workers = args.workers or min(os.cpu_count() or 1, len(config.tasks()))
+                           rain_seed=args.rain_seed, store=args.store, fps=args.fps, sky=sky,
+                           weather_follows_rate=args.weather_follows_rate)
+    shards = config.scenes * -(-config.frames // config.frames_per_shard)  # len(config.tasks())
+    workers = args.workers or min(os.cpu_count() or 1, shards)
     if args.threads is not None:
         import cv2  # noqa: PLC0415 -- OpenCV's own thread pool follows --threads as well
 
@@ -100,9 +131,12 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from rainbench.gen.dataset import verify_dataset
+    from rainbench.gen.dataset import unlisted_shards, verify_dataset
 
     problems = verify_dataset(args.out)
+    for path in unlisted_shards(args.out):
+        print(f"rainbench: warning: {path}: not listed in the manifest, so not part of the "
+              "dataset (ignored)", file=sys.stderr)
     for problem in problems:
         print(f"rainbench: bad: {problem}", file=sys.stderr)
     if problems:
@@ -119,8 +153,9 @@ def cmd_scene(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    config = GenerateConfig(seed=args.seed, frames=args.frames, width=args.width,
-                            height=args.height, fps=args.fps)
+    seed, sky = _seed_and_sky(args)
+    config = GenerateConfig(seed=seed, frames=args.frames, width=args.width,
+                            height=args.height, fps=args.fps, sky=sky)
     layout = L.sample_layout(config.seed, config.scenario_config(),
                              np.random.default_rng(config.seed))
     path = export_scene(build_spec(layout, config.width, config.height, config.hfov_deg), out)
@@ -155,25 +190,38 @@ def cmd_preview(args: argparse.Namespace) -> int:
                                  boxes=args.boxes, overwrite=args.overwrite):
             print(path)
         return 0
+    import numpy as np
+
+    from rainbench.gen.dataset import list_shards, open_checked
     from rainbench.gen.preview import montage, write_png
-    from rainbench.gen.shard import open_shard, read_frame_labels
+    from rainbench.gen.shard import read_frame_labels, read_rgb
 
     path = Path(args.shard)
     if path.is_dir():
-        shards = sorted(path.glob("scene*_f*.h5"))
+        shards = list_shards(path) if (path / "manifest.json").exists() else \
+            sorted(path.glob("scene*_f*.h5"))
         if not shards:
             raise CliError(f"preview: no shard (scene*_f*.h5) in {path}")
         path = shards[0]
-    with open_shard(path) as handle:
+    name = f"{path.stem}_frame{args.frame:04d}_rates.png"
+    out = Path(args.out) if args.out else path.with_name(name)
+    if args.out and out.is_dir():
+        out = out / name
+    elif out.suffix.lower() != ".png":
+        raise CliError(f"--out: expected a .png file name or a directory, got {out}")
+    _writable_dir(out.parent, "--out")
+    with open_checked(path) as handle:
         frames = handle["rgb"].shape[1]
         if not 0 <= args.frame < frames:
             raise CliError(f"--frame: expected 0..{frames - 1} for {path.name}, got {args.frame}")
-        images = handle["rgb"][:, args.frame]
-        rates = handle["rates"][()]
-        labels = read_frame_labels(handle, args.frame)
+        try:
+            images = np.stack([read_rgb(handle, row, args.frame)
+                               for row in range(handle["rgb"].shape[0])])
+            rates = handle["rates"][()]
+            labels = read_frame_labels(handle, args.frame)
+        except OSError as error:
+            raise CliError(f"{path}: frame {args.frame} does not decode ({error})") from None
     boxes = (labels["bbox"], labels["class_id"]) if args.boxes else (None, None)
-    out = Path(args.out or path.with_name(f"{path.stem}_frame{args.frame:04d}_rates.png"))
-    _writable_dir(out.parent, "--out")
     write_png(out, montage(images, rates, boxes=boxes[0], class_ids=boxes[1]))
     print(out)
     return 0
@@ -189,12 +237,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
                        imgsz=args.imgsz, batch=args.batch, conf=args.conf, iou=args.iou,
                        max_det=args.max_det, report_conf=args.report_conf, n_boot=args.n_boot,
                        class_map=args.class_map, device=args.device, force=args.force,
-                       progress=not args.quiet)
+                       progress=not args.quiet, trust_pickle=args.trust_pickle or None)
     print(outputs.paths["report.md"])
     return 0
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    _choose_gl(None)
     from rainbench.eval.train import load_recipe, train
 
     recipe = load_recipe(args.recipe)
@@ -208,12 +257,14 @@ def cmd_paper(args: argparse.Namespace) -> int:
 
     rates = tuple(parse_rates(args.rates))
     out = _writable_dir(Path(args.out), "--out")
+    _choose_gl(None)
     import torch
 
     from rainbench.eval.paper import PaperConfig, default_models, run_paper
 
     models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
-    config = PaperConfig(seed=args.seed, scenes=args.scenes, frames=args.frames, width=args.width,
+    seed, sky = _seed_and_sky(args)
+    config = PaperConfig(seed=seed, sky=sky, scenes=args.scenes, frames=args.frames, width=args.width,
                          height=args.height, rates=rates, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device)
@@ -222,13 +273,31 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return 0
 
 
+PAPER_SKY = "cloudy"  # the seed paper's CARLA clip was cloudy
+
+
+def _seed_and_sky(args: argparse.Namespace) -> tuple[int, str | None]:
+    """(seed, sky): given neither --seed nor --sky, the paper's default clip (seed 0, cloudy);
+    otherwise --sky, or the seed's own base weather when --sky is not given."""
+    if args.seed is None and args.sky is None:
+        return 0, PAPER_SKY
+    return (0 if args.seed is None else args.seed), args.sky
+
+
 def _add_scene_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seed", type=_seed, default=0,
-                        help="scene seed: layout, actors, colours, speeds, sun, camera height")
-    parser.add_argument("--frames", type=_positive_int("FRAMES"), default=200)
-    parser.add_argument("--fps", type=float, default=10.0, help="frames per second (default 10)")
-    parser.add_argument("--width", type=_positive_int("WIDTH"), default=800)
-    parser.add_argument("--height", type=_positive_int("HEIGHT"), default=600)
+    parser.add_argument("--seed", type=_seed, default=None,
+                        help="scene seed: layout, actors, colours, speeds, sky, sun, camera height "
+                             "(default 0; given neither --seed nor --sky: the paper's cloudy clip)")
+    parser.add_argument("--sky", choices=("clear", "cloudy", "overcast"), default=None,
+                        help="base weather (default: the seed decides; the paper's clip: cloudy)")
+    parser.add_argument("--frames", type=_positive_int("FRAMES", MAX_FRAMES), default=200,
+                        help=f"frames per scene, 1..{MAX_FRAMES} (default 200)")
+    parser.add_argument("--fps", type=_number("FPS", 0, 1000, low_open=True), default=10.0,
+                        help="frames per second, (0, 1000] (default 10)")
+    parser.add_argument("--width", type=_positive_int("WIDTH", 8192, 16), default=800,
+                        help="image width in pixels, 16..8192 (default 800)")
+    parser.add_argument("--height", type=_positive_int("HEIGHT", 8192, 16), default=600,
+                        help="image height in pixels, 16..8192 (default 600)")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -247,17 +316,21 @@ def build_parser() -> argparse.ArgumentParser:
                           help="rain rates in mm/h: 0:100:10, 0,25,50 or 50 (default: 0)")
     generate.add_argument("--rain-model", default="jeon2022")
     generate.add_argument("--rain-seed", type=_seed, default=0)
+    generate.add_argument("--weather-follows-rate", action=argparse.BooleanOptionalAction,
+                          default=None,
+                          help="sky, light, wet road, spray and camera follow the rain rate "
+                               "(default: on for physical, off for jeon2022)")
     generate.add_argument("--store", type=_store, default=(),
                           help="extra per-frame arrays: depth,instance")
-    generate.add_argument("--scenes", type=_positive_int("SCENES"), default=1,
+    generate.add_argument("--scenes", type=_positive_int("SCENES", 100_000), default=1,
                           help="number of scenes; scene k uses seed SEED + k")
     generate.add_argument("--frames-per-shard", type=_positive_int("FRAMES_PER_SHARD"),
                           default=200, help="split longer clips into shards of this many frames")
-    generate.add_argument("--workers", type=_positive_int("WORKERS"), default=None,
+    generate.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=None,
                           help="parallel worker processes (default: cores, at most one per shard)")
-    generate.add_argument("--render-threads", type=_positive_int("RENDER_THREADS"), default=None,
+    generate.add_argument("--render-threads", type=_positive_int("RENDER_THREADS", 1024), default=None,
                           help="Mesa software-render threads per worker (LP_NUM_THREADS)")
-    generate.add_argument("--threads", type=_positive_int("THREADS"), default=None,
+    generate.add_argument("--threads", type=_positive_int("THREADS", 1024), default=None,
                           help="rain, statistics and compression threads per worker (default: "
                                "cores / workers; 1 = each worker on one core)")
     generate.add_argument("--executor", choices=("local", "ray"), default="local")
@@ -302,22 +375,26 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--predictions", default=None,
                           help="instead of --weights: DIR/<model>/rate_<rate>.json COCO results files")
     evaluate.add_argument("--out", required=True, help="results directory")
-    evaluate.add_argument("--imgsz", type=_positive_int("IMGSZ"), default=None,
+    evaluate.add_argument("--imgsz", type=_positive_int("IMGSZ", 8192, 32), default=None,
                           help="letterbox size (default: a shipped model's own, 960 for both shipped models; "
                                "640 for other models)")
-    evaluate.add_argument("--batch", type=_positive_int("BATCH"), default=32)
-    evaluate.add_argument("--conf", type=float, default=0.001, help="detector confidence floor")
-    evaluate.add_argument("--iou", type=float, default=0.7, help="detector NMS IoU")
-    evaluate.add_argument("--max-det", type=_positive_int("MAX_DET"), default=300)
-    evaluate.add_argument("--report-conf", type=float, default=0.25,
+    evaluate.add_argument("--batch", type=_positive_int("BATCH", 4096), default=32)
+    evaluate.add_argument("--conf", type=_number("CONF", 0, 1), default=0.001,
+                          help="detector confidence floor")
+    evaluate.add_argument("--iou", type=_number("IOU", 0, 1), default=0.7, help="detector NMS IoU")
+    evaluate.add_argument("--max-det", type=_positive_int("MAX_DET", 100_000), default=300)
+    evaluate.add_argument("--report-conf", type=_number("REPORT_CONF", 0, 1), default=0.25,
                           help="fixed threshold of the *_at_conf metrics and the detection strip")
-    evaluate.add_argument("--n-boot", type=_positive_int("N_BOOT"), default=1000,
+    evaluate.add_argument("--n-boot", type=_positive_int("N_BOOT", 1_000_000), default=1000,
                           help="bootstrap resamples of the AP confidence intervals")
     evaluate.add_argument("--class-map", default=None,
                           help="model class name -> rainbench id, e.g. car=2,pedestrian=0 "
                                "(needed unless the model is COCO-80)")
     evaluate.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
     evaluate.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
+    evaluate.add_argument("--trust-pickle", action="store_true",
+                          help="load a .pt that ultralytics' safe loading refuses with Python's full "
+                               "unpickler (runs code from the file: only for files you trust)")
     evaluate.add_argument("--quiet", action="store_true", help="no progress bars")
     evaluate.set_defaults(run=cmd_eval)
     training = sub.add_parser("train", help="train a YOLO detector from scratch on clean scenes (a recipe)")
@@ -326,12 +403,12 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_argument("--out", default=None, help="run directory (default: runs/<name>); "
                           "running the same command again resumes a cut-off run there")
     training.add_argument("--device", default=None, help="torch device (default: CUDA 0 if present, else cpu)")
-    training.add_argument("--workers", type=_positive_int("WORKERS"), default=1,
+    training.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=1,
                           help="processes generating the training scenes")
     training.set_defaults(run=cmd_train)
     paper = sub.add_parser("paper", help="the seed paper's experiment: generate, evaluate, report beside the paper")
     _add_scene_args(paper)
-    paper.add_argument("--scenes", type=_positive_int("SCENES"), default=1)
+    paper.add_argument("--scenes", type=_positive_int("SCENES", 100_000), default=1)
     paper.add_argument("--rates", default="0:100:10", help="RATES spec (default 0:100:10, the paper's)")
     paper.add_argument("--rain-models", default="jeon2022,physical",
                        help="comma-separated rain models (default: jeon2022,physical)")
@@ -341,12 +418,13 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--weights", action="append", default=None, help="extra weights to evaluate (repeatable)")
     paper.add_argument("--data", default="data/paper", help="dataset root (default data/paper)")
     paper.add_argument("--out", default="results/paper", help="results directory (default results/paper)")
-    paper.add_argument("--imgsz", type=_positive_int("IMGSZ"), default=None,
+    paper.add_argument("--imgsz", type=_positive_int("IMGSZ", 8192, 32), default=None,
                        help="letterbox size (default: each model's own, as rainbench eval)")
-    paper.add_argument("--batch", type=_positive_int("BATCH"), default=32)
-    paper.add_argument("--n-boot", type=_positive_int("N_BOOT"), default=1000)
+    paper.add_argument("--batch", type=_positive_int("BATCH", 4096), default=32)
+    paper.add_argument("--n-boot", type=_positive_int("N_BOOT", 1_000_000), default=1000)
     paper.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
-    paper.add_argument("--workers", type=_positive_int("WORKERS"), default=1, help="generation processes")
+    paper.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=1,
+                       help="generation processes")
     paper.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
     paper.add_argument("--quiet", action="store_true", help="no progress bars")
     paper.set_defaults(run=cmd_paper)
@@ -363,7 +441,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rainbench: error: {message}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print("rainbench: interrupted; no shard was written under a final name", file=sys.stderr)
+        if args.command == "generate":
+            print(f"rainbench: interrupted; the workers are stopped, {Path(args.out) / 'manifest.json'} "
+                  "lists the complete shards and nothing partial is under a final name; run the "
+                  "same command again to resume", file=sys.stderr)
+        else:
+            print("rainbench: interrupted", file=sys.stderr)
         return 130
 
 

@@ -13,8 +13,15 @@
 Weights are loaded from local files only; nothing is downloaded (``YOLO_OFFLINE=1``) and
 ultralytics' settings go to a temporary folder, not the home folder.
 
-WARNING: ``.pt`` checkpoints are Python pickles; loading one executes code from the file. Only
-load weights you trust. ONNX and Darknet files hold no code.
+``.pt`` checkpoints are Python pickles, and Python's full unpickler runs code from the file.
+rainbench loads them with ultralytics' safe loading (``torch.load(weights_only=True)`` against
+ultralytics' allow-list of torch and ultralytics model classes), which reads ordinary
+ultralytics checkpoints (the shipped ones, anything ``ultralytics`` trained or exported). A file
+that pickles anything else (a custom module, a YOLOv5-repository checkpoint, a global such as
+``os.system``) is refused, naming the global, unless ``trust_pickle=True``
+(``rainbench eval --trust-pickle`` or ``RAINBENCH_TRUST_PICKLE=1``): only then is it loaded with
+the full unpickler, with a warning. Only trust files you would run as code. ONNX and Darknet
+files hold no code.
 
 Pre-processing: RGB, letterboxed (aspect kept, grey 114 padding, centred) to ``imgsz`` on the
 long side; ONNX models with a dynamic input get the smallest multiple of 32 around the image
@@ -37,6 +44,9 @@ from __future__ import annotations
 import ast
 import json
 import os
+import pickle
+import re
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -662,14 +672,61 @@ def _load_darknet(path: Path, class_map: str | None) -> DarknetDetector:
                            letterboxed=net_section.get("letter_box", "0") == "1")
 
 
+TRUST_PICKLE_ENV = "RAINBENCH_TRUST_PICKLE"
+
+
+class _SafeLoadRefused(Exception):
+    """ultralytics' safe loading refused a global of the checkpoint (``name``)."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.name = name
+
+
+def _load_yolo_safely(ultralytics: Any, path: Path) -> Any:
+    """``ultralytics.YOLO(path)`` with the checkpoint read by ultralytics' own safe loading
+    (``torch_safe_load(..., safe_only=True)``: ``torch.load(weights_only=True)`` against its
+    allow-list of model classes) instead of the full unpickler ``YOLO`` uses by default.
+
+    Raises :class:`_SafeLoadRefused` naming the first global outside the allow-list, and
+    whatever ultralytics raises for a file that does not load at all.
+    """
+    from ultralytics.nn import tasks
+
+    if not getattr(getattr(tasks, "_SafeLoad", None), "SUPPORTED", False):
+        raise _SafeLoadRefused("(this torch/ultralytics has no weights_only loading)")
+    unsafe_loader = tasks.torch_safe_load
+
+    def safe_loader(weight, safe_only=None):
+        return unsafe_loader(weight, safe_only=True)
+
+    tasks.torch_safe_load = safe_loader  # load_checkpoint looks it up when called
+    try:
+        return ultralytics.YOLO(str(path))
+    except TypeError as error:
+        cause = error.__cause__
+        if isinstance(cause, pickle.UnpicklingError):
+            found = re.search(r"GLOBAL ([\w.]+)", str(cause))
+            raise _SafeLoadRefused(found.group(1) if found else "a global") from None
+        raise
+    finally:
+        tasks.torch_safe_load = unsafe_loader
+
+
 def load_detector(weights: str | Path, *, class_map: str | None = None,
-                  device: str | None = None) -> Detector:
+                  device: str | None = None, trust_pickle: bool | None = None) -> Detector:
     """Load a detector from a weights spec (:func:`resolve_weights`); ``.name`` is the model name.
 
+    A ``.pt`` is read with ultralytics' safe loading; one that needs Python's full unpickler is
+    refused unless ``trust_pickle`` (None: the ``RAINBENCH_TRUST_PICKLE=1`` environment
+    variable), see the module docstring.
+
     Raises :class:`BackendError` (one line, naming the file) for a missing file, an unsupported
-    format, a file that does not load, a non-detection model, or class names that are neither
-    COCO-80 nor covered by ``class_map``.
+    format, a file that does not load, a .pt that needs the unsafe loader without trust, a
+    non-detection model, or class names that are neither COCO-80 nor covered by ``class_map``.
     """
+    if trust_pickle is None:
+        trust_pickle = os.environ.get(TRUST_PICKLE_ENV, "") == "1"
     path, name = resolve_weights(weights, device)
     if class_map is not None:
         parse_class_map(class_map)
@@ -684,7 +741,21 @@ def load_detector(weights: str | Path, *, class_map: str | None = None,
                            f"name ({', '.join(shipped_models()) or 'none shipped'})")
     ultralytics = _offline_ultralytics()
     try:
-        model = ultralytics.YOLO(str(path))
+        try:
+            model = _load_yolo_safely(ultralytics, path)
+        except _SafeLoadRefused as refused:
+            if not trust_pickle:
+                raise BackendError(
+                    f"--weights: {path} cannot be loaded safely: it pickles {refused.name}, which "
+                    "is outside ultralytics' allow-list of model classes, and loading it with "
+                    "Python's full unpickler runs code from the file; if you trust this file, "
+                    f"pass --trust-pickle (or set {TRUST_PICKLE_ENV}=1)") from None
+            print(f"rainbench: warning: loading {path} with Python's full unpickler (it pickles "
+                  f"{refused.name}; trusted by --trust-pickle): this runs code from the file",
+                  file=sys.stderr)
+            model = ultralytics.YOLO(str(path))
+    except BackendError:
+        raise
     except Exception as error:  # ultralytics raises TypeError, RuntimeError, pickle errors, ...
         reason = " ".join(str(error).split())[:200]
         raise BackendError(f"--weights: {path} is not a loadable ultralytics checkpoint ({reason})") from None

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from rainbench.gen.dataset import DatasetConfig, open_in_turn, run_dataset
-from rainbench.gen.shard import read_frame_labels
+from rainbench.gen.shard import open_shard, read_frame_labels
 
 from .metrics import CLASS_NAMES, ap_by_size, ap_by_visibility, half_value_rate
 from .pipeline import EvalError, dataset_images, ground_truth, load_predictions_file, predictions_path, run_eval
@@ -35,6 +35,7 @@ class PaperConfig:
     """What ``make paper`` runs; defaults are the paper's experiment with the shipped nano model."""
 
     seed: int = 0
+    sky: str | None = "cloudy"  # the paper's clip was cloudy; None: each seed's own weather
     scenes: int = 1
     frames: int = 200
     width: int = 800
@@ -56,6 +57,20 @@ class PaperConfig:
             raise EvalError(f"rain models: expected some of {', '.join(RAIN_MODELS)}, got {list(self.rain_models)}")
         if 0.0 not in self.rates:
             raise EvalError(f"RATES: the paper's comparison needs rate 0 (Normal), got {list(self.rates)}")
+
+
+FIXED_WEATHER = "-fixed-weather"
+
+
+def conditions(rain_models: Sequence[str]) -> list[tuple[str, str, bool]]:
+    """``(name, rain model, weather follows the rate)`` of every dataset ``make paper`` builds:
+    each rain model with its default (jeon2022 over the unchanged scene, the paper's method;
+    physical with the weather following the rate), and physical again over the unchanged base
+    weather, so the report separates the drops' share of the AP loss from the light's."""
+    out = [(model, model, model == "physical") for model in rain_models]
+    if "physical" in rain_models:
+        out.append(("physical" + FIXED_WEATHER, "physical", False))
+    return out
 
 
 def default_models(cuda: bool) -> tuple[str, ...]:
@@ -111,20 +126,24 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     out_dir, data_root = Path(out_dir), Path(data_root)
     records_by_rain: dict[str, list] = {}
     timings: dict[str, float] = {}
-    for rain_model in config.rain_models:
-        data_dir = data_root / rain_model
+    skies = set()
+    for name, rain_model, follows in conditions(config.rain_models):
+        data_dir = data_root / name
         dataset = DatasetConfig(seed=config.seed, scenes=config.scenes, frames=config.frames,
                                 width=config.width, height=config.height, rates=config.rates,
-                                rain_model=rain_model)
+                                rain_model=rain_model, sky=config.sky, weather_follows_rate=follows)
         start = time.perf_counter()
         run_dataset(dataset, data_dir, workers=workers)
-        timings[f"generate {rain_model}"] = time.perf_counter() - start
+        timings[f"generate {name}"] = time.perf_counter() - start
+        for path in sorted(data_dir.glob("scene*_f*.h5")):
+            with open_shard(path) as handle:
+                skies.add(str(handle.attrs.get("sky", "clear (format v1)")))
         start = time.perf_counter()
-        outputs = run_eval(data_dir, out_dir / rain_model, weights=list(config.weights), imgsz=config.imgsz,
+        outputs = run_eval(data_dir, out_dir / name, weights=list(config.weights), imgsz=config.imgsz,
                            batch=config.batch, n_boot=config.n_boot, device=config.device, force=force,
                            progress=progress)
-        timings[f"evaluate {rain_model}"] = time.perf_counter() - start
-        records_by_rain[rain_model] = outputs.records
+        timings[f"evaluate {name}"] = time.perf_counter() - start
+        records_by_rain[name] = outputs.records
     models = list(dict.fromkeys(record["model"] for record in records_by_rain[config.rain_models[0]]))
     half_rates = {}
     for rain_model, records in records_by_rain.items():
@@ -140,7 +159,11 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     setup = [
         f"Data: {config.scenes} scene(s) from seed {config.seed}, {config.frames} frames of "
         f"{config.width}x{config.height} each, rates {', '.join(f'{r:g}' for r in config.rates)} mm/h, "
-        f"rain models {', '.join(config.rain_models)}. Models: "
+        f"rain models {', '.join(config.rain_models)}. Base weather: {', '.join(sorted(skies))} "
+        f"({'the paper clip' if config.sky == 'cloudy' and config.seed == 0 else 'as chosen'}). "
+        "Weather following the rate (sky, light, wet road, puddles, spray, exposure, noise): "
+        + ", ".join(f"{name} {'yes' if follows else 'no'}" for name, _, follows in conditions(config.rain_models))
+        + ". Models: "
         f"{', '.join(f'{model} (letterboxed to {config.imgsz or model_imgsz(spec)})' for model, spec in zip(models, config.weights))}; "
         f"conf 0.001, NMS IoU 0.7. Intervals: {config.n_boot} bootstrap resamples of frames.",
         "",

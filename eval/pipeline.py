@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from rainbench.gen.dataset import DatasetError, image_index, list_shards, open_in_turn, read_manifest
+from rainbench.gen.dataset import (DatasetError, image_index, list_shards, open_checked, open_in_turn,
+                                   read_manifest)
 from rainbench.gen.export import rate_token
 from rainbench.gen.shard import open_shard, read_frame_labels, read_rgb
 
@@ -63,7 +64,7 @@ def _scan(data_dir: str | Path) -> tuple[list[tuple[int, Path, int]], np.ndarray
     shards = _shards(data_dir)
     rates: np.ndarray | None = None
     for shard in shards:
-        with open_shard(shard) as handle:
+        with open_checked(shard) as handle:  # labels checked: NaN boxes are refused
             shard_rates = handle["rates"][()].astype(np.float32)
         if rates is None:
             rates = shard_rates
@@ -134,7 +135,7 @@ def check_detections(records: Any, image_ids: set[int], where: str) -> list[dict
         try:
             image_id, category_id = record["image_id"], record["category_id"]
             bbox, score = [float(v) for v in record["bbox"]], float(record["score"])
-        except (TypeError, KeyError, ValueError) as error:
+        except (TypeError, KeyError, ValueError, OverflowError) as error:
             raise EvalError(f"{where}: record {position}: expected image_id, category_id, bbox [x, y, w, h] "
                             f"and score ({type(error).__name__}: {error})") from None
         if isinstance(category_id, bool) or not isinstance(category_id, int) or category_id not in known:
@@ -143,7 +144,7 @@ def check_detections(records: Any, image_ids: set[int], where: str) -> list[dict
         if isinstance(image_id, bool) or not isinstance(image_id, int) or image_id not in image_ids:
             raise EvalError(f"{where}: record {position}: image_id {image_id!r} is not an image of the dataset "
                             f"(ids 1..{len(image_ids)})")
-        if len(bbox) != 4 or not all(math.isfinite(v) for v in bbox) or bbox[2] < 0 or bbox[3] < 0:
+        if not isinstance(record["bbox"], list) or len(bbox) != 4 or not all(math.isfinite(v) for v in bbox) or bbox[2] < 0 or bbox[3] < 0:
             raise EvalError(f"{where}: record {position}: bbox {record['bbox']!r} is not a finite [x, y, w, h] "
                             "with w, h >= 0")
         if not 0.0 <= score <= 1.0:
@@ -161,6 +162,11 @@ def load_predictions_file(path: str | Path, image_ids: set[int]) -> list[dict]:
         records = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise EvalError(f"predictions: {path} is not valid JSON ({error})") from None
+    except RecursionError:
+        raise EvalError(f"predictions: {path} is not a COCO results list (JSON nested too "
+                        "deeply to read)") from None
+    except OSError as error:
+        raise EvalError(f"predictions: {path} cannot be read ({error.strerror})") from None
     return check_detections(records, image_ids, str(path))
 
 
@@ -222,7 +228,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
              weights: Sequence[str | Path] = (), imgsz: int | None = None, batch: int = 32, conf: float = 0.001,
              iou: float = 0.7, max_det: int = 300, report_conf: float = 0.25, n_boot: int = 1000,
              class_map: str | None = None, device: str | None = None, force: bool = False,
-             progress: bool = True) -> EvalOutputs:
+             progress: bool = True, trust_pickle: bool | None = None) -> EvalOutputs:
     """Evaluate every model at every rain rate of a dataset and write the outputs under ``out_dir``.
 
     Detections come either from ``predictions_dir`` (``<model>/rate_<rate_token>.json`` COCO
@@ -233,6 +239,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
 
     ``imgsz``: letterbox size of every model; None gives each model its own
     (:func:`rainbench.eval.backends.model_imgsz`: a shipped model's card, else 640).
+    ``trust_pickle``: load ``.pt`` files that ultralytics' safe loading refuses with Python's
+    full unpickler (see :func:`rainbench.eval.backends.load_detector`).
 
     Outputs: ``metrics.json``, ``metrics.csv``, ``images.json``, ``report.md``,
     ``ap50_vs_rate.png``, ``f1_vs_rate.png``, ``detections_strip.png``.
@@ -292,7 +300,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
                     detections[(model, rate)] = load_predictions_file(cache, image_ids)
                     continue
                 if detector is None:
-                    detector = backends.load_detector(spec, class_map=class_map, device=device)
+                    trust = {} if trust_pickle is None else {"trust_pickle": trust_pickle}
+                    detector = backends.load_detector(spec, class_map=class_map, device=device, **trust)
                     if not reuse:  # settings changed or --force: older rate files are stale
                         meta_path.unlink(missing_ok=True)
                 with tqdm(total=len(images), unit="img", desc=f"{model} {rate_token(rate)} mm/h",

@@ -410,6 +410,41 @@ def _fmt_rate(value: float) -> str:
     return "n/a" if math.isnan(value) else f"{value:.0f}"
 
 
+def _weather_share(records_by_rain: Mapping[str, Sequence[Mapping[str, Any]]]) -> list[str]:
+    """Section comparing physical rain with and without the weather following the rate."""
+    fixed = [name for name in records_by_rain if name.endswith("-fixed-weather")]
+    if not fixed or fixed[0].removesuffix("-fixed-weather") not in records_by_rain:
+        return []
+    follows = fixed[0].removesuffix("-fixed-weather")
+    models, rates, classes, with_weather = _index(records_by_rain[follows])
+    _, _, _, without = _index(records_by_rain[fixed[0]])
+    clean, heavy = min(rates), max(rates)
+    rows = []
+    for model in models:
+        for position, class_name in enumerate(c for c in TABLE_CLASS_ORDER if c in classes):
+            def ap(table, rate):
+                return table.get((model, rate, class_name), {}).get("ap50")
+
+            drops = []
+            for table in (with_weather, without):
+                base, rainy = ap(table, clean), ap(table, heavy)
+                drops.append(base - rainy if base is not None and rainy is not None else None)
+            share = (f"{100 * (drops[0] - drops[1]) / drops[0]:.0f} %"
+                     if None not in drops and drops[0] > 1e-9 else "n/a")
+            rows.append([model if position == 0 else "", class_name,
+                         _fmt(ap(with_weather, clean)), _fmt(ap(with_weather, heavy)),
+                         _fmt(ap(without, heavy)), share])
+    lines = [f"### How much of the AP loss is the weather? {follows} with the weather following "
+             f"the rate vs {fixed[0]}", "",
+             "Both datasets hold the same scene, actors and drops; only the world under the rain "
+             "differs (sky, light, wet road, puddles, spray, exposure and noise follow the rate in "
+             f"the first, and stay the base weather's in the second). Share = (AP loss with the "
+             f"weather - AP loss without) / AP loss with the weather, at {_rate_label(heavy, clean)}.", ""]
+    lines += _table(["Model", "Class", "AP@0.5 Normal", f"{heavy:g} mm/h, weather follows",
+                     f"{heavy:g} mm/h, fixed weather", "Share of the loss from the weather"], rows)
+    return lines + [""]
+
+
 def render_paper_md(
     *,
     setup_lines: Sequence[str],
@@ -447,7 +482,10 @@ def render_paper_md(
     for rain_model, records in records_by_rain.items():
         models, rates, classes, by_key = _index(records)
         heavy, clean = max(rates), min(rates)
-        label = "the paper's calibrated drop law" if rain_model == paper_rain_model else "physically based rain"
+        label = ("the paper's calibrated drop law" if rain_model == paper_rain_model
+                 else "physically based rain over the unchanged base weather"
+                 if rain_model.endswith("-fixed-weather")
+                 else "physically based rain, weather following the rate")
         rows_models = list(models)
         by_key = dict(by_key)
         if rain_model == paper_rain_model:  # the paper's published rows under ours
@@ -471,6 +509,7 @@ def render_paper_md(
                   f"![F1 vs rate, {rain_model}]({rain_model}/f1_vs_rate.png)", "",
                   f"Full rate-by-rate tables with bootstrap intervals: [{rain_model}/report.md]({rain_model}/report.md)."]
     lines += ["", "## Beyond the paper", ""]
+    lines += _weather_share(records_by_rain)
     lines += ["### Rain rate (mm/h) at which AP@0.5 falls to half its clean value", ""]
     rain_models = list(records_by_rain)
     models = _index(next(iter(records_by_rain.values())))[0]

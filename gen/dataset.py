@@ -7,9 +7,21 @@ A dataset directory holds shards (format v1, docs/format.md) and ``manifest.json
 - the manifest lists every finished shard (relative path, scene seed, frame range, rates,
   sha256, byte size) and the full dataset config. It is rewritten atomically (temporary file +
   rename) after each shard is complete, with ``"complete": true`` once every shard is in;
-- re-running the same command skips shards whose file matches its manifest entry, so a killed
-  run (even ``kill -9``) is finished by running it again; temporary files of a killed run are
-  removed. A different config into a non-empty directory is refused unless ``overwrite``.
+- the manifest is written before the first shard is rendered, so an interrupted run always
+  leaves one; re-running the same command skips shards whose file matches its manifest entry
+  and adopts a complete shard under a final name that the manifest does not list yet (a run
+  killed between the rename and the manifest update) after checking it (format, labels, the
+  same config), so a killed run (even ``kill -9``) is finished by running it again; temporary
+  files of a killed run are removed. A different config into a non-empty directory is refused
+  unless ``overwrite``;
+- worker processes die with the process that started them, whatever kills it (Linux
+  ``PR_SET_PDEATHSIG``, and a watchdog thread polling the parent elsewhere); Ctrl-C stops the
+  workers at once instead of letting them finish their shards;
+- one ``generate`` at a time per directory: a second one is refused while the first holds the
+  lock (``fcntl.flock`` on ``OUT/.rainbench-generate.lock``).
+
+Readers open shards with :func:`open_checked`: :func:`open_shard` plus :func:`check_labels`,
+which refuses NaN boxes and inconsistent ``/labels/offsets`` naming the file and the frame.
 
 Image ids are 1-based, counting frames in manifest shard order, then frame order: the same
 numbering everywhere in rainbench (exports, evaluation).
@@ -17,27 +29,45 @@ numbering everywhere in rainbench (exports, evaluation).
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import dataclasses
+import fcntl
 import hashlib
 import json
+import math
 import multiprocessing
 import os
 import queue
+import re
+import signal
+import sys
+import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
+import numpy as np
+
+from rainbench import __version__
 from rainbench.mjcf.layout import ScenarioConfig
 
 from . import labels as lb
-from .generate import GenerateConfig, generate_shard
-from .shard import ShardFormatError, open_shard, shard_name
+from .generate import GenerateConfig, _json_default, generate_shard
+from .shard import ShardFormatError, open_shard, read_rgb, shard_name
 
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "rainbench.manifest"
 MANIFEST_VERSION = 1
 EXECUTORS = ("local", "ray")
+LOCK = ".rainbench-generate.lock"
+MAX_FRAMES = 100_000
+"""Most frames of one clip (``--frames``): 10 000 s of driving at 10 frames/s."""
+MAX_SHARDS = 100_000
+"""Most shards of one dataset (scenes x shards per scene)."""
+_SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
 class DatasetError(ValueError):
@@ -63,16 +93,24 @@ class DatasetConfig:
     store: tuple[str, ...] = ()
     label_filter: lb.LabelFilter = field(default_factory=lb.LabelFilter)
     scenario: ScenarioConfig | None = None  # None: the paper's actor mix over frames / fps seconds
+    sky: str | None = None  # base weather of every scene; None: each seed decides
+    weather_follows_rate: bool | None = None  # None: on for physical, off for jeon2022
 
     def __post_init__(self) -> None:
         if self.scenario is not None and abs(self.scenario.duration_s - self.frames / self.fps) > 1e-9:
             raise DatasetError(f"scenario.duration_s: expected frames / fps = {self.frames / self.fps:g} s "
                                f"(the clip's length), got {self.scenario.duration_s:g}")
-        if not (isinstance(self.scenes, int) and 1 <= self.scenes <= 100_000):
+        if not (_is_int(self.scenes) and 1 <= self.scenes <= 100_000):
             raise DatasetError(f"SCENES: expected an integer in 1..100000, got {self.scenes!r}")
-        if not (isinstance(self.frames_per_shard, int) and self.frames_per_shard >= 1):
+        if not (_is_int(self.frames) and 1 <= self.frames <= MAX_FRAMES):
+            raise DatasetError(f"FRAMES: expected an integer in 1..{MAX_FRAMES}, got {self.frames!r}")
+        if not (_is_int(self.frames_per_shard) and self.frames_per_shard >= 1):
             raise DatasetError(
                 f"frames-per-shard: expected an integer >= 1, got {self.frames_per_shard!r}")
+        shards = self.scenes * math.ceil(self.frames / self.frames_per_shard)
+        if shards > MAX_SHARDS:
+            raise DatasetError(f"SCENES x ceil(FRAMES / FRAMES_PER_SHARD) = {shards} shards; at "
+                               f"most {MAX_SHARDS} (raise --frames-per-shard)")
         if self.seed + self.scenes - 1 > 2**31 - 1:
             raise DatasetError(f"SEED: seed + scenes - 1 must be <= 2147483647, got "
                                f"{self.seed + self.scenes - 1}")
@@ -89,7 +127,8 @@ class DatasetConfig:
                     height=self.height, hfov_deg=self.hfov_deg, rates=tuple(self.rates),
                     rain_model=self.rain_model, rain_seed=self.rain_seed,
                     rain_options=dict(self.rain_options), store=tuple(self.store),
-                    label_filter=self.label_filter, scenario=self.scenario))
+                    label_filter=self.label_filter, scenario=self.scenario, sky=self.sky,
+                    weather_follows_rate=self.weather_follows_rate))
         return tasks
 
     def to_dict(self) -> dict:
@@ -97,6 +136,10 @@ class DatasetConfig:
         config["rates"] = [float(rate) for rate in self.rates]
         config["store"] = list(self.store)
         return config
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def sha256_of(path: Path) -> str:
@@ -144,13 +187,70 @@ def read_manifest(root: str | Path) -> dict | None:
         return None
     try:
         manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError) as error:  # UnicodeDecodeError and JSONDecodeError included
         raise DatasetError(f"{path}: not a readable manifest ({error})") from error
+    except RecursionError:
+        raise DatasetError(f"{path}: not a readable manifest (nested too deeply)") from None
+    return check_manifest(manifest, path)
+
+
+def _show(value) -> str:
+    text = repr(value) if not isinstance(value, (dict, list)) else type(value).__name__
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+_ENTRY_FIELDS = (
+    ("path", lambda v: isinstance(v, str) and v != "", "a non-empty relative path"),
+    ("scene_seed", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+    ("frame_offset", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+    ("frames", lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
+    ("rates", lambda v: isinstance(v, list) and len(v) > 0 and all(
+        isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) for r in v),
+     "a non-empty list of rates"),
+    ("sha256", lambda v: isinstance(v, str) and _SHA256.fullmatch(v) is not None,
+     "64 lowercase hex digits"),
+    ("bytes", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+)
+
+
+def check_manifest(manifest, path: str | Path) -> dict:
+    """``manifest`` (parsed JSON) if it is a well-formed manifest; otherwise one-line
+    :class:`DatasetError` naming the file and the field. Shard paths must stay inside the dataset
+    directory (relative, no ``..``)."""
     if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
         raise DatasetError(f"{path}: not a rainbench manifest")
     if manifest.get("format_version") != MANIFEST_VERSION:
         raise DatasetError(f"{path}: unknown manifest format_version "
-                           f"{manifest.get('format_version')!r}")
+                           f"{_show(manifest.get('format_version'))}")
+    if not isinstance(manifest.get("config"), dict):
+        raise DatasetError(f"{path}: \"config\" must be an object, got "
+                           f"{_show(manifest.get('config'))}")
+    if not isinstance(manifest.get("complete"), bool):
+        raise DatasetError(f"{path}: \"complete\" must be true or false, got "
+                           f"{_show(manifest.get('complete'))}")
+    shards = manifest.get("shards")
+    if not isinstance(shards, list):
+        raise DatasetError(f"{path}: \"shards\" must be a list of shard entries, got "
+                           f"{_show(shards)}")
+    seen = set()
+    for number, entry in enumerate(shards):
+        where = f"{path}: shards[{number}]"
+        if not isinstance(entry, dict):
+            raise DatasetError(f"{where}: expected an object, got {_show(entry)}")
+        for key, valid, expected in _ENTRY_FIELDS:
+            if key not in entry:
+                raise DatasetError(f"{where}: \"{key}\" is missing")
+            if not valid(entry[key]):
+                raise DatasetError(f"{where}: \"{key}\" must be {expected}, got "
+                                   f"{_show(entry[key])}")
+        relative = PurePosixPath(entry["path"])
+        if (relative.is_absolute() or ".." in relative.parts or not relative.parts
+                or "\\" in entry["path"] or "\x00" in entry["path"]):
+            raise DatasetError(f"{where}: path {_show(entry['path'])} leaves the dataset "
+                               "directory; shard paths must be relative paths inside it")
+        if relative in seen:
+            raise DatasetError(f"{where}: {entry['path']} is listed twice")
+        seen.add(relative)
     return manifest
 
 
@@ -179,11 +279,120 @@ def list_shards(data: str | Path | Sequence[str | Path]) -> list[Path]:
     return paths
 
 
+def check_labels(handle, path: str | Path | None = None) -> None:
+    """Refuse an open shard whose labels a reader would serve wrong: :class:`ShardFormatError`
+    naming the file and, for a bad row, the frame.
+
+    Checks ``/rgb`` against ``/rates`` and the ``width``/``height`` attributes, that
+    ``/labels/offsets`` starts at 0, never decreases and ends at the label count, that every
+    label array has one row per label, boxes finite with ``0 <= x1 < x2 <= W`` and
+    ``0 <= y1 < y2 <= H``, amodal boxes finite and ordered, class ids naming a class of
+    ``class_names``, instance ids >= 0, visible fractions and truncations in [0, 1], and finite
+    per-box rain statistics.
+    """
+    path = path if path is not None else handle.filename
+    try:
+        rgb_shape = tuple(handle["rgb"].shape)
+        rates = handle["rates"].shape
+        width, height = int(handle.attrs["width"]), int(handle.attrs["height"])
+        class_names = json.loads(handle.attrs["class_names"])
+        group = handle["labels"]
+        arrays = {key: group[key][()] for key in group if key in _LABEL_SHAPES}
+    except (KeyError, OSError, TypeError, ValueError, RecursionError) as error:
+        raise ShardFormatError(f"{path}: labels or attributes unreadable "
+                               f"({type(error).__name__}: {error})") from None
+    if len(rates) != 1 or len(rgb_shape) != 5 or rgb_shape[0] != rates[0] \
+            or rgb_shape[2:] != (height, width, 3):
+        raise ShardFormatError(f"{path}: /rgb has shape {rgb_shape}; expected (R, N, {height}, "
+                               f"{width}, 3) with R = {rates[0] if rates else '?'} rates")
+    if not isinstance(class_names, list):
+        raise ShardFormatError(f"{path}: class_names is not a JSON list")
+    frames, num_rates = rgb_shape[1], rgb_shape[0]
+    for key in _LABEL_SHAPES:
+        if key not in arrays and key not in ("rain_coverage", "contrast_loss"):
+            raise ShardFormatError(f"{path}: incomplete shard, /labels/{key} is missing")
+    offsets = arrays["offsets"]
+    if offsets.shape != (frames + 1,) or not np.issubdtype(offsets.dtype, np.integer):
+        raise ShardFormatError(f"{path}: /labels/offsets has shape {offsets.shape} "
+                               f"{offsets.dtype}; expected ({frames + 1},) integers for {frames} "
+                               "frames")
+    count = arrays["bbox"].shape[0] if arrays["bbox"].ndim else -1
+    if offsets[0] != 0:
+        raise ShardFormatError(f"{path}: frame 0: /labels/offsets starts at {offsets[0]}, not 0")
+    steps = np.diff(offsets)
+    if np.any(steps < 0):
+        frame = int(np.flatnonzero(steps < 0)[0])
+        raise ShardFormatError(f"{path}: frame {frame}: /labels/offsets decreases "
+                               f"({offsets[frame]} -> {offsets[frame + 1]})")
+    if offsets[-1] != count:
+        raise ShardFormatError(f"{path}: frame {frames - 1}: /labels/offsets ends at "
+                               f"{offsets[-1]} but /labels/bbox has {count} rows")
+    for key, shape in _LABEL_SHAPES.items():
+        if key == "offsets" or key not in arrays:
+            continue
+        expected = tuple(count if s == "M" else num_rates if s == "R" else s for s in shape)
+        if arrays[key].shape != expected:
+            raise ShardFormatError(f"{path}: /labels/{key} has shape {arrays[key].shape}, "
+                                   f"expected {expected}")
+
+    def refuse(rows: np.ndarray, what: str) -> None:
+        if rows.size:
+            row = int(rows[0])
+            frame = int(np.searchsorted(offsets, row, side="right") - 1)
+            raise ShardFormatError(f"{path}: frame {frame}: label {row - int(offsets[frame])} "
+                                   f"{what}")
+
+    with np.errstate(invalid="ignore"):
+        box = arrays["bbox"].astype(np.float64)
+        tol = 1e-3
+        bad = ~np.isfinite(box).all(axis=1) | (box[:, 0] >= box[:, 2]) | (box[:, 1] >= box[:, 3]) \
+            | (box[:, 0] < -tol) | (box[:, 1] < -tol) | (box[:, 2] > width + tol) \
+            | (box[:, 3] > height + tol)
+        rows = np.flatnonzero(bad)
+        if rows.size:
+            refuse(rows, f"has bbox {box[rows[0]].tolist()}; expected finite 0 <= x1 < x2 <= "
+                         f"{width}, 0 <= y1 < y2 <= {height}")
+        amodal = arrays["bbox_amodal"].astype(np.float64)
+        refuse(np.flatnonzero(~np.isfinite(amodal).all(axis=1) | (amodal[:, 0] > amodal[:, 2])
+                              | (amodal[:, 1] > amodal[:, 3])), "has a non-finite or inverted bbox_amodal")
+        class_id = arrays["class_id"]
+        if not np.issubdtype(class_id.dtype, np.integer):
+            raise ShardFormatError(f"{path}: /labels/class_id holds {class_id.dtype}, not integers")
+        refuse(np.flatnonzero((class_id < 0) | (class_id >= len(class_names))),
+               f"has a class_id outside 0..{len(class_names) - 1}")
+        refuse(np.flatnonzero(arrays["instance_id"] < 0), "has a negative instance_id")
+        for key in ("visible_fraction", "truncation"):
+            values = arrays[key].astype(np.float64)
+            refuse(np.flatnonzero(~((values >= 0) & (values <= 1))), f"has {key} outside [0, 1]")
+        for key in ("rain_coverage", "contrast_loss"):
+            if key in arrays:
+                values = arrays[key].astype(np.float64)
+                refuse(np.flatnonzero(~np.isfinite(values).all(axis=0)), f"has a non-finite {key}")
+
+
+_LABEL_SHAPES = {
+    "offsets": None, "bbox": ("M", 4), "bbox_amodal": ("M", 4), "class_id": ("M",),
+    "instance_id": ("M",), "visible_fraction": ("M",), "truncation": ("M",),
+    "rain_coverage": ("R", "M"), "contrast_loss": ("R", "M"),
+}
+
+
+def open_checked(path: str | Path):
+    """:func:`open_shard` then :func:`check_labels`: how every rainbench reader opens a shard."""
+    handle = open_shard(path)
+    try:
+        check_labels(handle, path)
+    except BaseException:
+        handle.close()
+        raise
+    return handle
+
+
 def image_index(shards: Sequence[Path]) -> list[tuple[int, Path, int]]:
     """(image id, shard path, frame) for every frame; ids 1-based, shard order then frames."""
     index, next_id = [], 1
     for path in shards:
-        with open_shard(path) as handle:
+        with open_checked(path) as handle:
             frames = int(handle["labels/offsets"].shape[0]) - 1
         for frame in range(frames):
             index.append((next_id, Path(path), frame))
@@ -194,14 +403,14 @@ def image_index(shards: Sequence[Path]) -> list[tuple[int, Path, int]]:
 def open_in_turn(index: Sequence[tuple[int, Path, int]]):
     """Yield ``(image_id, shard_path, frame, handle)`` for the entries of :func:`image_index` (or a
     slice of it), in order: each shard is opened once while its frames follow each other, and
-    closed when the walk moves on or ends. ``handle`` is an open :func:`open_shard` file."""
+    closed when the walk moves on or ends. ``handle`` is an open :func:`open_checked` file."""
     handle, current = None, None
     try:
         for image_id, path, frame in index:
             if path != current:
                 if handle is not None:
                     handle.close()
-                handle, current = open_shard(path), path
+                handle, current = open_checked(path), path
             yield image_id, path, frame, handle
     finally:
         if handle is not None:
@@ -230,7 +439,7 @@ def verify_dataset(root: str | Path) -> list[str]:
             problems.append(f"{path}: sha256 differs from the manifest")
             continue
         try:
-            with open_shard(path) as handle:
+            with open_checked(path) as handle:
                 rgb = handle["rgb"].shape
                 offsets = handle["labels/offsets"].shape[0]
                 if rgb[:2] != (len(entry["rates"]), entry["frames"]) or offsets != rgb[1] + 1:
@@ -240,13 +449,48 @@ def verify_dataset(root: str | Path) -> list[str]:
     return problems
 
 
+def unlisted_shards(root: str | Path) -> list[Path]:
+    """``.h5`` files under dataset ``root`` that its manifest does not list (so not part of the
+    dataset: ``rainbench verify`` warns about them). Hidden temporary files are not counted."""
+    root = Path(root)
+    manifest = read_manifest(root)
+    listed = {root / entry["path"] for entry in manifest["shards"]} if manifest else set()
+    return sorted(path for path in root.rglob("*.h5")
+                  if not path.name.startswith(".") and path not in listed)
+
+
 # -- generation --------------------------------------------------------------------------------
 
 _progress_queue = None
 
 
-def _init_worker(progress_queue, render_threads: int | None, threads: int) -> None:
+def _die_with_parent(parent_pid: int) -> None:
+    """Make this worker die with ``parent_pid``, the process that started it, however that one
+    dies (``kill -9`` included): Linux ``PR_SET_PDEATHSIG`` (SIGKILL at once), and a watchdog
+    thread that polls the parent's process id (every platform; the guard where prctl is not)."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1: PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent_pid:  # the parent died before prctl took effect
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="rainbench-parent-watch", daemon=True).start()
+
+
+def _init_worker(progress_queue, render_threads: int | None, threads: int,
+                 parent_pid: int | None = None) -> None:
     global _progress_queue
+    if parent_pid is not None:
+        _die_with_parent(parent_pid)
+    # Ctrl-C goes to the whole process group: the parent handles it and stops the workers.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _progress_queue = progress_queue
     if render_threads is not None:
         os.environ["LP_NUM_THREADS"] = str(render_threads)
@@ -261,14 +505,60 @@ def _generate_task(task: GenerateConfig, out: str, threads: int | None = None) -
     return str(generate_shard(task, out, progress=report, threads=threads))
 
 
-def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> dict[str, dict]:
-    """Clean temporaries, check the config, and return the reusable manifest entries by path."""
-    root.mkdir(parents=True, exist_ok=True)
+@contextlib.contextmanager
+def _locked(root: Path):
+    """Hold ``root/.rainbench-generate.lock`` (``fcntl.flock``) for one generate run; a second
+    run on the same directory gets a one-line :class:`DatasetError` naming the holder's pid.
+    The kernel releases the lock when the holder exits, however it exits; a clean exit also
+    removes the file (under the lock: a waiter that locked the removed file tries again)."""
+    path = root / LOCK
+    for _attempt in range(100):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as error:
+            raise DatasetError(f"OUT: cannot create the lock file {path} ({error.strerror})") \
+                from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            os.close(fd)
+            pid = f" (pid {holder})" if holder.isdigit() else ""
+            raise DatasetError(f"OUT: {root} is being written by another rainbench generate{pid}; "
+                               "wait for it to finish or choose another OUT") from None
+        except FileNotFoundError:
+            same = False
+        except OSError as error:
+            os.close(fd)
+            raise DatasetError(f"OUT: cannot lock {path} ({error.strerror})") from None
+        if same:
+            break
+        os.close(fd)
+    else:
+        raise DatasetError(f"OUT: cannot lock {path} (it keeps being replaced)")
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        os.close(fd)
+
+
+def _remove_temporaries(root: Path) -> None:
     for stale in root.glob(".*.tmp-*"):
         stale.unlink(missing_ok=True)
+
+
+def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> dict[str, dict]:
+    """Clean temporaries, check the config, and return the reusable manifest entries by path.
+    The caller holds the directory's lock."""
+    _remove_temporaries(root)
     manifest = read_manifest(root)
     if manifest is None:
-        if any(p.name != MANIFEST for p in root.iterdir()) and not overwrite:
+        if any(p.name not in (MANIFEST, LOCK) for p in root.iterdir()) and not overwrite:
             raise DatasetError(f"OUT: {root} is not empty and has no manifest; use --overwrite "
                                "or choose another OUT")
         return {}
@@ -280,6 +570,26 @@ def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> di
     for path in list(root.glob("scene*_f*.h5")) + [root / MANIFEST]:
         path.unlink(missing_ok=True)
     return {}
+
+
+def _adoptable(path: Path, task: GenerateConfig) -> bool:
+    """Whether ``path``, a file under a final shard name that the manifest does not list (a run
+    killed between the rename and the manifest update), is a complete shard of ``task``: it
+    opens, its labels check, its generator version and config are this task's, and every RGB
+    chunk inflates (zlib checksums)."""
+    expected = json.loads(json.dumps(task.to_dict(), sort_keys=True, default=_json_default))
+    try:
+        with open_checked(path) as handle:
+            if handle.attrs.get("generator_version") != __version__ \
+                    or json.loads(handle.attrs["config"]) != expected \
+                    or handle["rgb"].shape[:2] != (len(task.rates), task.frames):
+                return False
+            for rate_row in range(len(task.rates)):
+                for frame in range(task.frames):
+                    read_rgb(handle, rate_row, frame)
+    except (ShardFormatError, OSError, KeyError, TypeError, ValueError, RecursionError):
+        return False
+    return True
 
 
 def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
@@ -294,73 +604,123 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
     threads) in local workers; None keeps Mesa's default (all cores). ``threads``: rain,
     statistics and compression threads per worker (see :func:`generate_shard`; 1 = one core
     per worker); None gives each local worker cores / workers and each Ray task its node's
-    cores. ``progress(n)`` receives
-    finished frames, skipped shards included.
+    cores. ``progress(n)`` receives finished frames, skipped shards included.
+
+    The run holds ``out``'s lock throughout, writes the manifest before the first shard, and
+    after a failure or an interrupt stops its workers, lists the shards that were finished,
+    removes its temporary files and re-raises: running it again resumes.
     """
     if executor not in EXECUTORS:
         raise DatasetError(f"executor: expected one of {', '.join(EXECUTORS)}, got {executor!r}")
-    if not (isinstance(workers, int) and workers >= 1):
+    if not (_is_int(workers) and workers >= 1):
         raise DatasetError(f"WORKERS: expected an integer >= 1, got {workers!r}")
-    if threads is not None and not (isinstance(threads, int) and threads >= 1):
+    if threads is not None and not (_is_int(threads) and threads >= 1):
         raise DatasetError(f"THREADS: expected an integer >= 1, got {threads!r}")
     local_threads = threads or max(1, (os.cpu_count() or 1) // workers)
     root = Path(out)
-    reusable = _prepare_directory(root, config, overwrite)
-    tasks = config.tasks()
-    entries: dict[int, dict] = {}
-    pending: list[int] = []
-    for index, task in enumerate(tasks):
-        name = shard_name(task.seed, task.frame_offset)
-        entry = reusable.get(name)
-        path = root / name
-        if entry and path.is_file() and path.stat().st_size == entry["bytes"] \
-                and sha256_of(path) == entry["sha256"]:
-            entries[index] = entry
+    root.mkdir(parents=True, exist_ok=True)
+    with _locked(root):
+        reusable = _prepare_directory(root, config, overwrite)
+        fresh = not (root / MANIFEST).exists()
+        tasks = config.tasks()
+        entries: dict[int, dict] = {}
+        pending: list[int] = []
+        for index, task in enumerate(tasks):
+            name = shard_name(task.seed, task.frame_offset)
+            entry = reusable.get(name)
+            path = root / name
+            if entry and path.is_file() and path.stat().st_size == entry["bytes"] \
+                    and sha256_of(path) == entry["sha256"]:
+                entries[index] = entry
+            elif entry is None and path.is_file() and _adoptable(path, task):
+                entries[index] = shard_entry(path, task, root)
+            else:
+                pending.append(index)
+                continue
             if progress:
                 progress(task.frames)
-        else:
-            pending.append(index)
 
-    def record(index: int, path: Path) -> None:
-        entries[index] = shard_entry(path, tasks[index], root)
-        ordered = [entries[i] for i in sorted(entries)]
-        write_manifest(root, config, ordered, complete=len(entries) == len(tasks))
+        def save() -> Path:
+            return write_manifest(root, config, [entries[i] for i in sorted(entries)],
+                                  complete=len(entries) == len(tasks))
 
-    if not pending:
-        return write_manifest(root, config, [entries[i] for i in sorted(entries)], complete=True)
-    if executor == "ray":
-        _run_ray(tasks, pending, root, ray_address, threads, record, progress)
-    elif workers == 1:
-        for index in pending:
-            record(index, generate_shard(tasks[index], root, progress=progress,
-                                         threads=local_threads))
-    else:
-        _run_local_pool(tasks, pending, root, workers, render_threads, local_threads, record,
-                        progress)
+        def record(index: int, path: Path) -> None:
+            entries[index] = shard_entry(path, tasks[index], root)
+            save()
+
+        save()  # before the first shard: an interrupted run always leaves a manifest to resume
+        if not pending:
+            return root / MANIFEST
+        try:
+            if executor == "ray":
+                _run_ray(tasks, pending, root, ray_address, threads, record, progress)
+            elif workers == 1:
+                for index in pending:
+                    record(index, generate_shard(tasks[index], root, progress=progress,
+                                                 threads=local_threads))
+            else:
+                _run_local_pool(tasks, pending, root, workers, render_threads, local_threads,
+                                record, progress)
+        except BaseException:
+            # The workers are stopped: list what they finished, remove their temporary files.
+            try:
+                for index in pending:
+                    path = root / shard_name(tasks[index].seed, tasks[index].frame_offset)
+                    if index not in entries and path.is_file() and _adoptable(path, tasks[index]):
+                        entries[index] = shard_entry(path, tasks[index], root)
+                if executor == "local":
+                    _remove_temporaries(root)
+                if fresh and not entries:
+                    (root / MANIFEST).unlink(missing_ok=True)  # leave the directory as it was
+                else:
+                    save()
+            except OSError:
+                pass  # e.g. the disk is still full: the next run does the same
+            raise
     return root / MANIFEST
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Kill the pool's worker processes now (they may be in the middle of a shard: its temporary
+    file is removed by the caller) and shut the pool down."""
+    processes = list((getattr(pool, "_processes", None) or {}).values()) \
+        or multiprocessing.active_children()
+    for process in processes:
+        process.kill()
+    for process in processes:
+        process.join(10)
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _run_local_pool(tasks, pending, root, workers, render_threads, threads, record,
                     progress) -> None:
     context = multiprocessing.get_context("spawn")  # a fresh GL context in every worker
     progress_queue = context.Queue()
-    with ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=context,
-                             initializer=_init_worker,
-                             initargs=(progress_queue, render_threads, threads)) as pool:
-        futures = {pool.submit(_generate_task, tasks[i], str(root), threads): i for i in pending}
-        remaining = set(futures)
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=context,
+                               initializer=_init_worker,
+                               initargs=(progress_queue, render_threads, threads, os.getpid()))
+    futures = {}
+    try:
+        # Workers are started with SIGINT blocked (the mask is inherited through fork and exec)
+        # so that a Ctrl-C while they start cannot kill one with a traceback; the parent gets
+        # it as soon as its mask is restored, and stops them.
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
-            while remaining:
-                done, remaining = wait(remaining, timeout=0.2, return_when=FIRST_COMPLETED)
-                _drain(progress_queue, progress)
-                for future in done:
-                    record(futures[future], Path(future.result()))
-        except BaseException:
-            for future in remaining:
-                future.cancel()
-            raise
+            for index in pending:
+                futures[pool.submit(_generate_task, tasks[index], str(root), threads)] = index
         finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        remaining = set(futures)
+        while remaining:
+            done, remaining = wait(remaining, timeout=0.2, return_when=FIRST_COMPLETED)
             _drain(progress_queue, progress)
+            for future in done:
+                record(futures[future], Path(future.result()))
+    except BaseException:
+        _stop_workers(pool)
+        raise
+    pool.shutdown(wait=True)
+    _drain(progress_queue, progress)
 
 
 def _drain(progress_queue, progress) -> None:
@@ -373,14 +733,74 @@ def _drain(progress_queue, progress) -> None:
             progress(frames)
 
 
+RAY_AUTH_HINT = ("a cluster with token authentication needs RAY_AUTH_MODE=token and the "
+                 "cluster's token in RAY_AUTH_TOKEN, in the file named by RAY_AUTH_TOKEN_PATH, "
+                 "or in ~/.ray/auth_token (docs/datasets.md)")
+
+
+def _has_ray_token() -> bool:
+    """Whether Ray would find an authentication token here (its own search order)."""
+    if os.environ.get("RAY_AUTH_TOKEN", "").strip():
+        return True
+    token_path = os.environ.get("RAY_AUTH_TOKEN_PATH")
+    return Path(token_path).is_file() if token_path else (Path.home() / ".ray" / "auth_token").is_file()
+
+
+def _is_local_cluster(address: str) -> bool:
+    """Whether ``address`` (host:port) is the address of a Ray head running on this machine: a
+    loopback address, or this machine's address and the port of a Ray head running here."""
+    host, _, port = address.rpartition(":")
+    host = host.strip("[]")
+    if host in ("localhost", "::1") or host.startswith("127."):
+        return True
+    try:
+        from ray._private import services  # noqa: PLC0415 -- how ``ray.init("auto")`` finds it
+
+        running = services.find_gcs_addresses()
+    except (ImportError, AttributeError, OSError):
+        return False
+    for gcs in running:
+        gcs_host, _, gcs_port = gcs.rpartition(":")
+        if gcs_port == port and host == gcs_host.strip("[]"):
+            return True
+    return False
+
+
+def _ray_connect(ray, ray_address: str | None) -> None:
+    """``ray.init`` for rainbench. Ray 2.60 turns token authentication on for a head started by
+    ``ray start`` once a token exists (``~/.ray/auth_token``), but a driver given an explicit
+    address sends no token unless ``RAY_AUTH_MODE=token``; ``--ray-address auto`` does. So, as
+    ``auto`` does, a head on this machine named by its address gets token mode when a token is
+    at hand and RAY_AUTH_MODE is unset. A remote cluster needs RAY_AUTH_MODE=token set by the
+    user (Ray does not send a local token to another host on its own, nor does rainbench)."""
+    if ray.is_initialized():
+        return
+    named = ray_address not in (None, "", "auto", "local") and not ray_address.startswith("ray://")
+    if named and not os.environ.get("RAY_AUTH_MODE") and _has_ray_token() \
+            and _is_local_cluster(ray_address):
+        os.environ["RAY_AUTH_MODE"] = "token"
+        try:
+            from ray._raylet import Config  # noqa: PLC0415 -- refresh a config read at import
+
+            Config.initialize("")
+        except (ImportError, AttributeError):
+            pass
+    try:
+        ray.init(address=ray_address, log_to_driver=False)
+    except (ConnectionError, RuntimeError, ValueError, ray.exceptions.RayError) as error:
+        where = f"--ray-address {ray_address}" if ray_address else "executor ray"
+        reason = " ".join(str(error).split())[:300]
+        hint = f"; {RAY_AUTH_HINT}" if ray_address else ""
+        raise DatasetError(f"{where}: cannot connect to the Ray cluster ({reason}){hint}") from None
+
+
 def _run_ray(tasks, pending, root, ray_address, threads, record, progress) -> None:
     try:
         import ray  # noqa: PLC0415 -- optional extra rainbench[ray]
     except ImportError as error:
         raise DatasetError("executor ray: Ray is not installed; pip install 'rainbench[ray]'") \
             from error
-    if not ray.is_initialized():
-        ray.init(address=ray_address, log_to_driver=False)
+    _ray_connect(ray, ray_address)
     # GPU-aware: where the cluster has GPUs, each task asks for a share of one (EGL renders
     # on it); otherwise one CPU.
     gpus = ray.cluster_resources().get("GPU", 0)
@@ -388,10 +808,25 @@ def _run_ray(tasks, pending, root, ray_address, threads, record, progress) -> No
     remote = ray.remote(_generate_task).options(**options)
     refs = {remote.remote(tasks[i], str(root), threads): i for i in pending}
     remaining = list(refs)
-    while remaining:
-        done, remaining = ray.wait(remaining, num_returns=1)
-        for ref in done:
-            index = refs[ref]
-            record(index, Path(ray.get(ref)))
-            if progress:
-                progress(tasks[index].frames)
+    try:
+        while remaining:
+            done, remaining = ray.wait(remaining, num_returns=1)
+            for ref in done:
+                index = refs[ref]
+                try:
+                    path = ray.get(ref)
+                except ray.exceptions.RayTaskError as error:
+                    cause = getattr(error, "cause", None) or error
+                    name = shard_name(tasks[index].seed, tasks[index].frame_offset)
+                    raise DatasetError(f"ray task {name}: {type(cause).__name__}: "
+                                       f"{' '.join(str(cause).split())[:300]}") from None
+                record(index, Path(path))
+                if progress:
+                    progress(tasks[index].frames)
+    except BaseException:
+        for ref in remaining:
+            try:
+                ray.cancel(ref, force=True)
+            except (ValueError, TypeError, ray.exceptions.RayError):
+                pass
+        raise

@@ -12,11 +12,18 @@ Layout of ``out_dir`` (``<token>`` is :func:`rate_token` of the rate, e.g. ``0``
   (relative to ``out_dir``; the images are written there too unless ``images=False``).
 
 Boxes in shards are float32 ``x1, y1, x2, y2`` in pixel-edge coordinates (docs/format.md).
+
+An export is written into a hidden staging folder ``out_dir/.export-tmp-<pid>/`` and its
+folders and files are renamed into place only when everything is written, so a failed or
+interrupted export leaves nothing under a final name (a killed one leaves its staging folder,
+removed by the next export into ``out_dir``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,8 +31,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .dataset import DatasetError, image_index, list_shards, open_in_turn
-from .shard import open_shard, read_frame_labels, read_rgb
+from .dataset import DatasetError, image_index, list_shards, open_checked, open_in_turn
+from .shard import read_frame_labels, read_rgb
 
 IMAGE_FORMATS = ("png", "jpg")
 _JPEG_QUALITY = 95
@@ -52,7 +59,7 @@ def dataset_rates(shards: Sequence[Path], rates: Sequence[float] | None = None) 
     """
     per_shard = []
     for path in shards:
-        with open_shard(path) as handle:
+        with open_checked(path) as handle:
             per_shard.append((Path(path), handle["rates"][:].astype(np.float32)))
     if rates is None:
         selected = [float(rate) for rate in per_shard[0][1]]
@@ -87,7 +94,7 @@ def dataset_rates(shards: Sequence[Path], rates: Sequence[float] | None = None) 
 def _class_names(shards: Sequence[Path]) -> list[str]:
     names = None
     for path in shards:
-        with open_shard(path) as handle:
+        with open_checked(path) as handle:
             current = json.loads(handle.attrs["class_names"])
         if names is None:
             names = current
@@ -97,20 +104,59 @@ def _class_names(shards: Sequence[Path]) -> list[str]:
     return names
 
 
-def _prepare_out_dir(out_dir: Path, overwrite: bool, targets: Sequence[Path]) -> None:
-    """Refuse a non-empty ``out_dir`` unless ``overwrite``; then remove only ``targets``."""
+_STAGE_PREFIX = ".export-tmp-"
+
+
+def _stage_owner_alive(stage: Path) -> bool:
+    pid = stage.name[len(_STAGE_PREFIX):]
+    if not pid.isdigit():
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return int(pid) != os.getpid()
+
+
+@contextlib.contextmanager
+def _staged(out_dir: Path, overwrite: bool, targets: Sequence[str]):
+    """Yield a staging folder inside ``out_dir``; when the block succeeds, move each of
+    ``targets`` (paths relative to the staging folder, in order) to the same place in
+    ``out_dir``, replacing what is there. On failure nothing is moved and the staging folder is
+    removed (and ``out_dir`` too if this export created it). A non-empty ``out_dir`` is refused
+    unless ``overwrite``."""
     if out_dir.exists() and not out_dir.is_dir():
         raise ExportError(f"OUT: {out_dir} exists and is not a directory")
-    if out_dir.is_dir() and any(out_dir.iterdir()):
-        if not overwrite:
+    created = not out_dir.exists()
+    if not created:
+        for stage in out_dir.glob(f"{_STAGE_PREFIX}*"):
+            if _stage_owner_alive(stage):
+                raise ExportError(f"OUT: another export is writing into {out_dir} "
+                                  f"({stage.name}); wait for it or choose another directory")
+            shutil.rmtree(stage, ignore_errors=True)  # left by a killed export
+        if any(out_dir.iterdir()) and not overwrite:
             raise ExportError(f"OUT: {out_dir} is not empty; use --overwrite or choose another "
                               "directory")
-        for target in targets:
-            if target.is_dir():
-                shutil.rmtree(target)
-            elif target.exists():
-                target.unlink()
     out_dir.mkdir(parents=True, exist_ok=True)
+    stage = out_dir / f"{_STAGE_PREFIX}{os.getpid()}"
+    stage.mkdir()
+    try:
+        yield stage
+        for relative in targets:
+            final = out_dir / relative
+            if final.is_dir() and not final.is_symlink():
+                shutil.rmtree(final)
+            elif final.exists() or final.is_symlink():
+                final.unlink()
+            final.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / relative, final)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()  # only when empty: a failed export into a new directory
 
 
 def _check_image_format(image_format: str) -> str:
@@ -189,22 +235,21 @@ def export_yolo(data, out_dir, *, rates: Sequence[float] | None = None,
     selected = dataset_rates(shards, rates)
     names = _class_names(shards)
     out_dir = Path(out_dir)
-    folders = [out_dir / f"rate_{rate_token(rate)}" for rate in selected]
-    _prepare_out_dir(out_dir, overwrite, folders)
-    for folder in folders:
-        (folder / "images").mkdir(parents=True, exist_ok=True)
-        (folder / "labels").mkdir(parents=True, exist_ok=True)
-    for image_id, _path, _frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected):
-        text = _yolo_lines(labels["bbox"], labels["class_id"], width, height)
-        for folder, rgb in zip(folders, rgb_by_rate):
-            _write_image(folder / "images" / f"{image_id:06d}.{image_format}", rgb)
-            (folder / "labels" / f"{image_id:06d}.txt").write_text(text)
-    paths = []
-    for folder in folders:
-        path = folder / "data.yaml"
-        path.write_text(_data_yaml(folder, names))
-        paths.append(path)
-    return paths
+    folder_names = [f"rate_{rate_token(rate)}" for rate in selected]
+    with _staged(out_dir, overwrite, folder_names) as stage:
+        folders = [stage / name for name in folder_names]
+        for folder in folders:
+            (folder / "images").mkdir(parents=True, exist_ok=True)
+            (folder / "labels").mkdir(parents=True, exist_ok=True)
+        for image_id, _path, _frame, rgb_by_rate, labels, (height, width) in _walk(shards,
+                                                                                   selected):
+            text = _yolo_lines(labels["bbox"], labels["class_id"], width, height)
+            for folder, rgb in zip(folders, rgb_by_rate):
+                _write_image(folder / "images" / f"{image_id:06d}.{image_format}", rgb)
+                (folder / "labels" / f"{image_id:06d}.txt").write_text(text)
+        for name, folder in zip(folder_names, folders):
+            (folder / "data.yaml").write_text(_data_yaml(out_dir / name, names))
+    return [out_dir / name / "data.yaml" for name in folder_names]
 
 
 def read_yolo_labels(txt_path, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -255,58 +300,55 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
     names = _class_names(shards)
     out_dir = Path(out_dir)
     tokens = [rate_token(rate) for rate in selected]
-    targets = [out_dir / f"rate_{token}.json" for token in tokens]
-    if images:
-        targets += [out_dir / f"rate_{token}" / "images" for token in tokens]
-    _prepare_out_dir(out_dir, overwrite, targets)
-    if images:
-        for token in tokens:
-            (out_dir / f"rate_{token}" / "images").mkdir(parents=True, exist_ok=True)
-    root = Path(data) if not isinstance(data, (list, tuple)) and Path(data).is_dir() else None
-    image_records, annotation_records = [], []  # rate-independent parts; file_name added later
-    per_rate_extra: list[list[tuple[float, float]]] = []  # (rain_coverage, contrast_loss)
-    for image_id, path, frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected):
-        try:
-            shard = path.relative_to(root).as_posix() if root is not None else path.name
-        except ValueError:
-            shard = path.name
-        image_records.append({"id": image_id, "width": width, "height": height,
-                              "shard": shard, "frame": frame})
+    # images first, the JSON files (which name the images) last
+    targets = [f"rate_{token}/images" for token in tokens] if images else []
+    targets += [f"rate_{token}.json" for token in tokens]
+    with _staged(out_dir, overwrite, targets) as stage:
         if images:
-            for token, rgb in zip(tokens, rgb_by_rate):
-                _write_image(out_dir / f"rate_{token}" / "images" /
-                             f"{image_id:06d}.{image_format}", rgb)
-        count = labels["bbox"].shape[0]
-        coverage = labels.get("rain_coverage", np.zeros((len(selected), count), np.float32))
-        contrast = labels.get("contrast_loss", np.zeros((len(selected), count), np.float32))
-        for row in range(count):
-            x1, y1, x2, y2 = (float(value) for value in labels["bbox"][row])
-            w, h = x2 - x1, y2 - y1
-            annotation_records.append({
-                "id": len(annotation_records) + 1, "image_id": image_id,
-                "category_id": int(labels["class_id"][row]), "bbox": [x1, y1, w, h],
-                "area": w * h, "iscrowd": 0,
-                "visible_fraction": float(labels["visible_fraction"][row]),
-                "truncation": float(labels["truncation"][row]),
-                "instance_id": int(labels["instance_id"][row]),
-            })
-            per_rate_extra.append([(float(coverage[r, row]), float(contrast[r, row]))
-                                   for r in range(len(selected))])
-    categories = [{"id": i, "name": name, "supercategory": "object"}
-                  for i, name in enumerate(names)]
-    paths = []
-    for position, (rate, token) in enumerate(zip(selected, tokens)):
-        payload = {
-            "info": {"description": "rainbench export", "rate_mm_h": rate},
-            "images": [dict(record, file_name=f"rate_{token}/images/{record['id']:06d}."
-                                              f"{image_format}")
-                       for record in image_records],
-            "annotations": [dict(record, rain_coverage=extra[position][0],
-                                 contrast_loss=extra[position][1])
-                            for record, extra in zip(annotation_records, per_rate_extra)],
-            "categories": categories,
-        }
-        path = out_dir / f"rate_{token}.json"
-        path.write_text(json.dumps(payload))
-        paths.append(path)
-    return paths
+            for token in tokens:
+                (stage / f"rate_{token}" / "images").mkdir(parents=True, exist_ok=True)
+        root = Path(data) if not isinstance(data, (list, tuple)) and Path(data).is_dir() else None
+        image_records, annotation_records = [], []  # rate-independent parts; file_name added later
+        per_rate_extra: list[list[tuple[float, float]]] = []  # (rain_coverage, contrast_loss)
+        for image_id, path, frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected):
+            try:
+                shard = path.relative_to(root).as_posix() if root is not None else path.name
+            except ValueError:
+                shard = path.name
+            image_records.append({"id": image_id, "width": width, "height": height,
+                                  "shard": shard, "frame": frame})
+            if images:
+                for token, rgb in zip(tokens, rgb_by_rate):
+                    _write_image(stage / f"rate_{token}" / "images" /
+                                 f"{image_id:06d}.{image_format}", rgb)
+            count = labels["bbox"].shape[0]
+            coverage = labels.get("rain_coverage", np.zeros((len(selected), count), np.float32))
+            contrast = labels.get("contrast_loss", np.zeros((len(selected), count), np.float32))
+            for row in range(count):
+                x1, y1, x2, y2 = (float(value) for value in labels["bbox"][row])
+                w, h = x2 - x1, y2 - y1
+                annotation_records.append({
+                    "id": len(annotation_records) + 1, "image_id": image_id,
+                    "category_id": int(labels["class_id"][row]), "bbox": [x1, y1, w, h],
+                    "area": w * h, "iscrowd": 0,
+                    "visible_fraction": float(labels["visible_fraction"][row]),
+                    "truncation": float(labels["truncation"][row]),
+                    "instance_id": int(labels["instance_id"][row]),
+                })
+                per_rate_extra.append([(float(coverage[r, row]), float(contrast[r, row]))
+                                       for r in range(len(selected))])
+        categories = [{"id": i, "name": name, "supercategory": "object"}
+                      for i, name in enumerate(names)]
+        for position, (rate, token) in enumerate(zip(selected, tokens)):
+            payload = {
+                "info": {"description": "rainbench export", "rate_mm_h": rate},
+                "images": [dict(record, file_name=f"rate_{token}/images/{record['id']:06d}."
+                                                  f"{image_format}")
+                           for record in image_records],
+                "annotations": [dict(record, rain_coverage=extra[position][0],
+                                     contrast_loss=extra[position][1])
+                                for record, extra in zip(annotation_records, per_rate_extra)],
+                "categories": categories,
+            }
+            (stage / f"rate_{token}.json").write_text(json.dumps(payload))
+    return [out_dir / f"rate_{token}.json" for token in tokens]

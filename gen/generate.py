@@ -23,11 +23,13 @@ import numpy as np
 from rainbench import __version__
 from rainbench.mjcf import layout as L
 from rainbench.mjcf.scene import build_spec, geom_instance_table
+from rainbench.rain.weather import Weather, check_sky, weather_at
 
 from . import labels as lb
 from . import sim
 from .render import FrameRenderer, camera_pose
 from .shard import STORABLE, ShardWriter, shard_name
+from .weather import render_key
 
 MAX_SEED = 2**31 - 1
 
@@ -51,6 +53,10 @@ class GenerateConfig:
     store: tuple[str, ...] = ()
     label_filter: lb.LabelFilter = field(default_factory=lb.LabelFilter)
     scenario: L.ScenarioConfig | None = None  # None: the paper's mix over frames / fps seconds
+    sky: str | None = None  # base weather (clear, cloudy, overcast); None: the seed decides
+    # Whether sky, light, wet road, spray and camera follow the rain rate; None: the rain
+    # model's default (on for physical, off for jeon2022: the seed paper's method).
+    weather_follows_rate: bool | None = None
 
     def __post_init__(self) -> None:
         for name, low, high in (("seed", 0, MAX_SEED), ("rain_seed", 0, MAX_SEED),
@@ -73,6 +79,18 @@ class GenerateConfig:
         rates = tuple(float(r) for r in self.rates)
         if not rates or list(rates) != sorted(set(rates)) or rates[0] < 0:
             raise ValueError(f"rates: expected ascending distinct values >= 0, got {self.rates}")
+        if self.sky is not None:
+            check_sky(self.sky)
+        if self.weather_follows_rate not in (None, True, False):
+            raise ValueError(f"weather_follows_rate: expected True, False or None, got "
+                             f"{self.weather_follows_rate!r}")
+
+    @property
+    def follows_rate(self) -> bool:
+        """Whether the weather follows the rate (resolving None by the rain model)."""
+        if self.weather_follows_rate is not None:
+            return self.weather_follows_rate
+        return self.rain_model == "physical"
 
     @property
     def duration_s(self) -> float:
@@ -81,9 +99,11 @@ class GenerateConfig:
         return clip / self.fps
 
     def scenario_config(self) -> L.ScenarioConfig:
-        if self.scenario is not None:
-            return self.scenario
-        return L.ScenarioConfig(duration_s=self.duration_s)
+        scenario = self.scenario if self.scenario is not None else L.ScenarioConfig(
+            duration_s=self.duration_s)
+        if self.sky is not None:
+            scenario = dataclasses.replace(scenario, sky=self.sky)
+        return scenario
 
     def to_dict(self) -> dict:
         config = dataclasses.asdict(self)
@@ -97,6 +117,10 @@ class SceneSetup:
     model: mujoco.MjModel
     geom_instance: np.ndarray  # (ngeom,) int32
     class_of_instance: np.ndarray  # (K,) int32
+
+    @property
+    def base_weather(self) -> Weather:
+        return weather_at(self.layout.sky, 0.0)
 
 
 def build_scene(config: GenerateConfig) -> SceneSetup:
@@ -135,45 +159,74 @@ def frame_labels(renderer: FrameRenderer, data: mujoco.MjData, visible: np.ndarr
 
 @dataclass
 class FrameResult:
-    rgb: np.ndarray  # (H, W, 3) uint8 clean
+    rgb: np.ndarray  # (H, W, 3) uint8 clean, base weather
     depth: np.ndarray  # (H, W) float32 metres, +inf sky
     instance: np.ndarray  # (H, W) int32
     labels: lb.FrameLabels
     T_world_cam: np.ndarray  # (4, 4)
+    # (H, W, 3) uint8 re-render of the same state under each other weather asked for
+    rgb_by_weather: dict[Weather, np.ndarray] = field(default_factory=dict)
+    time_s: float = 0.0  # clip time of the frame
 
 
 def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup,
-                 label_filter: lb.LabelFilter) -> FrameResult:
-    """Every pass of one frame at the state in ``data``: RGB + depth, segmentation, labels."""
+                 label_filter: lb.LabelFilter, weathers=()) -> FrameResult:
+    """Every pass of one frame at the state in ``data``: RGB + depth, segmentation, labels,
+    then one RGB re-render per weather in ``weathers`` other than the base weather."""
     renderer.update(data)
     rgb, depth = renderer.render_rgb_depth()
     visible, geometry = renderer.render_instances()
     depth[~geometry] = np.inf
     labels = frame_labels(renderer, data, visible, setup.class_of_instance, label_filter)
-    return FrameResult(rgb, depth, visible, labels, camera_pose(setup.model, data, "ego"))
+    rendered: dict[tuple, np.ndarray] = {render_key(renderer.base_weather): rgb}
+    others = {}
+    for weather in weathers:
+        if weather == renderer.base_weather:
+            continue
+        key = render_key(weather)
+        if key not in rendered:  # weathers that differ only in light level share a render
+            rendered[key] = renderer.render_weather(data, weather)
+        others[weather] = rendered[key]
+    return FrameResult(rgb, depth, visible, labels, camera_pose(setup.model, data, "ego"),
+                       others, float(data.time))
 
 
-def render_clip(config: GenerateConfig, setup: SceneSetup | None = None):
-    """Yield (frame index within the shard, FrameResult, the renderer) for every frame."""
+def render_clip(config: GenerateConfig, setup: SceneSetup | None = None, weathers=()):
+    """Yield (frame index within the shard, FrameResult, the renderer) for every frame.
+
+    ``weathers``: the weathers each frame is also rendered in (see :func:`sweep_weathers`).
+    """
     setup = setup or build_scene(config)
     model = setup.model
     data = mujoco.MjData(model)
     driver = sim.ActorDriver(model, setup.layout)
-    with FrameRenderer(model, config.width, config.height, setup.geom_instance) as renderer:
+    with FrameRenderer(model, config.width, config.height, setup.geom_instance,
+                       base_weather=setup.base_weather) as renderer:
         t_prev = 0.0
         for index in range(config.frames):
             t = (config.frame_offset + index) / config.fps
             sim.advance(model, data, driver, t_prev, t)
             t_prev = t
-            yield index, render_frame(renderer, data, setup, config.label_filter), renderer
+            yield index, render_frame(renderer, data, setup, config.label_filter,
+                                      weathers), renderer
+
+
+def sweep_weathers(config: GenerateConfig, setup: SceneSetup) -> list[Weather]:
+    """The weather of each rate of ``config`` (the base weather at every rate when the weather
+    does not follow the rate)."""
+    return [weather_at(setup.layout.sky, rate, config.follows_rate) for rate in config.rates]
 
 
 def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int,
-                    pool: ThreadPoolExecutor | None):
+                    pool: ThreadPoolExecutor | None, weathers: list[Weather],
+                    layout: L.Layout):
     """(R, H, W, 3) images and per-rate statistics of one frame.
 
-    The sweep shares rate-independent work; the per-rate statistics run in ``pool`` threads
-    (OpenCV and numpy release the GIL), or in this thread when ``pool`` is None.
+    Without weather following the rate, one rain sweep over the clean frame shares the
+    rate-independent work. With it, each rate starts from its own weather's render, gets tyre
+    spray, rain drawn in its light (exposure time, airlight) and the camera's response (exposure
+    level, sensor noise). The per-rate statistics run in ``pool`` threads (OpenCV and numpy
+    release the GIL), or in this thread when ``pool`` is None.
     """
     rates = config.rates
     num_rates, num_boxes = len(rates), len(frame.labels)
@@ -191,20 +244,89 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
 
     rain_config = rain.RainConfig(model=config.rain_model, **config.rain_options)
     seeds = np.random.SeedSequence([config.rain_seed, config.seed, global_frame])
-    frames = rain.render_rain_sweep(frame.rgb, frame.depth, [rates[r] for r in rainy_rows],
-                                    config=rain_config, K=K, seed_sequence=seeds)
+    # lens water persists over the clip: seeded by the clip, placed by the frame's time
+    clock = rain.LensClock(np.random.SeedSequence([config.rain_seed, config.seed]), global_frame,
+                           config.fps)
+    if all(weathers[r] == weathers[0] for r in rainy_rows) and weathers[0].rain_mm_h == 0:
+        frames = rain.render_rain_sweep(frame.rgb, frame.depth, [rates[r] for r in rainy_rows],
+                                        config=rain_config, K=K, seed_sequence=seeds,
+                                        lens_clock=clock)
+        coverages = [rainy.coverage for rainy in frames]
+    else:
+        frames, coverages = _weather_rain(config, frame, K, seeds, clock, rain_config,
+                                          [weathers[r] for r in rainy_rows],
+                                          [rates[r] for r in rainy_rows], layout)
     reference = rain.SsimReference(frame.rgb)
 
-    def statistics(row_and_frame):
-        row, rainy = row_and_frame
+    def statistics(row_frame_coverage):
+        row, rainy, rain_coverage = row_frame_coverage
         images[row] = rainy.rgb
         drop_count[row] = rainy.drop_count
         ssim[row], psnr[row] = reference.quality(rainy.rgb)
-        coverage[row], contrast[row] = rain.box_rain_labels(frame.rgb, rainy.rgb, rainy.coverage,
+        coverage[row], contrast[row] = rain.box_rain_labels(frame.rgb, rainy.rgb, rain_coverage,
                                                             frame.labels.bbox)
 
-    list((pool.map if pool is not None else map)(statistics, zip(rainy_rows, frames)))
+    list((pool.map if pool is not None else map)(statistics, zip(rainy_rows, frames, coverages)))
     return images, drop_count, ssim, psnr, coverage, contrast
+
+
+def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
+                  seeds: np.random.SeedSequence, clock, rain_config, weathers: list[Weather],
+                  rates: list[float], layout: L.Layout):
+    """Rain over each rate's own weather: (list of RainFrame, list of (H, W) coverage incl. spray).
+
+    Each rate's scene (its weather's render with tyre spray) gets rain drawn in its light, then
+    the camera's response. Rates whose light (exposure time, airlight) is the same share one
+    rain sweep.
+    """
+    from rainbench import rain  # noqa: PLC0415
+    from rainbench.rain import weather as wx  # noqa: PLC0415
+    from rainbench.rain._seeding import STREAM_NOISE, STREAM_SPRAY, child_generator  # noqa: PLC0415
+
+    from .spray import spray_particles  # noqa: PLC0415
+
+    height, width = frame.rgb.shape[:2]
+    spray_points = spray_weights = None
+    if any(weather.spray > 0 for weather in weathers):
+        world, spray_weights = spray_particles(layout, frame.time_s,
+                                               child_generator(seeds, STREAM_SPRAY))
+        pose = frame.T_world_cam
+        spray_points = (world - pose[:3, 3]) @ pose[:3, :3]
+    noise = None
+    if any(weather.gain > 1.0 for weather in weathers):
+        noise = wx.noise_field(child_generator(seeds, STREAM_NOISE), height, width)
+    scenes, sprays, groups = [], [], {}
+    for index, weather in enumerate(weathers):
+        scene = frame.rgb_by_weather.get(weather, frame.rgb)
+        spray = np.zeros((height, width), np.float32)
+        if spray_points is not None and weather.spray > 0:
+            spray = wx.spray_opacity(frame.depth, K, spray_points,
+                                     spray_weights * (wx.SPRAY_OPACITY * weather.spray))
+            scene = wx.composite_spray(scene, spray, wx.mean_sky_rgb(weather) * wx.SPRAY_BRIGHTNESS)
+        scenes.append(scene)
+        sprays.append(spray)
+        light = {}
+        if rain_config.model == "physical":
+            # the rain is drawn in this weather's light, unless the user fixed these values
+            if "exposure_s" not in config.rain_options:
+                light["exposure_s"] = weather.exposure_s
+            if "airlight_rgb" not in config.rain_options:
+                light["airlight_rgb"] = tuple(round(float(c), 1) for c in wx.airlight_rgb(weather))
+        groups.setdefault(tuple(sorted(light.items())), []).append(index)
+    rainy: list = [None] * len(weathers)
+    for light, members in groups.items():
+        drawn = rain.render_rain_sweep(frame.rgb, frame.depth, [rates[i] for i in members],
+                                       config=dataclasses.replace(rain_config, **dict(light)),
+                                       K=K, seed_sequence=seeds, lens_clock=clock,
+                                       scenes=[scenes[i] for i in members])
+        for index, result in zip(members, drawn):
+            rainy[index] = result
+    out_frames, out_coverage = [], []
+    for weather, result, spray in zip(weathers, rainy, sprays):
+        image = wx.camera_response(result.rgb, weather, noise)
+        out_frames.append(rain.RainFrame(image, result.coverage, result.drop_count))
+        out_coverage.append((1.0 - (1.0 - result.coverage) * (1.0 - spray)).astype(np.float32))
+    return out_frames, out_coverage
 
 
 def generate_shard(config: GenerateConfig, out_dir: str | Path,
@@ -224,8 +346,10 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     setup = build_scene(config)
+    weathers = sweep_weathers(config, setup)
     path = out_dir / shard_name(config.seed, config.frame_offset)
     attrs = {
+        "sky": setup.layout.sky, "weather_follows_rate": config.follows_rate,
         "scene_seed": config.seed, "rain_seed": config.rain_seed,
         "frame_offset": config.frame_offset, "fps": config.fps,
         "class_names": json.dumps(list(L.CLASS_NAMES)), "rain_model": config.rain_model,
@@ -237,7 +361,7 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
 
     def finish(index: int, frame: FrameResult, K: np.ndarray) -> None:
         images, drops, ssim, psnr, coverage, contrast = _rain_for_frame(
-            config, frame, K, config.frame_offset + index, stats_pool)
+            config, frame, K, config.frame_offset + index, stats_pool, weathers, setup.layout)
         writer.write_frame(index, images, frame.labels, frame.T_world_cam, depth=frame.depth,
                            instance=frame.instance, drop_count=drops, ssim=ssim, psnr=psnr,
                            rain_coverage=coverage, contrast_loss=contrast)
@@ -252,12 +376,13 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
             stats_pool = pools.enter_context(
                 ThreadPoolExecutor(threads, thread_name_prefix="rainbench-rate"))
         try:
-            for index, frame, renderer in render_clip(config, setup):
+            for index, frame, renderer in render_clip(config, setup, weathers):
                 if writer is None:
                     writer = ShardWriter(path, attrs=attrs, rates=np.asarray(config.rates),
                                          num_frames=config.frames, width=config.width,
                                          height=config.height, K=renderer.K, store=config.store,
-                                         threads=threads)
+                                         threads=threads,
+                                         weather=[w.as_record() for w in weathers])
                 if frame_pool is None:
                     finish(index, frame, renderer.K)
                     continue

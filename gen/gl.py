@@ -59,6 +59,29 @@ def find_backend(
     raise GLBackendError(missing_backend_message(tried))
 
 
+def check_environment(
+    environ: MutableMapping[str, str],
+    find_library: Callable[[str], str | None] | None = None,
+) -> None:
+    """Refuse a ``MUJOCO_GL`` set by the user that cannot render here, before mujoco is imported
+    (importing it with ``MUJOCO_GL=osmesa`` and no OSMesa fails with an AttributeError deep in
+    PyOpenGL; ``glfw`` without a display fails at the first render). One-line
+    :class:`GLBackendError` naming the variable, what is missing and what works instead."""
+    current = environ.get("MUJOCO_GL")
+    if not current:
+        return
+    find_library = find_library or ctypes.util.find_library
+    working = [name for name in AUTO_ORDER if find_library(BACKENDS[name][0])]
+    instead = (f"set MUJOCO_GL={working[0]} (installed here) or unset MUJOCO_GL" if working
+               else "; ".join(f"install {BACKENDS[n][1]} for {n}" for n in AUTO_ORDER))
+    if current in BACKENDS and not find_library(BACKENDS[current][0]):
+        raise GLBackendError(f"MUJOCO_GL={current}: the {BACKENDS[current][0]} library is not "
+                             f"installed (package {BACKENDS[current][1]}); {instead}")
+    if current == "glfw" and not (environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY")):
+        raise GLBackendError(f"MUJOCO_GL=glfw: needs a display and DISPLAY is unset; rainbench "
+                             f"renders offscreen: {instead}")
+
+
 def configure(
     environ: MutableMapping[str, str],
     find_library: Callable[[str], str | None] | None = None,

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -31,6 +33,8 @@ def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
         tile = cv2.resize(image, (tile_width, tile_h), interpolation=cv2.INTER_AREA)
         if boxes is not None:
             for box, class_id in zip(boxes, class_ids):
+                if not np.all(np.isfinite(box)):
+                    raise ValueError(f"boxes: expected finite x1, y1, x2, y2, got {list(box)}")
                 x1, y1, x2, y2 = (np.asarray(box) * scale).round().astype(int)
                 cv2.rectangle(tile, (x1, y1), (x2 - 1, y2 - 1), BOX_COLOURS[int(class_id) % 4], 1)
         label = f"{rate:g} mm/h"
@@ -43,5 +47,19 @@ def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
 
 
 def write_png(path, image: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image[:, :, ::-1])):
+    """Write RGB ``image`` as the PNG ``path`` (a ``.png`` name): under a temporary name in the
+    same folder, renamed when complete. Failures are one-line OSErrors naming the path."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise OSError(f"{path}: expected a .png file name")
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}.png")
+    try:
+        written = cv2.imwrite(str(tmp), np.ascontiguousarray(image[:, :, ::-1]))
+    except cv2.error as error:
+        reason = " ".join(str(error).split())[-160:]
+        tmp.unlink(missing_ok=True)
+        raise OSError(f"{path}: could not write the PNG ({reason})") from None
+    if not written:
+        tmp.unlink(missing_ok=True)
         raise OSError(f"{path}: could not write the PNG")
+    os.replace(tmp, path)

@@ -2,7 +2,9 @@
 
 Samples are (shard, frame, rate) triples in that order: shards in manifest order (sorted paths
 without a manifest), then frames, then the selected rates. Shard files are opened lazily, once
-per process, so both classes are safe with ``DataLoader(num_workers > 0)``.
+per process, so both classes are safe with ``DataLoader(num_workers > 0)``. Every shard is
+checked when it is opened (:func:`rainbench.gen.dataset.check_labels`): NaN boxes or
+inconsistent ``/labels/offsets`` raise ``ShardFormatError`` naming the file and the frame.
 
 Target keys (numpy arrays from :class:`ShardReader`, tensors from :class:`ShardDataset`):
 
@@ -22,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import DatasetError, list_shards
-from .shard import open_shard, read_rgb
+from .dataset import DatasetError, list_shards, open_checked
+from .shard import read_rgb
 
 _LABEL_KEYS = ("bbox", "class_id", "instance_id", "visible_fraction", "truncation")
 
@@ -45,7 +47,7 @@ class ShardReader:
         self._frames: list[int] = []
         self.rates: tuple[float, ...] | None = None
         for path in self.shards:
-            with open_shard(path) as handle:
+            with open_checked(path) as handle:  # refuses NaN boxes, inconsistent offsets
                 shard_rates = handle["rates"][()].astype(np.float64)
                 frames = int(handle["labels/offsets"].shape[0]) - 1
                 if handle["rgb"].shape[1] != frames:
@@ -92,7 +94,7 @@ class ShardReader:
         if self._pid != os.getpid():  # a forked DataLoader worker: open its own handles
             self._handles, self._pid = {}, os.getpid()
         if shard not in self._handles:
-            self._handles[shard] = open_shard(self.shards[shard])
+            self._handles[shard] = open_checked(self.shards[shard])
         return self._handles[shard]
 
     def _shard_labels(self, shard: int) -> dict[str, np.ndarray]:

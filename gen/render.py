@@ -14,19 +14,14 @@ import os
 import mujoco
 import numpy as np
 
-from rainbench.mjcf.scene import EGO_CAMERA, TRUNCATION_MARGIN
+from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
+from rainbench.rain.weather import Weather
 
 from .gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
 from .gl import state as _gl_state
+from .weather import WeatherRig
 
 HIDDEN_GROUP = 5
-
-
-def padded_size(width: int, height: int) -> tuple[int, int, int, int]:
-    """(padded width, padded height, margin x, margin y) of the actor-alone canvas."""
-    margin_x = math.ceil(width * TRUNCATION_MARGIN)
-    margin_y = math.ceil(height * TRUNCATION_MARGIN)
-    return width + 2 * margin_x, height + 2 * margin_y, margin_x, margin_y
 
 
 def camera_intrinsics(model: mujoco.MjModel, camera: str, width: int, height: int) -> np.ndarray:
@@ -50,10 +45,14 @@ class FrameRenderer:
     """Renders the ``ego`` camera of ``model`` at ``width`` x ``height``.
 
     ``geom_instance`` is the (ngeom,) int32 table geom id -> actor instance id (-1: not an actor).
+    ``base_weather``: the scene's weather at rate 0 (a road scene of
+    :func:`rainbench.mjcf.scene.build_spec`); :meth:`render_weather` renders other weathers.
+    None for scenes without the weather lights (every pass renders the model as compiled).
     """
 
     def __init__(self, model: mujoco.MjModel, width: int, height: int,
-                 geom_instance: np.ndarray, camera: str = EGO_CAMERA) -> None:
+                 geom_instance: np.ndarray, camera: str = EGO_CAMERA,
+                 base_weather: Weather | None = None) -> None:
         self._gl_context = None
         self._mjr_context = None
         padded_w, padded_h, self._margin_x, self._margin_y = padded_size(width, height)
@@ -109,6 +108,11 @@ class FrameRenderer:
             ) from error
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._mjr_context)
         self._mjr_context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self.base_weather = base_weather
+        self._rig = WeatherRig(model) if base_weather is not None else None
+        self._weather_option = mujoco.MjvOption()
+        self._weather: Weather | None = None
+        self._set_weather(base_weather)
 
     # -- context management ------------------------------------------------------------------
     def __enter__(self) -> "FrameRenderer":
@@ -133,11 +137,37 @@ class FrameRenderer:
         self._gl_context.make_current()
 
     # -- passes ------------------------------------------------------------------------------
+    def _set_weather(self, weather: Weather | None) -> None:
+        if self._rig is not None and weather != self._weather:
+            self._rig.apply(weather, self._mjr_context)
+            self._weather = weather
+
     def update(self, data: mujoco.MjData) -> None:
-        """Build the scene of ``data`` (call once per frame, before the passes)."""
+        """Build the scene of ``data`` in the base weather (call once per frame, before the
+        passes)."""
         self._require_open()
+        self._set_weather(self.base_weather)
         mujoco.mjv_updateScene(self.model, data, self._option, None, self._camera,
                                mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+
+    def render_weather(self, data: mujoco.MjData, weather: Weather) -> np.ndarray:
+        """RGB (H, W, 3) uint8 of the state in ``data`` under ``weather`` (same geometry, same
+        camera; puddles drawn when the weather has them). Replaces the scene built by
+        :meth:`update`; the next :meth:`update` restores the base weather."""
+        self._require_open()
+        if self._rig is None:
+            raise RuntimeError("render_weather: this renderer has no base_weather (the scene "
+                               "has no 'sun' and 'skylight' lights)")
+        self._set_weather(weather)
+        option = self._weather_option
+        option.geomgroup[PUDDLE_GROUP] = self._rig.puddles_visible
+        option.geomgroup[CLOUD_DECK_GROUP] = self._rig.cloud_deck
+        mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
+                               mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+        self._set_segmentation(False)
+        mujoco.mjr_render(self._rect, self._scene, self._mjr_context)
+        mujoco.mjr_readPixels(self._rgb, None, self._rect, self._mjr_context)
+        return np.flipud(self._rgb).copy()
 
     def render_rgb_depth(self) -> tuple[np.ndarray, np.ndarray]:
         """RGB (H, W, 3) uint8 and depth (H, W) float32 metres along the optical axis (+inf: sky).

@@ -18,7 +18,8 @@ import numpy as np
 from .labels import FrameLabels
 
 FORMAT = "rainbench.shard"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)  # v2 adds /weather and the sky / weather_follows_rate attributes
 # gzip level 1, chosen by measurement on a rendered 800x600 frame (docs/format.md). gzip is in
 # every HDF5 build, so plain h5py (and other HDF5 tools) read the shards without plugins. The
 # RGB chunks are deflated here with libdeflate (the `deflate` package) rather than by HDF5's
@@ -76,7 +77,7 @@ class ShardWriter:
 
     def __init__(self, path: str | Path, *, attrs: dict, rates: np.ndarray, num_frames: int,
                  width: int, height: int, K: np.ndarray, store: tuple[str, ...] = (),
-                 threads: int | None = None) -> None:
+                 threads: int | None = None, weather: list[dict] | None = None) -> None:
         unknown = sorted(set(store) - set(STORABLE))
         if unknown:
             raise ValueError(f"store: expected a subset of {STORABLE}, got {unknown}")
@@ -109,6 +110,13 @@ class ShardWriter:
                              chunks=(1, height, width), compression="gzip", compression_opts=1,
                              shuffle=True)
         f.create_dataset("camera/K", data=np.asarray(K, dtype=np.float64))
+        if weather is not None:  # one record per rate: /weather/<field> (R,) float64
+            if len(weather) != num_rates:
+                raise ValueError(f"weather: expected {num_rates} records (one per rate), got "
+                                 f"{len(weather)}")
+            for key in weather[0]:
+                f.create_dataset(f"weather/{key}",
+                                 data=np.array([record[key] for record in weather], np.float64))
         self._poses = np.zeros((num_frames, 4, 4), dtype=np.float64)
         self._labels: list[FrameLabels | None] = [None] * num_frames
         self._rain_box: list[tuple[np.ndarray, np.ndarray] | None] = [None] * num_frames
@@ -222,9 +230,9 @@ def open_shard(path: str | Path) -> h5py.File:
             raise ShardFormatError(f"{path}: not a rainbench shard (format attribute "
                                    f"{handle.attrs.get('format')!r})")
         version = int(handle.attrs.get("format_version", -1))
-        if version != FORMAT_VERSION:
+        if version not in READABLE_VERSIONS:
             raise ShardFormatError(f"{path}: unknown format_version {version}; this rainbench "
-                                   f"reads version {FORMAT_VERSION}")
+                                   f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
         for key in ("rates", "rgb", "labels/offsets", "labels/bbox", "camera/K"):
             if key not in handle:
                 raise ShardFormatError(f"{path}: incomplete shard, /{key} is missing")

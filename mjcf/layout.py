@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rainbench.rain.weather import SKIES
+
 # COCO-80 indices, so any COCO-pretrained YOLO matches them directly.
 CLASS_NAMES: tuple[str, ...] = ("person", "bicycle", "car", "motorcycle")
 PERSON, BICYCLE, CAR, MOTORCYCLE = 0, 1, 2, 3
@@ -48,6 +50,8 @@ FOOTPRINTS: dict[str, tuple[float, float]] = {
     "motorcycle": (2.3, 1.0),
 }
 EGO_DIMENSIONS = (4.6, 1.9)
+SKY_PROBABILITIES = (0.40, 0.35, 0.25)  # clear, cloudy, overcast when the seed decides
+PUDDLE_SPACING_M = 9.0  # mean distance between puddles along the road
 
 CAR_PAINTS: tuple[tuple[float, float, float], ...] = (
     (0.75, 0.08, 0.08), (0.05, 0.15, 0.55), (0.85, 0.85, 0.85), (0.08, 0.08, 0.09),
@@ -85,6 +89,7 @@ class ScenarioConfig:
     camera_height: float | None = None  # m above the road; seed: 1.55 +- 0.10 (car roof)
     sun_azimuth_deg: float | None = None  # seed: uniform 0..360
     sun_elevation_deg: float | None = None  # seed: uniform 25..70
+    sky: str | None = None  # base weather; seed: clear 40 %, cloudy 35 %, overcast 25 %
 
     def __post_init__(self) -> None:
         if not self.duration_s > 0:
@@ -99,6 +104,8 @@ class ScenarioConfig:
             raise ValueError(f"camera_height: expected 0.5..4.0 m, got {self.camera_height}")
         if self.sun_elevation_deg is not None and not 5 <= self.sun_elevation_deg <= 90:
             raise ValueError(f"sun_elevation_deg: expected 5..90, got {self.sun_elevation_deg}")
+        if self.sky is not None and self.sky not in SKIES:
+            raise ValueError(f"sky: expected one of {', '.join(SKIES)}, got {self.sky!r}")
 
 
 @dataclass(frozen=True)
@@ -154,6 +161,9 @@ class Layout:
     pole_xs: tuple[tuple[float, float], ...]
     crosswalk_x: float
     road_x_range: tuple[float, float]
+    sky: str = "cloudy"  # base weather, one of rainbench.rain.weather.SKIES
+    # Puddles on the road at full size: (x, y, half length, half width, yaw radians) each.
+    puddles: tuple[tuple[float, float, float, float, float], ...] = ()
 
 
 def unit_position(unit: Unit, t: np.ndarray | float) -> np.ndarray:
@@ -227,7 +237,8 @@ def _place(
 def sample_layout(seed: int, config: ScenarioConfig, rng: np.random.Generator) -> Layout:
     """Sample a complete layout. ``seed`` is recorded only; all randomness comes from ``rng``.
 
-    The seed decides: ego speed and lane, camera height jitter, sun direction, every unit's
+    The seed decides: ego speed and lane, camera height jitter, sun direction, base weather
+    (sky) and where puddles form when it rains, every unit's
     lane or sidewalk, start position, speed and heading, car styles and paints, clothing and
     skin colours, which pedestrians use the crosswalk, and the buildings, trees and poles.
     Units are placed by rejection so that no two footprints ever overlap during the clip.
@@ -351,9 +362,20 @@ def sample_layout(seed: int, config: ScenarioConfig, rng: np.random.Generator) -
             if abs(x - crosswalk_x) > 4.0:
                 pole_xs.append((x, side))
             x += 30.0
+    # Weather draws come last, so they leave every earlier draw (the layout) unchanged.
+    sky_draw = rng.random()
+    sky = config.sky if config.sky is not None else SKIES[int(np.searchsorted(
+        np.cumsum(SKY_PROBABILITIES), sky_draw, side="right"))]
+    puddles = []
+    x = x_min + rng.uniform(0.0, PUDDLE_SPACING_M)
+    while x < x_max:
+        y = rng.uniform(-ROAD_HALF_WIDTH + 0.8, ROAD_HALF_WIDTH - 0.8)
+        puddles.append((float(x), float(y), float(rng.uniform(1.2, 4.0)),
+                        float(rng.uniform(0.5, 1.6)), float(rng.uniform(-0.3, 0.3))))
+        x += rng.uniform(0.5, 1.5) * PUDDLE_SPACING_M
     return Layout(
         seed=seed, config=config, ego=ego, camera_height=float(camera_height),
         sun_direction=sun_direction, units=tuple(units), actors=tuple(actors),
         buildings=tuple(buildings), tree_xs=tuple(tree_xs), pole_xs=tuple(pole_xs),
-        crosswalk_x=crosswalk_x, road_x_range=(x_min, x_max),
+        crosswalk_x=crosswalk_x, road_x_range=(x_min, x_max), sky=sky, puddles=tuple(puddles),
     )

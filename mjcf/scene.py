@@ -13,8 +13,11 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from rainbench.rain.weather import sky_colours, weather_at
+
 from . import layout as L
 from . import parts, textures
+from .weather import scene_lighting
 
 GEOM = mujoco.mjtGeom
 EGO_CAMERA = "ego"
@@ -23,6 +26,18 @@ ACTOR_PREFIX = "actor{:03d}/"
 # "actor alone" pass that measures truncation; the framebuffer is sized for it.
 TRUNCATION_MARGIN = 0.25
 STATIC_SURFACE_Z = 0.002  # markings float this high above the asphalt (no z-fighting)
+PUDDLE_GROUP = 3  # puddles are drawn only when the road is wet (not in segmentation passes)
+CLOUD_DECK_GROUP = 4  # the rain-cloud deck: drawn only in renders of a sunless rainy weather
+CLOUD_DECK_HEIGHT_M = 60.0  # low enough that the deck is inside zfar (1000 m) down to 3.4 deg
+SKY_TEXTURE_SIZE = 128  # skybox face size: re-uploaded whenever the weather changes the sky
+
+
+def padded_size(width: int, height: int) -> tuple[int, int, int, int]:
+    """(padded width, padded height, margin x, margin y) of the actor-alone canvas: the one
+    definition of the framebuffer size (``build_spec``) and of the canvas (``FrameRenderer``)."""
+    margin_x = math.ceil(width * TRUNCATION_MARGIN)
+    margin_y = math.ceil(height * TRUNCATION_MARGIN)
+    return width + 2 * margin_x, height + 2 * margin_y, margin_x, margin_y
 
 
 def horizontal_to_vertical_fov(hfov_deg: float, width: int, height: int) -> float:
@@ -69,10 +84,10 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     spec.modelname = f"rainbench_road_seed{layout.seed}"
     spec.compiler.degree = False
     spec.option.timestep = 0.02
-    pad = 2 * TRUNCATION_MARGIN
-    spec.visual.global_.offwidth = int(math.ceil(width * (1 + pad)))
-    spec.visual.global_.offheight = int(math.ceil(height * (1 + pad)))
-    spec.visual.quality.offsamples = 0  # exact ids in the segmentation pass
+    spec.visual.global_.offwidth, spec.visual.global_.offheight = padded_size(width, height)[:2]
+    # 4x multisampling: anti-aliased edges in RGB. Segmentation passes stay exact (MuJoCo draws
+    # them without blending; tested), and boxes come from them.
+    spec.visual.quality.offsamples = 4
     spec.visual.quality.shadowsize = 2048
     # Tessellation of spheres, capsules and cylinders: 16 x 8 instead of MuJoCo's 28 x 16 halves
     # the software-rendered frame time (measured 183 -> 94 ms at 800x600) with no visible facets
@@ -84,17 +99,27 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     spec.visual.map.znear = 0.001  # 0.1 m
     spec.visual.map.zfar = 10.0  # 1000 m
     spec.visual.map.shadowclip = 0.8
-    spec.visual.headlight.ambient = [0.38, 0.38, 0.40]
-    spec.visual.headlight.diffuse = [0.15, 0.15, 0.15]
+    base = weather_at(layout.sky, 0.0)
+    lighting = scene_lighting(base)
+    spec.visual.headlight.ambient = [lighting.headlight_ambient] * 2 + [lighting.headlight_ambient + 0.02]
+    spec.visual.headlight.diffuse = [lighting.headlight_diffuse] * 3
     spec.visual.headlight.specular = [0.0, 0.0, 0.0]
 
     tex_rng = np.random.default_rng([layout.seed, 7])
+    # The base weather's sky as MuJoCo's builtin gradient (zenith rgb1, horizon rgb2); the
+    # renderer overwrites the texels with the exact sky of each weather (gen/weather.py).
+    zenith, horizon = weather_sky_endpoints(base)
     spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
-                     builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
-                     rgb1=[0.42, 0.62, 0.90], rgb2=[0.88, 0.90, 0.95], width=256, height=256)
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT, rgb1=zenith, rgb2=horizon,
+                     width=SKY_TEXTURE_SIZE, height=SKY_TEXTURE_SIZE)
     _add_texture_material(spec, "asphalt", textures.asphalt(tex_rng), 0.25)
     _add_texture_material(spec, "concrete", textures.concrete(tex_rng), 0.5)
     _add_texture_material(spec, "grass", textures.grass(tex_rng), 0.2)
+    spec.material("asphalt").reflectance = lighting.road_reflectance
+    for name, factor in (("asphalt", lighting.road_factor), ("concrete", lighting.pavement_factor),
+                         ("grass", lighting.grass_factor)):
+        spec.material(name).rgba = [factor, factor, factor, 1.0]
+    spec.add_material(name="puddle", rgba=list(lighting.puddle_rgba), specular=0.6, shininess=0.9)
     for index, wall in enumerate(L.FACADES):
         # One tile = 4 floors x 4 windows, 12.8 m square.
         _add_texture_material(spec, f"facade{index}", textures.facade(tex_rng, wall), 1 / 12.8)
@@ -137,6 +162,18 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     for y in stripe_ys:
         _static_box(world, f"scenery/zebra_{y:+.1f}", [1.5, 0.25, STATIC_SURFACE_Z * 1.5],
                     [layout.crosswalk_x, y, 0], rgba=(0.93, 0.93, 0.91, 1))
+    # The rain-cloud deck: an emissive ceiling that stands for the sky in rainy renders, so that
+    # the wet road mirrors the sky (MuJoCo's mirror pass does not draw the skybox).
+    spec.add_material(name="cloud_deck", rgba=[0.5, 0.5, 0.5, 1.0], emission=1.0, specular=0.0)
+    world.add_geom(name="scenery/cloud_deck", type=GEOM.mjGEOM_BOX,
+                   size=[x_half + 2000.0, 2000.0, 1.0], pos=[x_mid, 0.0, CLOUD_DECK_HEIGHT_M],
+                   material="cloud_deck", group=CLOUD_DECK_GROUP, contype=0, conaffinity=0)
+    for index, (x, y, half_length, half_width, yaw) in enumerate(layout.puddles):
+        # full-size puddles; the renderer scales them with the weather's puddle fraction
+        world.add_geom(name=f"scenery/puddle{index}", type=GEOM.mjGEOM_ELLIPSOID,
+                       size=[half_length, half_width, 0.001], pos=[x, y, STATIC_SURFACE_Z * 2],
+                       quat=parts.unit_yaw_quat(yaw).tolist(), material="puddle",
+                       group=PUDDLE_GROUP, contype=0, conaffinity=0)
     for index, building in enumerate(layout.buildings):
         facade = L.FACADES.index(building.facade)
         sx, sy, sz = building.size
@@ -173,7 +210,11 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     sun = np.asarray(layout.sun_direction)
     ego.add_light(name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
                   pos=(np.array([35.0, 0.0, 0.0]) - 60.0 * sun).tolist(), dir=sun.tolist(),
-                  castshadow=True, diffuse=[0.75, 0.72, 0.66], specular=[0.2, 0.2, 0.2],
+                  castshadow=lighting.sun_castshadow, diffuse=list(lighting.sun_diffuse),
+                  specular=[lighting.sun_specular] * 3, ambient=[0.0, 0.0, 0.0])
+    ego.add_light(name="skylight", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+                  pos=[0.0, 0.0, 60.0], dir=[0.0, 0.0, -1.0], castshadow=False,
+                  diffuse=[lighting.skylight_diffuse] * 3, specular=[0.0, 0.0, 0.0],
                   ambient=[0.0, 0.0, 0.0])
 
     for unit_index, unit in enumerate(layout.units):
@@ -200,6 +241,12 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
             else:
                 raise ValueError(f"actor role: unknown {actor.role!r}")
     return spec
+
+
+def weather_sky_endpoints(weather) -> tuple[list[float], list[float]]:
+    """(zenith, horizon) RGB of ``weather``'s sky, for the builtin gradient of an exported scene."""
+    zenith, horizon = sky_colours(weather, np.array([1.0, 0.0]))
+    return zenith.tolist(), horizon.tolist()
 
 
 def geom_instance_table(model: mujoco.MjModel) -> np.ndarray:

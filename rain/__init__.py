@@ -9,11 +9,12 @@ Pure numpy/OpenCV; no MuJoCo. Models (docs/rain.md):
 Typical use::
 
     frame = render_rain(rgb, depth, 50.0, config=RainConfig(), K=K,
-                        seed_sequence=np.random.SeedSequence([rain_seed, scene_seed, frame_index]))
+                        seed_sequence=np.random.SeedSequence([rain_seed, scene_seed, frame_index]),
+                        lens_clock=LensClock(np.random.SeedSequence([rain_seed, scene_seed]), frame_index, fps))
 """
 
 from rainbench.rain.config import RAIN_MODELS, RainConfig
-from rainbench.rain.lens import LensDrops, jeon2022_drop_count
+from rainbench.rain.lens import LensClock, LensDrops, jeon2022_drop_count
 from rainbench.rain.metrics import SsimReference, box_rain_labels, image_quality, luma, psnr, ssim_gray
 from rainbench.rain.physical import AirDrops, extinction_coefficient, marshall_palmer_slope, terminal_velocity, visibility_km
 from rainbench.rain.rates import MAX_RATE_MM_H, RatesError, parse_rates
@@ -24,6 +25,7 @@ __all__ = [
     "RAIN_MODELS",
     "AirDrops",
     "Drops",
+    "LensClock",
     "LensDrops",
     "RainConfig",
     "RainFrame",

@@ -15,6 +15,12 @@ STREAM_LENS = 1
 STREAM_AIR = 2
 """Stream id of the falling-drop candidates of the physical model."""
 
+STREAM_SPRAY = 3
+"""Stream id of the tyre-spray particles of a frame."""
+
+STREAM_NOISE = 4
+"""Stream id of the frame's sensor-noise field (one field, scaled by each rate's gain)."""
+
 
 def check_seed_sequence(seed_sequence: object) -> np.random.SeedSequence:
     """Return ``seed_sequence`` if it is a ``np.random.SeedSequence``; raise TypeError otherwise."""

@@ -38,19 +38,29 @@ class RainConfig:
             extinction, i.e. a cloud base; sky fades continuously towards the airlight.
         airlight_rgb: airlight colour A (R, G, B in 0..255); None estimates it from the frame
             (mean sky colour, else mean colour of the farthest 1 % of pixels).
-        lens_drops: physical model only: also draw water drops on the lens (jeon2022 drawing).
+        streak_sky_weight: a streak's radiance is this share of the sky's (airlight) colour plus
+            the rest of the frame's mean colour: a falling drop refracts a ~165 degree view,
+            mostly of the sky (Garg & Nayar), so streaks show bright over dark surfaces.
+        lens_drops: physical model only: also draw water on the lens (the jeon2022 lens water,
+            on top of the streaks and extinction). On by default.
         lens_drop_fraction: physical model with lens_drops: lens drop count = this fraction of the
-            eq. 5 count.
+            eq. 5 count (the first slots of the same lens, so the drops are those of jeon2022).
 
-        lens_radius_min_px, lens_radius_max_px: lens-drop radius range, px @800x600.
+        lens_radius_min_px, lens_radius_max_px: lens-drop radius range on the glass, px @800x600.
         lens_radius_exponent: lens-drop radii follow a truncated power law p(r) ~ r^-exponent.
         lens_aspect_min: lens drops are ellipses with minor/major axis ratio in [aspect_min, 1].
-        lens_view_scale: a lens drop shows the scene within this many drop radii of its centre,
-            point-reflected (flipped) and minified by this factor.
+        lens_view_field_px: a lens drop shows the scene within this radius of its centre
+            (px @800x600), point-reflected (flipped) and minified into the drop.
         lens_view_blur_px: blur of the view through a lens drop, px @800x600 (the scene is
-            box-averaged over this many pixels before sampling).
+            box-averaged over this many pixels); also the cell size on which lens water is drawn.
         lens_rim_darkening: fractional darkening at the rim of a lens drop (0 = none).
-        lens_edge_softness: width of the soft (defocused) edge as a fraction of the radius.
+        lens_defocus_px: radius of the defocus blur of a drop on the glass, px @800x600.
+        lens_opacity: opacity of a drop larger than the defocus blur, in (0, 1].
+        lens_life_min_s, lens_life_max_s: range of the life of a drop on the glass, seconds
+            (each lens slot has its own life; its drop is replaced when the life ends).
+        lens_fade_s: a drop fades in after landing and out before it is replaced over this time.
+        lens_slide_fraction: fraction of drops that depin during their life and slide.
+        lens_slide_max_px_s: largest sliding speed, px per second @800x600.
     """
 
     model: str = "jeon2022"
@@ -69,19 +79,26 @@ class RainConfig:
     # physical model: extinction and airlight
     sky_distance_m: float = 1000.0
     airlight_rgb: tuple[float, float, float] | None = None
-    # physical model: optional lens drops
-    lens_drops: bool = False
+    streak_sky_weight: float = 0.6
+    # physical model: lens water (on by default)
+    lens_drops: bool = True
     lens_drop_fraction: float = 1.0
 
-    # lens-drop drawing (jeon2022, and physical with lens_drops)
-    lens_radius_min_px: float = 1.5
-    lens_radius_max_px: float = 8.0
+    # lens water (jeon2022, and physical with lens_drops); docs/rain.md, "Lens water"
+    lens_radius_min_px: float = 3.0
+    lens_radius_max_px: float = 25.0
     lens_radius_exponent: float = 3.0
     lens_aspect_min: float = 0.7
-    lens_view_scale: float = 3.0
-    lens_view_blur_px: float = 4.0
-    lens_rim_darkening: float = 0.35
-    lens_edge_softness: float = 0.3
+    lens_view_field_px: float = 120.0
+    lens_view_blur_px: float = 30.0
+    lens_rim_darkening: float = 0.2
+    lens_defocus_px: float = 10.0
+    lens_opacity: float = 1.0
+    lens_life_min_s: float = 4.0
+    lens_life_max_s: float = 12.0
+    lens_fade_s: float = 0.2
+    lens_slide_fraction: float = 0.5
+    lens_slide_max_px_s: float = 30.0
 
     def __post_init__(self) -> None:
         if self.model not in RAIN_MODELS:
@@ -97,20 +114,32 @@ class RainConfig:
             "sky_distance_m",
             "lens_radius_min_px",
             "lens_radius_max_px",
-            "lens_view_scale",
+            "lens_view_field_px",
             "lens_view_blur_px",
+            "lens_defocus_px",
+            "lens_opacity",
+            "lens_life_min_s",
+            "lens_life_max_s",
         )
         for name in positive:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"RainConfig.{name} must be a finite number > 0, got {value!r}")
-        unit_interval = ("lens_rim_darkening", "lens_drop_fraction")
+        unit_interval = ("lens_rim_darkening", "lens_drop_fraction", "lens_opacity", "lens_slide_fraction", "streak_sky_weight")
         for name in unit_interval:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise ValueError(f"RainConfig.{name} must be a number in [0, 1], got {value!r}")
-        if not isinstance(self.lens_edge_softness, (int, float)) or not 0.0 < self.lens_edge_softness <= 1.0:
-            raise ValueError(f"RainConfig.lens_edge_softness must be in (0, 1], got {self.lens_edge_softness!r}")
+        for name in ("lens_fade_s", "lens_slide_max_px_s"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"RainConfig.{name} must be a finite number >= 0, got {value!r}")
+        if self.lens_life_max_s < self.lens_life_min_s:
+            raise ValueError(
+                f"RainConfig.lens_life_max_s must be >= lens_life_min_s, got min {self.lens_life_min_s!r} and max {self.lens_life_max_s!r}"
+            )
+        if 2.0 * self.lens_fade_s > self.lens_life_min_s:
+            raise ValueError(f"RainConfig.lens_fade_s must be at most half of lens_life_min_s ({self.lens_life_min_s!r} s), got {self.lens_fade_s!r}")
         if not isinstance(self.lens_aspect_min, (int, float)) or not 0.0 < self.lens_aspect_min <= 1.0:
             raise ValueError(f"RainConfig.lens_aspect_min must be in (0, 1], got {self.lens_aspect_min!r}")
         if not isinstance(self.lens_radius_exponent, (int, float)) or not math.isfinite(self.lens_radius_exponent):

@@ -1,17 +1,32 @@
-"""Water drops on the lens: the jeon2022 model (seed paper eq. 5) and the physical model's option.
+"""Water on the lens: the jeon2022 model (seed paper eq. 5) and the physical model's lens water.
 
-A lens drop is a small, out-of-focus water lens stuck to the lens or its cover glass. It is
-drawn as a soft-edged ellipse that shows a blurred, point-reflected (flipped) and minified view
-of the scene around it, darkened towards its rim (after Roser & Geiger 2009 and the darkened
-rims of ROLE; see docs/rain.md for every choice and its reason).
+A lens drop is water on the lens or its cover glass, a few centimetres in front of a camera
+focused far away. It is drawn as the camera sees it: out of focus (its outline and what it shows
+are blurred by the defocus), semi-transparent where it is smaller than the defocus blur, showing
+a blurred, point-reflected (flipped) and minified view of the scene around it, darker towards
+its rim. Sizes, defocus and motion are documented with their sources in docs/rain.md.
 
-Nesting: the drops of one frame form one fixed sequence, generated in blocks of
-:data:`LENS_BLOCK` drops from per-block child seeds; a rate uses the first ``N(rate)`` drops,
-so a higher rate always contains every drop of a lower one, unchanged.
+Persistence: drops live on the glass for seconds and slide, they are not re-drawn each frame.
+The lens of a clip holds a fixed sequence of *slots*; slot s always holds exactly one drop,
+which is replaced when its life ends (every slot has its own life length and phase, so
+replacements are spread over time). A drop is pinned for part of its life and may then slide
+outwards at a constant speed. A frame's drops are a pure function of (the clip's seed, the
+frame's time): nothing is carried from frame to frame, so any frame of any shard can be
+rendered alone (:class:`LensClock`).
 
-Exact accumulation: per-pixel opacities and colours are integers (alpha in 1/1024 steps,
-colours 0..255), so their sums are exact in float64 in any order. This lets
-``render_rain_sweep`` add drops rate by rate and still match single-rate calls byte for byte.
+Nesting: a rate uses the first ``N(rate)`` slots (eq. 5), so a higher rate contains every drop
+of a lower one, unchanged. Per-slot random numbers come from a counter-based hash of (clip key,
+slot, generation, column), and every per-drop quantity that uses a transcendental function is
+computed on whole blocks of :data:`LENS_BLOCK` slots, so drop i is identical however many drops
+are asked for.
+
+Exact accumulation: per-cell opacities and colours are integers (alpha in 1/1024 steps, colours
+0..255), so their sums are exact in float64 in any order. This lets ``render_rain_sweep`` add
+drops rate by rate and still match single-rate calls byte for byte.
+
+Drawing resolution: lens water is smooth (defocused), so the drops are rasterised on a grid of
+``lens_view_blur_px`` pixel cells (4 px at 800x600) and the per-cell coverage and colour are
+upsampled bilinearly before they are blended over the full-resolution image.
 """
 
 from __future__ import annotations
@@ -22,7 +37,7 @@ import math
 import cv2
 import numpy as np
 
-from rainbench.rain._seeding import STREAM_LENS, child_generator
+from rainbench.rain._seeding import STREAM_LENS, check_seed_sequence
 from rainbench.rain.config import RainConfig
 
 REFERENCE_HEIGHT = 600
@@ -35,15 +50,24 @@ EQ5_OFFSET_MM_H = 3.88
 """Seed paper eq. 5: rate = 0.03 * N + 3.88 (rate in mm/h, N drops on 800x600)."""
 
 LENS_BLOCK = 512
-"""Drops are generated in blocks of this size; block b has its own child seed."""
+"""Slots are computed in blocks of this size (transcendental functions act on whole blocks)."""
 
 ALPHA_UNITS = 1024
-"""Opacity quantum: per-pixel alpha is an integer number of 1/1024 steps."""
+"""Opacity quantum: per-cell alpha is an integer number of 1/1024 steps."""
 
 SHADE_UNITS = 256
 """Rim shading quantum: shade factor is an integer number of 1/256 steps."""
 
-_UNIFORM_COLUMNS = 5  # x, y, radius, aspect, angle
+DEFAULT_FPS = 10.0
+"""Frame rate of a :class:`LensClock` when none is given (the paper's clip: 10 frames/s)."""
+
+_SLOT_COLUMNS = 2  # life, phase
+_DROP_COLUMNS = 8  # x, y, radius, aspect, angle, slides, onset, speed
+_SLOT_GENERATION = np.uint64(0xFFFFFFFFFFFFFFFF)  # generation id of the per-slot variates
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX_A = np.uint64(0xBF58476D1CE4E5B9)
+_MIX_B = np.uint64(0x94D049BB133111EB)
+_GENERATION_MULTIPLIER = np.uint64(0xD1B54A32D192ED03)
 
 
 def image_scale(height: int, width: int) -> float:
@@ -80,17 +104,107 @@ def jeon2022_drop_count(rate_mm_h: float, height: int = REFERENCE_HEIGHT, width:
     return _round_half_up(count_800x600 * (height * width) / REFERENCE_AREA)
 
 
+# --------------------------------------------------------------------------------------------
+# time
+
+
+@dataclasses.dataclass(frozen=True)
+class LensClock:
+    """Which clip and which moment a frame's lens water belongs to.
+
+    Attributes:
+        seed_sequence: the clip's ``np.random.SeedSequence`` (e.g. ``SeedSequence([rain_seed,
+            scene_seed])``); the same for every frame of the clip, never including the frame or
+            the rate. Not mutated.
+        frame: index of the frame in the clip, an int >= 0 (the global index, not the index
+            within a shard, so shards at any frame offset agree).
+        fps: frames per second of the clip, > 0. The frame's time is ``frame / fps`` seconds.
+    """
+
+    seed_sequence: np.random.SeedSequence
+    frame: int = 0
+    fps: float = DEFAULT_FPS
+
+    def __post_init__(self) -> None:
+        check_seed_sequence(self.seed_sequence)
+        if isinstance(self.frame, bool) or not isinstance(self.frame, (int, np.integer)) or self.frame < 0:
+            raise ValueError(f"LensClock.frame must be an int >= 0, got {self.frame!r}")
+        if isinstance(self.fps, bool) or not isinstance(self.fps, (int, float, np.integer, np.floating)) or not math.isfinite(self.fps) or self.fps <= 0:
+            raise ValueError(f"LensClock.fps must be a finite number > 0, got {self.fps!r}")
+        object.__setattr__(self, "frame", int(self.frame))
+        object.__setattr__(self, "fps", float(self.fps))
+
+    @property
+    def time_s(self) -> float:
+        """The frame's time in seconds from the start of the clip."""
+        return self.frame / self.fps
+
+    def key(self) -> np.uint64:
+        """The clip's 64-bit key of the lens-water hash (from the seed sequence's lens stream)."""
+        child = np.random.SeedSequence(
+            entropy=self.seed_sequence.entropy,
+            spawn_key=tuple(self.seed_sequence.spawn_key) + (STREAM_LENS,),
+            pool_size=self.seed_sequence.pool_size,
+        )
+        return np.uint64(child.generate_state(1, dtype=np.uint64)[0])
+
+
+def lens_clock_or_default(lens_clock: LensClock | None, seed_sequence: np.random.SeedSequence) -> LensClock:
+    """``lens_clock``, or frame 0 of a clip seeded by ``seed_sequence`` when it is None."""
+    if lens_clock is None:
+        return LensClock(seed_sequence, 0, DEFAULT_FPS)
+    if not isinstance(lens_clock, LensClock):
+        raise TypeError(f"lens_clock must be a LensClock or None, got {type(lens_clock).__name__}")
+    return lens_clock
+
+
+def _mix64(value: np.ndarray) -> np.ndarray:
+    """SplitMix64 finaliser on uint64 arrays (wrapping arithmetic)."""
+    value = (value ^ (value >> np.uint64(30))) * _MIX_A
+    value = (value ^ (value >> np.uint64(27))) * _MIX_B
+    return value ^ (value >> np.uint64(31))
+
+
+def hash_uniforms(key: np.uint64, slots: np.ndarray, generation: np.ndarray, columns: int) -> np.ndarray:
+    """Counter-based uniform variates: a pure function of (key, slot, generation, column).
+
+    Args:
+        key: the clip's key (:meth:`LensClock.key`).
+        slots: (n,) uint64 slot indices.
+        generation: (n,) uint64 generation of each slot's drop.
+        columns: number of variates per slot.
+
+    Returns:
+        (n, columns) float64 in [0, 1), 53-bit resolution.
+    """
+    with np.errstate(over="ignore"):
+        head = _mix64(slots * _GOLDEN + key)
+        head = _mix64(head ^ (generation * _GENERATION_MULTIPLIER + _MIX_B))
+        column = (np.arange(1, columns + 1, dtype=np.uint64) * _GOLDEN)[None, :]
+        bits = _mix64(head[:, None] + column)
+    return (bits >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+
+
+# --------------------------------------------------------------------------------------------
+# drops
+
+
 @dataclasses.dataclass(frozen=True)
 class LensDrops:
-    """A sequence of lens drops; all arrays have shape (N,) and dtype float64.
+    """The lens drops of one frame, one per slot; all arrays have shape (N,).
 
     Image coordinates are continuous pixel units: pixel column i spans [i, i + 1).
 
     Attributes:
-        x_px, y_px: drop centre in pixels.
-        radius_px: semi-major axis in pixels.
-        aspect: minor/major axis ratio in (0, 1].
-        cos_angle, sin_angle: direction of the major axis.
+        x_px, y_px: drop centre in pixels (float64; may lie outside the image for a drop that
+            slid off it).
+        radius_px: semi-major axis of the drop's footprint on the glass, in pixels (float64).
+        aspect: minor/major axis ratio in (0, 1] (float64).
+        cos_angle, sin_angle: direction of the major axis (float64).
+        strength: opacity factor in [0, 1] of the drop's life: it fades in over ``lens_fade_s``
+            after the drop lands and out over ``lens_fade_s`` before it is replaced (float64).
+        generation: int64 index of the drop in its slot's sequence of drops; a slot's drop is
+            the same drop in two frames iff its generation is the same.
     """
 
     x_px: np.ndarray
@@ -99,6 +213,8 @@ class LensDrops:
     aspect: np.ndarray
     cos_angle: np.ndarray
     sin_angle: np.ndarray
+    strength: np.ndarray
+    generation: np.ndarray
 
     def __len__(self) -> int:
         return int(self.x_px.shape[0])
@@ -108,65 +224,112 @@ class LensDrops:
         return LensDrops(*(getattr(self, f.name)[:count] for f in dataclasses.fields(self)))
 
     def as_array(self) -> np.ndarray:
-        """(N, 6) float64 array of the fields in declaration order (for comparisons in tests)."""
-        return np.stack([getattr(self, f.name) for f in dataclasses.fields(self)], axis=1)
+        """(N, 8) float64 array of the fields in declaration order (for comparisons in tests)."""
+        return np.stack([getattr(self, f.name).astype(np.float64) for f in dataclasses.fields(self)], axis=1)
 
 
 def empty_lens_drops() -> LensDrops:
     """A LensDrops with zero drops."""
     empty = np.zeros(0, dtype=np.float64)
-    return LensDrops(empty, empty, empty, empty, empty, empty)
+    return LensDrops(empty, empty, empty, empty, empty, empty, empty, np.zeros(0, dtype=np.int64))
 
 
-def lens_drops_from_uniforms(uniforms: np.ndarray, *, config: RainConfig, height: int, width: int) -> LensDrops:
-    """Turn uniform variates into lens drops (pure inverse-CDF transforms).
+def single_lens_drop(x: float, y: float, radius: float, *, aspect: float = 1.0, angle: float = 0.0, strength: float = 1.0) -> LensDrops:
+    """One drop with the given geometry (for tests and illustrations)."""
+    values = (x, y, radius, aspect, math.cos(angle), math.sin(angle), strength)
+    return LensDrops(*(np.array([float(v)]) for v in values), np.zeros(1, dtype=np.int64))
 
-    Args:
-        uniforms: (N, 5) float64 in [0, 1): columns x, y, radius, aspect, angle.
-        config: radius range/exponent and aspect range are read from it.
-        height, width: image size in pixels.
 
-    Returns:
-        LensDrops with N drops: centre uniform over the image; radius from the truncated power
-        law ``p(r) ~ r^-exponent`` on [r_min, r_max] * image_scale; aspect uniform in
-        [aspect_min, 1]; angle uniform in [0, pi).
+def _smoothstep(t: np.ndarray) -> np.ndarray:
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _radius_from_uniform(u: np.ndarray, r_min: float, r_max: float, exponent: float) -> np.ndarray:
+    if r_max == r_min:
+        return np.full(u.shape, r_min)
+    if abs(exponent - 1.0) < 1e-12:
+        return r_min * (r_max / r_min) ** u
+    power = 1.0 - exponent
+    low, high = r_min**power, r_max**power
+    return (low + u * (high - low)) ** (1.0 / power)
+
+
+def lens_block(block: int, *, key: np.uint64, time_s: float, config: RainConfig, height: int, width: int) -> LensDrops:
+    """The drops of slots ``512 block .. 512 block + 511`` at time ``time_s``.
+
+    Slot s has a life ``P_s`` uniform in [lens_life_min_s, lens_life_max_s] and a phase
+    ``phi_s`` uniform in [0, 1); at time t it holds drop number ``g = floor(t / P_s + phi_s)``
+    of its sequence, aged ``a = (t / P_s + phi_s - g) P_s``. Drop g of slot s has: a landing
+    point uniform over the image; a radius from the truncated power law ``p(r) ~ r^-exponent``
+    on [lens_radius_min_px, lens_radius_max_px]; an aspect uniform in [lens_aspect_min, 1] and a
+    uniform orientation; with probability ``lens_slide_fraction`` it depins at a uniform time
+    of its life and then runs outwards from the image centre at a speed uniform in
+    [0, lens_slide_max_px_s]. Its strength fades in and out over ``lens_fade_s`` (smoothstep).
+    Lengths scale with :func:`image_scale`.
     """
     scale = image_scale(height, width)
-    r_min = config.lens_radius_min_px * scale
-    r_max = config.lens_radius_max_px * scale
-    exponent = config.lens_radius_exponent
-    u_radius = uniforms[:, 2]
-    if r_max == r_min:
-        radius = np.full(u_radius.shape, r_min)
-    elif abs(exponent - 1.0) < 1e-12:
-        radius = r_min * (r_max / r_min) ** u_radius
+    slots = np.arange(block * LENS_BLOCK, (block + 1) * LENS_BLOCK, dtype=np.uint64)
+    per_slot = hash_uniforms(key, slots, np.full(LENS_BLOCK, _SLOT_GENERATION), _SLOT_COLUMNS)
+    life_s = config.lens_life_min_s + (config.lens_life_max_s - config.lens_life_min_s) * per_slot[:, 0]
+    cycles = time_s / life_s + per_slot[:, 1]
+    generation = np.floor(cycles)
+    age_s = (cycles - generation) * life_s
+    generation = generation.astype(np.int64)
+    u = hash_uniforms(key, slots, generation.astype(np.uint64), _DROP_COLUMNS)
+
+    x0 = u[:, 0] * width
+    y0 = u[:, 1] * height
+    radius = _radius_from_uniform(u[:, 2], config.lens_radius_min_px * scale, config.lens_radius_max_px * scale, config.lens_radius_exponent)
+    aspect = 1.0 - (1.0 - config.lens_aspect_min) * u[:, 3]
+    angle = np.pi * u[:, 4]
+
+    # depinned drops run outwards from the centre (air flow over a forward-facing glass)
+    outward_x = x0 - 0.5 * width
+    outward_y = y0 - 0.5 * height
+    norm = np.sqrt(outward_x * outward_x + outward_y * outward_y)
+    far = norm > 1e-9
+    direction_x = np.where(far, outward_x / np.where(far, norm, 1.0), 0.0)
+    direction_y = np.where(far, outward_y / np.where(far, norm, 1.0), 1.0)
+    slides = u[:, 5] < config.lens_slide_fraction
+    onset_s = u[:, 6] * life_s
+    speed = config.lens_slide_max_px_s * scale * u[:, 7]
+    travel = np.where(slides, speed * np.maximum(age_s - onset_s, 0.0), 0.0)
+
+    fade = config.lens_fade_s
+    if fade > 0:
+        strength = _smoothstep(np.minimum(age_s / fade, 1.0)) * _smoothstep(np.minimum((life_s - age_s) / fade, 1.0))
     else:
-        power = 1.0 - exponent
-        low, high = r_min**power, r_max**power
-        radius = (low + u_radius * (high - low)) ** (1.0 / power)
-    angle = np.pi * uniforms[:, 4]
+        strength = np.ones(LENS_BLOCK)
     return LensDrops(
-        x_px=uniforms[:, 0] * width,
-        y_px=uniforms[:, 1] * height,
+        x_px=x0 + direction_x * travel,
+        y_px=y0 + direction_y * travel,
         radius_px=radius,
-        aspect=1.0 - (1.0 - config.lens_aspect_min) * uniforms[:, 3],
+        aspect=aspect,
         cos_angle=np.cos(angle),
         sin_angle=np.sin(angle),
+        strength=strength,
+        generation=generation,
     )
 
 
-def sample_lens_drops(count: int, *, config: RainConfig, height: int, width: int, seed_sequence: np.random.SeedSequence) -> LensDrops:
-    """The first ``count`` drops of the frame's fixed lens-drop sequence.
+def max_slide_px_per_frame(config: RainConfig, height: int, width: int, fps: float = DEFAULT_FPS) -> float:
+    """The farthest a drop moves between two consecutive frames of its life, in pixels:
+    ``lens_slide_max_px_s * image_scale / fps`` (3 px at 800x600 and 10 fps by default)."""
+    return config.lens_slide_max_px_s * image_scale(height, width) / fps
 
-    Block b (drops ``512 b .. 512 b + 511``) is drawn from its own generator
-    ``child_generator(seed_sequence, STREAM_LENS, b)`` and transformed as a whole block, so
+
+def sample_lens_drops(count: int, *, config: RainConfig, height: int, width: int, lens_clock: LensClock) -> LensDrops:
+    """The drops in the first ``count`` slots of the clip's lens at the clock's frame.
+
+    Block b (slots ``512 b .. 512 b + 511``) is computed as a whole by :func:`lens_block`, so
     drop i is identical whatever ``count`` is asked for: ``sample_lens_drops(n)`` is a prefix of
     ``sample_lens_drops(m)`` for n <= m.
 
     Args:
         count: number of drops, >= 0.
-        config, height, width: as for :func:`lens_drops_from_uniforms`.
-        seed_sequence: the frame's SeedSequence (not mutated).
+        config: drawing and motion parameters.
+        height, width: image size in pixels.
+        lens_clock: the clip's seed and the frame's time (not mutated).
 
     Returns:
         LensDrops with ``count`` drops.
@@ -175,28 +338,83 @@ def sample_lens_drops(count: int, *, config: RainConfig, height: int, width: int
         raise ValueError(f"count must be >= 0, got {count}")
     if count == 0:
         return empty_lens_drops()
-    blocks = []
-    for block in range(-(-count // LENS_BLOCK)):
-        rng = child_generator(seed_sequence, STREAM_LENS, block)
-        uniforms = rng.random((LENS_BLOCK, _UNIFORM_COLUMNS))
-        blocks.append(lens_drops_from_uniforms(uniforms, config=config, height=height, width=width))
+    key = lens_clock.key()
+    blocks = [
+        lens_block(block, key=key, time_s=lens_clock.time_s, config=config, height=height, width=width) for block in range(-(-count // LENS_BLOCK))
+    ]
     fields = [f.name for f in dataclasses.fields(LensDrops)]
     joined = LensDrops(*(np.concatenate([getattr(b, name) for b in blocks]) for name in fields))
     return joined.head(count)
 
 
+# --------------------------------------------------------------------------------------------
+# drawing
+
+
+GRID_PER_DEFOCUS = 0.5
+"""Drawing cell side as a fraction of the defocus radius (4 px for the default 10 px)."""
+
+
+def lens_grid_factor(config: RainConfig, height: int, width: int) -> int:
+    """Side of a drawing cell in pixels: ``round(0.4 * lens_defocus_px * image_scale)``, >= 1.
+
+    Lens water is blurred by the defocus (radius b), so cells of 0.4 b lose nothing visible."""
+    return max(1, int(round(GRID_PER_DEFOCUS * config.lens_defocus_px * image_scale(height, width))))
+
+
+def lens_view_shape(config: RainConfig, height: int, width: int) -> tuple[int, int]:
+    """(h, w) of the drawing grid and of the blurred view image seen through lens drops: the
+    frame box-averaged by :func:`lens_grid_factor` pixels."""
+    factor = lens_grid_factor(config, height, width)
+    return -(-height // factor), -(-width // factor)
+
+
+def lens_view(rgb: np.ndarray, config: RainConfig) -> np.ndarray:
+    """The blurred scene that lens drops refract, one pixel per drawing cell.
+
+    Args:
+        rgb: (H, W, 3) uint8 image.
+        config: gives ``lens_view_blur_px`` and the cell size.
+
+    Returns:
+        (h, w, 3) uint8: the image area-averaged down to :func:`lens_view_shape`, then blurred
+        by a Gaussian of sigma ``lens_view_blur_px * image_scale`` pixels (reflected borders;
+        a sigma of 4 cells or more is applied on a 4x coarser copy, then upsampled bilinearly).
+    """
+    height, width = rgb.shape[:2]
+    view_height, view_width = lens_view_shape(config, height, width)
+    if (view_height, view_width) == (height, width):
+        view = rgb.copy()
+    else:
+        view = cv2.resize(rgb, (view_width, view_height), interpolation=cv2.INTER_AREA)
+    sigma_cells = config.lens_view_blur_px * image_scale(height, width) * view_width / width
+    if sigma_cells < 0.3:
+        return view
+    # a wide blur is done 4x coarser (area-average, blur, bilinear back): the same look, 16x cheaper
+    coarse = 4 if sigma_cells >= 4.0 and min(view_height, view_width) >= 16 else 1
+    small = view if coarse == 1 else cv2.resize(view, (-(-view_width // coarse), -(-view_height // coarse)), interpolation=cv2.INTER_AREA)
+    sigma = sigma_cells / coarse
+    small = cv2.GaussianBlur(small, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT)
+    if coarse == 1:
+        return small
+    return cv2.resize(small, (view_width, view_height), interpolation=cv2.INTER_LINEAR)
+
+
 @dataclasses.dataclass(frozen=True)
 class LensRaster:
-    """The pixels touched by a set of lens drops; every array has shape (E,), one entry per
-    (drop, pixel) pair with non-zero opacity, ordered by drop. Independent of the image content.
+    """The drawing cells touched by a set of lens drops; every entry array has shape (E,), one
+    entry per (drop, cell) pair with non-zero opacity, ordered by drop. Independent of the image
+    content.
 
     Attributes:
-        pixel: int64 flat pixel index ``y * W + x``.
+        pixel: int64 flat cell index ``i * w + j`` on the drawing grid.
         drop: int64 index of the drop in its LensDrops.
         alpha_units: int64 opacity in 1/1024 steps, 1..1024.
         shade_units: int64 rim shading in 1/256 steps (256 = no darkening).
-        source: int64 flat index into the low-resolution view image (see :func:`lens_view`).
-        view_height, view_width: size of the view image.
+        weight: float64 ``alpha_units * shade_units`` (an integer).
+        source: int64 flat index into the view image (see :func:`lens_view`).
+        view_height, view_width: size of the drawing grid and of the view image (h, w).
+        factor: side of a cell in image pixels.
     """
 
     pixel: np.ndarray
@@ -206,50 +424,33 @@ class LensRaster:
     source: np.ndarray
     view_height: int
     view_width: int
+    factor: int
+    weight: np.ndarray = dataclasses.field(default=None)  # type: ignore[assignment]
 
-
-def _view_factor(config: RainConfig, height: int, width: int) -> int:
-    return max(1, int(round(config.lens_view_blur_px * image_scale(height, width))))
-
-
-def lens_view_shape(config: RainConfig, height: int, width: int) -> tuple[int, int]:
-    """(h, w) of the blurred view image seen through lens drops: the frame box-averaged by
-    ``round(lens_view_blur_px * image_scale)`` pixels."""
-    factor = _view_factor(config, height, width)
-    return max(1, -(-height // factor)), max(1, -(-width // factor))
-
-
-def lens_view(rgb: np.ndarray, config: RainConfig) -> np.ndarray:
-    """The blurred scene that lens drops refract.
-
-    Args:
-        rgb: (H, W, 3) uint8 image.
-        config: gives ``lens_view_blur_px``.
-
-    Returns:
-        (h, w, 3) uint8, the image area-averaged down to :func:`lens_view_shape`.
-    """
-    height, width = rgb.shape[:2]
-    view_height, view_width = lens_view_shape(config, height, width)
-    if (view_height, view_width) == (height, width):
-        return rgb.copy()
-    return cv2.resize(rgb, (view_width, view_height), interpolation=cv2.INTER_AREA)
-
-
-def _smoothstep(t: np.ndarray) -> np.ndarray:
-    return t * t * (3.0 - 2.0 * t)
+    def __post_init__(self) -> None:
+        if self.weight is None:
+            object.__setattr__(self, "weight", (self.alpha_units * self.shade_units).astype(np.float64))
 
 
 def rasterize_lens_drops(drops: LensDrops, *, config: RainConfig, height: int, width: int) -> LensRaster:
-    """Footprints of lens drops: opacity, rim shade and the flipped view position per pixel.
+    """Footprints of lens drops on the drawing grid: opacity, rim shade and view position.
 
-    For a pixel centre p and a drop with centre c, radius r, aspect a and major-axis angle t:
-    ``rho = |R(-t) (p - c) / (r, a r)|`` (1 on the drop edge); opacity
-    ``smoothstep(clip((1 - rho) / s, 0, 1))`` with ``s = max(lens_edge_softness, 1 px / r)``;
-    shade ``1 - lens_rim_darkening * smoothstep(clip((rho - 0.5) / 0.5, 0, 1))``; the pixel shows
-    the view image at ``c - lens_view_scale * (p - c)`` (point reflection, minified).
+    For a cell centre p (cell (i, j) is centred on ``((j + 0.5) k, (i + 0.5) k)`` px) and a drop
+    with centre c, radius r, aspect a and major-axis angle t: ``rho = |R(-t) (p - c) / (r, a r)|``
+    (1 on the drop's edge) and ``d = rho r``. Defocus spreads the drop over a disc of radius
+    ``b = lens_defocus_px * image_scale`` (the blur circle of a point on the glass), so the
+    opacity is the overlap of the drop's disc with that blur disc, approximated without
+    transcendental functions: ``alpha = lens_opacity * strength * (m / b)^2 * smoothstep((r + b -
+    d) / (2 m))``, ``m = min(r, b)`` -- fully opaque inside ``d < r - b`` for drops larger than
+    the blur, at most ``(r / b)^2`` (semi-transparent) for smaller ones, 0 beyond ``r + b``.
+    Shade ``1 - lens_rim_darkening * smoothstep(clip((d / (r + b) - 0.5) / 0.5, 0, 1))`` (a dark
+    rim, blurred with the drop); the cell shows the view image at ``c - F (p - c) / (max(r, b)
+    max(rho, 1))`` with ``F = lens_view_field_px * image_scale``: a drop's disc shows the scene
+    within F pixels of its centre, point-reflected (flipped) and minified; a drop smaller than
+    the blur shows a proportionally smaller field (its own image is blurred away), and the halo
+    outside the edge shows what the edge shows.
 
-    Only arithmetic and sqrt act on per-pixel values, and every per-drop value comes from
+    Only arithmetic and sqrt act on per-cell values, and every per-drop value comes from
     :class:`LensDrops`, so a drop's footprint does not depend on which other drops are drawn.
 
     Args:
@@ -258,100 +459,135 @@ def rasterize_lens_drops(drops: LensDrops, *, config: RainConfig, height: int, w
         height, width: image size in pixels.
 
     Returns:
-        LensRaster of all (drop, pixel) pairs with opacity > 0 inside the image.
+        LensRaster of all (drop, cell) pairs with opacity > 0 inside the grid.
     """
+    factor = lens_grid_factor(config, height, width)
     view_height, view_width = lens_view_shape(config, height, width)
+    empty = np.zeros(0, dtype=np.int64)
     if len(drops) == 0:
-        empty = np.zeros(0, dtype=np.int64)
-        return LensRaster(empty, empty, empty, empty, empty, view_height, view_width)
-    # a pixel can only be inside if |px + 0.5 - cx| <= r, i.e. px - floor(cx) in [-h, h - 1]
-    half = np.ceil(drops.radius_px + 0.5).astype(np.int64)
-    half = np.where(half > 5, half + (half + 1) % 2, half)  # above 5 px, odd sizes only: fewer groups
-    x_floor = np.floor(drops.x_px)
-    y_floor = np.floor(drops.y_px)
-    # per-drop constants of the ellipse test
-    along_x = drops.cos_angle / drops.radius_px
-    along_y = drops.sin_angle / drops.radius_px
-    across_x = -drops.sin_angle / (drops.radius_px * drops.aspect)
-    across_y = drops.cos_angle / (drops.radius_px * drops.aspect)
-    inverse_softness = 1.0 / np.maximum(config.lens_edge_softness, 1.0 / drops.radius_px)
+        return LensRaster(empty, empty, empty, empty, empty, view_height, view_width, factor)
+    blur = config.lens_defocus_px * image_scale(height, width)
+    # per-drop values in float64; per-cell arithmetic in float32 (elementwise, so a cell's value
+    # does not depend on which other drops are drawn)
+    radius = drops.radius_px
+    reach = radius + blur
+    # cells whose centre can be within the reach: |(j + 0.5) k - x| < reach, j - floor(x / k) in
+    # (-reach / k - 0.5, reach / k + 0.5)
+    half = np.ceil(reach / factor + 0.5).astype(np.int64)
+    cell_x = np.floor(drops.x_px / factor)
+    cell_y = np.floor(drops.y_px / factor)
+    # offset of the drop centre from the centre of its cell, in pixels
+    shift_x = ((cell_x + 0.5) * factor - drops.x_px).astype(np.float32)
+    shift_y = ((cell_y + 0.5) * factor - drops.y_px).astype(np.float32)
+    along_x = (drops.cos_angle / reach).astype(np.float32)  # rho in units of the reach
+    along_y = (drops.sin_angle / reach).astype(np.float32)
+    across_x = (-drops.sin_angle / (reach * drops.aspect)).astype(np.float32)
+    across_y = (drops.cos_angle / (reach * drops.aspect)).astype(np.float32)
+    small = np.minimum(radius, blur)
+    peak = ((small / blur) ** 2 * config.lens_opacity * drops.strength).astype(np.float32)
+    edge = (reach / (2.0 * small)).astype(np.float32)  # smoothstep argument = (1 - d / reach) * edge
+    inner = (radius / reach).astype(np.float32)  # the drop's edge, in units of the reach
+    # the drop's disc shows its field, point-reflected; a drop smaller than the blur shows less
+    minification = (config.lens_view_field_px * image_scale(height, width) / np.maximum(radius, blur)).astype(np.float32)
+    visible = (peak * ALPHA_UNITS >= 0.5) & (drops.x_px + reach > 0) & (drops.x_px - reach < width) & (drops.y_px + reach > 0) & (drops.y_px - reach < height)
+    rim_strength = np.float32(config.lens_rim_darkening)
+    view_scale_x = np.float32(view_width / width)
+    view_scale_y = np.float32(view_height / height)
     pieces: list[tuple[np.ndarray, ...]] = []
-    for half_size in np.unique(half):
-        index = np.flatnonzero(half == half_size)
-        side = 2 * int(half_size)
-        offsets = np.arange(-half_size, half_size, dtype=np.float64)
-        offset_x = np.tile(offsets, side)  # (side * side,), row-major cells
-        offset_y = np.repeat(offsets, side)
-        # pixel-centre offsets from the drop centre, (n, side * side)
-        dx = (x_floor[index] + 0.5 - drops.x_px[index])[:, None] + offset_x[None, :]
-        dy = (y_floor[index] + 0.5 - drops.y_px[index])[:, None] + offset_y[None, :]
+    for half_size in np.unique(half[visible]):
+        index = np.flatnonzero((half == half_size) & visible)
+        offsets = np.arange(-half_size, half_size + 1, dtype=np.int64)
+        offset_x = np.tile(offsets, offsets.shape[0])
+        offset_y = np.repeat(offsets, offsets.shape[0])
+        # drop the corners that no drop of this group can reach
+        gap_x = np.maximum(np.abs(offset_x) - 0.5, 0.0)
+        gap_y = np.maximum(np.abs(offset_y) - 0.5, 0.0)
+        corner = gap_x * gap_x + gap_y * gap_y < (half_size - 0.5) ** 2
+        offset_x, offset_y = offset_x[corner], offset_y[corner]
+        cells = offset_x.shape[0]
+        gx = cell_x[index].astype(np.int64)[:, None] + offset_x[None, :]
+        gy = cell_y[index].astype(np.int64)[:, None] + offset_y[None, :]
+        dx = shift_x[index][:, None] + (offset_x * factor).astype(np.float32)[None, :]
+        dy = shift_y[index][:, None] + (offset_y * factor).astype(np.float32)[None, :]
         along = dx * along_x[index][:, None] + dy * along_y[index][:, None]
         across = dx * across_x[index][:, None] + dy * across_y[index][:, None]
-        rho_squared = along * along + across * across
-        px = x_floor[index][:, None] + offset_x[None, :]
-        py = y_floor[index][:, None] + offset_y[None, :]
-        inside = (rho_squared < 1.0) & (px >= 0) & (px < width) & (py >= 0) & (py < height)
+        q_squared = along * along + across * across  # (d / reach)^2
+        inside = (q_squared < 1.0) & (gx >= 0) & (gx < view_width) & (gy >= 0) & (gy < view_height)
         flat = np.flatnonzero(inside)
-        rows = flat // (side * side)
-        rho = np.sqrt(rho_squared.take(flat))
-        drop_index = index.take(rows)
-        alpha = _smoothstep(np.minimum((1.0 - rho) * inverse_softness.take(drop_index), 1.0))
-        alpha_units = np.rint(alpha * ALPHA_UNITS).astype(np.int64)
+        drop_index = index.take(flat // cells)
+        q = np.sqrt(q_squared.take(flat))
+        ramp = np.minimum((np.float32(1.0) - q) * edge.take(drop_index), np.float32(1.0))
+        alpha_units = np.rint(peak.take(drop_index) * _smoothstep(ramp) * np.float32(ALPHA_UNITS)).astype(np.int64)
         keep = np.flatnonzero(alpha_units > 0)
-        flat, rho, drop_index, alpha_units = flat.take(keep), rho.take(keep), drop_index.take(keep), alpha_units.take(keep)
-        rim = _smoothstep(np.clip((rho - 0.5) * 2.0, 0.0, 1.0))
-        shade_units = np.rint((1.0 - config.lens_rim_darkening * rim) * SHADE_UNITS).astype(np.int64)
-        source_x = drops.x_px.take(drop_index) - config.lens_view_scale * dx.take(flat)
-        source_y = drops.y_px.take(drop_index) - config.lens_view_scale * dy.take(flat)
-        view_x = np.clip(np.floor(source_x * (view_width / width)).astype(np.int64), 0, view_width - 1)
-        view_y = np.clip(np.floor(source_y * (view_height / height)).astype(np.int64), 0, view_height - 1)
-        pixel = (py.take(flat) * width + px.take(flat)).astype(np.int64)
+        flat, drop_index, alpha_units, q = flat.take(keep), drop_index.take(keep), alpha_units.take(keep), q.take(keep)
+        # the dark rim is blurred with the rest of the drop: it is placed on the blurred footprint
+        rim = _smoothstep(np.clip((q - np.float32(0.5)) * np.float32(2.0), np.float32(0.0), np.float32(1.0)))
+        shade_units = np.rint((np.float32(1.0) - rim_strength * rim) * np.float32(SHADE_UNITS)).astype(np.int64)
+        # cells in the blurred halo outside the drop's edge (rho > 1) see what the edge sees
+        step = minification.take(drop_index) / np.maximum(q / inner.take(drop_index), np.float32(1.0))
+        source_x = (drops.x_px.take(drop_index) - step * dx.take(flat)) * view_scale_x
+        source_y = (drops.y_px.take(drop_index) - step * dy.take(flat)) * view_scale_y
+        view_x = np.clip(np.floor(source_x), 0, view_width - 1).astype(np.int64)
+        view_y = np.clip(np.floor(source_y), 0, view_height - 1).astype(np.int64)
+        pixel = gy.take(flat) * view_width + gx.take(flat)
         pieces.append((pixel, drop_index, alpha_units, shade_units, view_y * view_width + view_x))
+    if not pieces:
+        return LensRaster(empty, empty, empty, empty, empty, view_height, view_width, factor)
     pixel, drop, alpha_units, shade_units, source = (np.concatenate(column) for column in zip(*pieces))
     order = np.argsort(drop, kind="stable")  # entries ordered by drop: a drop range is a slice
-    return LensRaster(pixel[order], drop[order], alpha_units[order], shade_units[order], source[order], view_height, view_width)
+    return LensRaster(pixel[order], drop[order], alpha_units[order], shade_units[order], source[order], view_height, view_width, factor)
 
 
-def lens_colors(raster: LensRaster, view: np.ndarray, entries: slice | np.ndarray | None = None) -> np.ndarray:
-    """Colour of each raster entry: the view pixel times the rim shade, rounded to integers.
-
-    Args:
-        raster: footprints from :func:`rasterize_lens_drops`.
-        view: (h, w, 3) uint8 from :func:`lens_view`.
-        entries: optional slice or (E,) bool mask selecting entries.
-
-    Returns:
-        (E', 3) int64 colours in 0..255 for the selected entries.
-    """
-    if view.shape[:2] != (raster.view_height, raster.view_width):
-        raise ValueError(f"view must have shape ({raster.view_height}, {raster.view_width}, 3), got {view.shape}")
-    source = raster.source if entries is None else raster.source[entries]
-    shade = raster.shade_units if entries is None else raster.shade_units[entries]
-    seen = view.reshape(-1, 3).take(source, axis=0).astype(np.int64)
-    return (seen * shade[:, None] + SHADE_UNITS // 2) // SHADE_UNITS
+def planar_view(view: np.ndarray) -> np.ndarray:
+    """(3, h * w) float64 channel planes of a (h, w, 3) uint8 view (for :meth:`LensSums.add`)."""
+    return np.ascontiguousarray(view.reshape(-1, 3).T, dtype=np.float64)
 
 
 @dataclasses.dataclass
 class LensSums:
-    """Per-pixel integer sums over lens-drop entries, on a compressed pixel set.
+    """Per-cell integer sums over lens-drop entries, dense on the drawing grid.
 
     Attributes:
-        pixels: (P,) int64 flat pixel indices that any entry may touch.
-        alpha: (P,) float64 sum of alpha_units (integer valued, exact).
-        alpha_color: (P, 3) float64 sum of alpha_units * colour (integer valued, exact).
+        alpha: (h * w,) float64 sum of alpha_units (integer valued, exact).
+        alpha_color: (3, h * w) float64 sum of alpha_units * shade_units * view colour per
+            channel (integer valued, below 2^53, so exact in any order).
+        grid_height, grid_width: the drawing grid (h, w).
+        factor: side of a cell in image pixels.
     """
 
-    pixels: np.ndarray
     alpha: np.ndarray
     alpha_color: np.ndarray
+    grid_height: int
+    grid_width: int
+    factor: int
+
+    @classmethod
+    def zeros(cls, grid_height: int, grid_width: int, factor: int) -> LensSums:
+        """Zero sums on a grid."""
+        cells = grid_height * grid_width
+        return cls(np.zeros(cells, dtype=np.float64), np.zeros((3, cells), dtype=np.float64), grid_height, grid_width, factor)
+
+    def add(self, raster: LensRaster, view_planes: np.ndarray, entries: slice = slice(None), alpha: bool = True) -> None:
+        """Add raster entries (a slice of them) seeing the view ``view_planes`` (from
+        :func:`planar_view`); ``alpha=False`` adds the colours only (the alphas are already in)."""
+        if view_planes.shape != (3, raster.view_height * raster.view_width):
+            raise ValueError(f"view_planes must have shape (3, {raster.view_height * raster.view_width}), got {view_planes.shape}")
+        cells = raster.pixel[entries]
+        source = raster.source[entries]
+        weight = raster.weight[entries]
+        n_cells = self.alpha.shape[0]
+        if alpha:
+            self.alpha += np.bincount(cells, raster.alpha_units[entries].astype(np.float64), minlength=n_cells)
+        for channel in range(3):
+            self.alpha_color[channel] += np.bincount(cells, weight * view_planes[channel].take(source), minlength=n_cells)
 
 
 def compress_pixels(pixel: np.ndarray, n_pixels: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unique pixels and each entry's position among them.
+    """Unique pixels and each entry's position among them (used by the physical model's streaks).
 
     Args:
         pixel: (E,) int64 flat pixel indices in [0, n_pixels).
-        n_pixels: H * W.
+        n_pixels: number of pixels.
 
     Returns:
         (unique (P,) int64 ascending, inverse (E,) int64 with unique[inverse] == pixel).
@@ -364,64 +600,39 @@ def compress_pixels(pixel: np.ndarray, n_pixels: int) -> tuple[np.ndarray, np.nd
     return unique, lookup[pixel]
 
 
-def accumulate_lens(inverse: np.ndarray, alpha_units: np.ndarray, colors: np.ndarray, n_unique: int) -> tuple[np.ndarray, np.ndarray]:
-    """Exact per-pixel sums of alpha and alpha * colour.
-
-    Args:
-        inverse: (E,) int64 compressed pixel position of each entry.
-        alpha_units: (E,) int64.
-        colors: (E, 3) int64.
-        n_unique: number of compressed pixels P.
-
-    Returns:
-        (alpha (P,) float64, alpha_color (P, 3) float64), both integer valued.
-    """
-    weights = alpha_units.astype(np.float64)
-    alpha = np.bincount(inverse, weights, minlength=n_unique)
-    alpha_color = np.empty((n_unique, 3), dtype=np.float64)
-    for channel in range(3):
-        alpha_color[:, channel] = np.bincount(inverse, weights * colors[:, channel], minlength=n_unique)
-    return alpha, alpha_color
-
-
 def apply_lens(base: np.ndarray, sums: LensSums) -> tuple[np.ndarray, np.ndarray]:
     """Composite lens water over an image.
 
-    Per pixel: coverage ``c = min(sum alpha / 1024, 1)``, drop colour ``m = sum(alpha colour) /
-    sum alpha`` (alpha-weighted mean of the overlapping drops), result ``round(I + c (m - I))``.
-    Order independent, so nested drop sets add up consistently.
+    Per cell: coverage ``c = min(sum alpha / 1024, 1)`` and water colour ``m = sum(alpha shade
+    view) / (256 sum alpha)`` (the alpha-weighted mean of the shaded views of the overlapping
+    drops). The transmitted fraction
+    ``T = round(255 (1 - c))`` and the premultiplied water ``P = round(c m)`` (uint8) are
+    upsampled bilinearly to the image (``cv2.resize`` by the cell factor, then cropped), and the
+    result is ``round(I T / 255) + P`` (saturated). Order independent, so nested drop sets add up
+    consistently; pixels away from water (T = 255, P = 0) keep their value exactly.
 
     Args:
         base: (H, W, 3) uint8 image under the drops.
-        sums: exact sums from :func:`accumulate_lens`.
+        sums: exact sums from :meth:`LensSums.add`.
 
     Returns:
-        (rgb (H, W, 3) uint8 new array, coverage (H, W) float32 in [0, 1]).
+        (rgb (H, W, 3) uint8 new array, coverage (H, W) float32 in [0, 1]: ``1 - T / 255`` with
+        the upsampled T, the weight the water has in each pixel).
     """
     height, width = base.shape[:2]
-    out = base.copy()
-    coverage = np.zeros((height, width), dtype=np.float32)
-    update_lens(out, coverage, base, sums, np.flatnonzero(sums.alpha > 0))
+    grid_height, grid_width, factor = sums.grid_height, sums.grid_width, sums.factor
+    alpha = sums.alpha
+    opacity = np.minimum(alpha * (1.0 / ALPHA_UNITS), 1.0)
+    gain = opacity / (SHADE_UNITS * np.maximum(alpha, 1.0))  # alpha_color is 0 where alpha is 0
+    transmitted = np.rint(255.0 * (1.0 - opacity)).astype(np.uint8).reshape(grid_height, grid_width)
+    # c * (alpha-weighted mean colour): a convex combination, at most 255
+    water = cv2.merge([np.rint(sums.alpha_color[channel] * gain).astype(np.uint8).reshape(grid_height, grid_width) for channel in range(3)])
+    if factor > 1:
+        size = (grid_width * factor, grid_height * factor)
+        transmitted = cv2.resize(transmitted, size, interpolation=cv2.INTER_LINEAR)
+        water = cv2.resize(water, size, interpolation=cv2.INTER_LINEAR)
+    transmitted = np.ascontiguousarray(transmitted[:height, :width])
+    # the coverage is exactly the blend weight of the water: 1 - T / 255
+    coverage = np.divide(cv2.bitwise_not(transmitted), np.float32(255.0), dtype=np.float32)  # exact 0 and 1
+    out = cv2.add(cv2.multiply(base, cv2.cvtColor(transmitted, cv2.COLOR_GRAY2RGB), scale=1.0 / 255.0), water[:height, :width])
     return out, coverage
-
-
-def update_lens(out: np.ndarray, coverage: np.ndarray, base: np.ndarray, sums: LensSums, index: np.ndarray) -> None:
-    """Recompute the composite of :func:`apply_lens` in place at some compressed pixels.
-
-    Args:
-        out: (H, W, 3) uint8 image to write into.
-        coverage: (H, W) float32 coverage to write into.
-        base: (H, W, 3) uint8 image under the drops.
-        sums: exact sums.
-        index: (K,) int64 positions into ``sums.pixels`` with ``sums.alpha > 0``.
-    """
-    if index.shape[0] == 0:
-        return
-    pixels = sums.pixels[index]
-    alpha = sums.alpha[index]
-    opacity = np.minimum(alpha * (1.0 / ALPHA_UNITS), 1.0).astype(np.float32)
-    under = base.reshape(-1, 3).take(pixels, axis=0).astype(np.float32)
-    mix = (sums.alpha_color[index] / alpha[:, None]).astype(np.float32)
-    # a convex combination of values in 0..255, so no clipping is needed
-    out.reshape(-1, 3)[pixels] = np.rint(under + opacity[:, None] * (mix - under)).astype(np.uint8)
-    coverage.reshape(-1)[pixels] = opacity

@@ -119,7 +119,15 @@ def _lens_count(rate: float, config: RainConfig, height: int, width: int) -> int
     return int(math.floor(count * config.lens_drop_fraction + 0.5))
 
 
-def sample_drops(rate_mm_h: float, *, config: RainConfig, K: np.ndarray | None, shape: tuple[int, ...], seed_sequence: np.random.SeedSequence) -> Drops:
+def sample_drops(
+    rate_mm_h: float,
+    *,
+    config: RainConfig,
+    K: np.ndarray | None,
+    shape: tuple[int, ...],
+    seed_sequence: np.random.SeedSequence,
+    lens_clock: lens_mod.LensClock | None = None,
+) -> Drops:
     """The drops that :func:`render_rain` draws for one frame at one rate.
 
     Args:
@@ -128,18 +136,22 @@ def sample_drops(rate_mm_h: float, *, config: RainConfig, K: np.ndarray | None, 
         K: (3, 3) float64 intrinsics (needed by the physical model; may be None for jeon2022).
         shape: (H, W) or (H, W, 3) image size in pixels.
         seed_sequence: the frame's ``np.random.SeedSequence`` (not mutated).
+        lens_clock: the clip's seed and the frame's time for the lens water (see
+            :func:`render_rain`); None: frame 0 of a clip seeded by ``seed_sequence``.
 
     Returns:
-        Drops. jeon2022: ``lens`` = the first N(rate) drops of the frame's sequence, ``air``
-        empty. physical: ``air`` = the candidates present at the rate (before occlusion), ``lens``
-        as jeon2022 scaled by ``lens_drop_fraction`` if ``lens_drops`` else empty.
+        Drops. jeon2022: ``lens`` = the drops in the first N(rate) slots of the clip's lens at the
+        clock's frame, ``air`` empty. physical: ``air`` = the candidates present at the rate
+        (before occlusion), ``lens`` as jeon2022 scaled by ``lens_drop_fraction`` if
+        ``lens_drops`` else empty.
     """
     config = _check_config(config)
     rate = _check_rate(rate_mm_h)
     height, width = _check_shape(shape)
     check_seed_sequence(seed_sequence)
+    clock = lens_mod.lens_clock_or_default(lens_clock, seed_sequence)
     matrix = _check_K(K, required=config.model == "physical")
-    lens = lens_mod.sample_lens_drops(_lens_count(rate, config, height, width), config=config, height=height, width=width, seed_sequence=seed_sequence)
+    lens = lens_mod.sample_lens_drops(_lens_count(rate, config, height, width), config=config, height=height, width=width, lens_clock=clock)
     if config.model == "jeon2022" or rate == 0:
         return Drops(lens=lens, air=phys.empty_air_drops())
     candidates = phys.sample_air_candidates(config=config, K=matrix, height=height, width=width, seed_sequence=seed_sequence)
@@ -154,6 +166,7 @@ def render_rain(
     config: RainConfig,
     K: np.ndarray | None,
     seed_sequence: np.random.SeedSequence,
+    lens_clock: lens_mod.LensClock | None = None,
 ) -> RainFrame:
     """Render rain at one rate into a clean frame.
 
@@ -167,11 +180,16 @@ def render_rain(
             None for jeon2022).
         seed_sequence: ``np.random.SeedSequence`` of the frame, e.g.
             ``np.random.SeedSequence([rain_seed, scene_seed, frame])``; must not include the rate.
+            Seeds what is re-drawn every frame (the physical model's falling drops).
+        lens_clock: ``LensClock(clip_seed_sequence, frame, fps)``: the lens water persists and
+            slides over a clip, so it depends on the clip's seed and the frame's time, e.g.
+            ``LensClock(np.random.SeedSequence([rain_seed, scene_seed]), frame, 10.0)``. None:
+            frame 0 of a clip seeded by ``seed_sequence``.
 
     Returns:
         RainFrame (new arrays; the inputs are not modified).
     """
-    return render_rain_sweep(rgb, depth, (rate_mm_h,), config=config, K=K, seed_sequence=seed_sequence)[0]
+    return render_rain_sweep(rgb, depth, (rate_mm_h,), config=config, K=K, seed_sequence=seed_sequence, lens_clock=lens_clock)[0]
 
 
 def render_rain_sweep(
@@ -182,21 +200,28 @@ def render_rain_sweep(
     config: RainConfig,
     K: np.ndarray | None,
     seed_sequence: np.random.SeedSequence,
+    lens_clock: lens_mod.LensClock | None = None,
+    scenes: Sequence[np.ndarray] | None = None,
 ) -> list[RainFrame]:
     """Render one frame at several rates, sharing the work that does not depend on the rate.
 
     ``render_rain_sweep(rgb, depth, rates, ...)[i]`` equals ``render_rain(rgb, depth,
-    rates[i], ...)`` byte for byte (rgb, coverage and drop_count).
+    rates[i], ...)`` byte for byte (rgb, coverage and drop_count); with ``scenes`` it equals
+    ``render_rain(scenes[i], depth, rates[i], ...)``.
 
     Args:
-        rgb, depth, config, K, seed_sequence: as for :func:`render_rain`.
+        rgb, depth, config, K, seed_sequence, lens_clock: as for :func:`render_rain`.
         rates: rain rates in mm/h, each in [0, 1000], any order, repeats allowed.
+        scenes: optional (H, W, 3) uint8 images, one per entry of ``rates``: the scene the rain
+            of that rate is drawn over (the frame re-rendered in that rate's weather); ``rgb``
+            otherwise. A rate given twice must come with the same scene.
 
     Returns:
         list of RainFrame, one per entry of ``rates``, in the same order.
     """
     config = _check_config(config)
     check_seed_sequence(seed_sequence)
+    clock = lens_mod.lens_clock_or_default(lens_clock, seed_sequence)
     rgb = _check_rgb(rgb)
     height, width = rgb.shape[:2]
     physical = config.model == "physical"
@@ -208,10 +233,24 @@ def render_rain_sweep(
     if not checked:
         return []
     ascending = sorted(set(checked))
+    scene_of: dict[float, np.ndarray] | None = None
+    if scenes is not None:
+        if len(scenes) != len(checked):
+            raise ValueError(f"scenes: expected one image per rate ({len(checked)}), got {len(scenes)}")
+        scene_of = {}
+        for rate, scene in zip(checked, scenes):
+            scene = _check_rgb(scene)
+            if scene.shape != rgb.shape:
+                raise ValueError(f"scenes: expected {rgb.shape} images like rgb, got {scene.shape}")
+            if rate in scene_of and not np.array_equal(scene_of[rate], scene):
+                raise ValueError(f"scenes: rate {rate:g} mm/h is given twice with different scenes")
+            scene_of[rate] = scene
     if physical:
-        frames = _physical_sweep(rgb, depth, ascending, config, matrix, seed_sequence)
+        frames = _physical_sweep(rgb, depth, ascending, config, matrix, seed_sequence, clock, scene_of)
+    elif scene_of is not None:  # lens water over a different scene at every rate
+        frames = [_jeon_sweep(scene_of[rate], [rate], config, clock)[0] for rate in ascending]
     else:
-        frames = _jeon_sweep(rgb, ascending, config, seed_sequence)
+        frames = _jeon_sweep(rgb, ascending, config, clock)
     by_rate = dict(zip(ascending, frames))
     first_use: set[float] = set()
     out = []
@@ -229,65 +268,69 @@ def _clean_frame(rgb: np.ndarray) -> RainFrame:
 
 
 class _LensAccumulator:
-    """Lens drops of one frame for a sweep: rasterised once for the largest count."""
+    """Lens water of one frame for a sweep: the drops rasterised once for the largest count."""
 
-    def __init__(self, max_count: int, config: RainConfig, height: int, width: int, seed_sequence: np.random.SeedSequence) -> None:
-        drops = lens_mod.sample_lens_drops(max_count, config=config, height=height, width=width, seed_sequence=seed_sequence)
+    def __init__(self, max_count: int, config: RainConfig, height: int, width: int, lens_clock: lens_mod.LensClock) -> None:
+        drops = lens_mod.sample_lens_drops(max_count, config=config, height=height, width=width, lens_clock=lens_clock)
         self.raster = lens_mod.rasterize_lens_drops(drops, config=config, height=height, width=width)
-        self.pixels, self.inverse = lens_mod.compress_pixels(self.raster.pixel, height * width)
         self.config = config
 
-    def sums(self, view: np.ndarray, low: int, high: int) -> tuple[np.ndarray, np.ndarray]:
-        """Exact sums over drops ``low <= index < high`` with colours seen in ``view``."""
-        alpha, alpha_color, _ = self.segment(view, low, high)
-        return alpha, alpha_color
+    def empty_sums(self) -> lens_mod.LensSums:
+        """Zero sums on the drawing grid."""
+        return lens_mod.LensSums.zeros(self.raster.view_height, self.raster.view_width, self.raster.factor)
 
-    def segment(self, view: np.ndarray, low: int, high: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Exact sums over drops ``low <= index < high`` and the compressed pixels they touch."""
+    def add(self, sums: lens_mod.LensSums, view: np.ndarray, low: int, high: int) -> None:
+        """Add the exact sums over drops ``low <= index < high`` (colours seen in ``view``, the
+        channel planes of :func:`lens_mod.planar_view`)."""
         entries = slice(*np.searchsorted(self.raster.drop, [low, high]))  # entries are ordered by drop
-        inverse = self.inverse[entries]
-        colors = lens_mod.lens_colors(self.raster, view, entries)
-        alpha, alpha_color = lens_mod.accumulate_lens(inverse, self.raster.alpha_units[entries], colors, self.pixels.shape[0])
-        touched = np.zeros(self.pixels.shape[0], dtype=bool)
-        touched[inverse] = True
-        return alpha, alpha_color, np.flatnonzero(touched)
+        sums.add(self.raster, view, entries)
+
+    def composite(self, base: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """``base`` under the first ``count`` drops, each showing the view of ``base``."""
+        sums = self.empty_sums()
+        self.add(sums, lens_mod.planar_view(lens_mod.lens_view(base, self.config)), 0, count)
+        return lens_mod.apply_lens(base, sums)
 
 
-def _jeon_sweep(rgb: np.ndarray, ascending: list[float], config: RainConfig, seed_sequence: np.random.SeedSequence) -> list[RainFrame]:
+def _jeon_sweep(rgb: np.ndarray, ascending: list[float], config: RainConfig, lens_clock: lens_mod.LensClock) -> list[RainFrame]:
     height, width = rgb.shape[:2]
     counts = [lens_mod.jeon2022_drop_count(rate, height, width) for rate in ascending]
     if max(counts) == 0:
         return [_clean_frame(rgb) for _ in ascending]
-    accumulator = _LensAccumulator(max(counts), config, height, width, seed_sequence)
-    view = lens_mod.lens_view(rgb, config)
-    n_unique = accumulator.pixels.shape[0]
-    sums = lens_mod.LensSums(accumulator.pixels, np.zeros(n_unique, dtype=np.float64), np.zeros((n_unique, 3), dtype=np.float64))
-    image = rgb.copy()
-    coverage = np.zeros((height, width), dtype=np.float32)
+    accumulator = _LensAccumulator(max(counts), config, height, width, lens_clock)
+    view = lens_mod.planar_view(lens_mod.lens_view(rgb, config))
+    sums = accumulator.empty_sums()
     drawn = 0
-    frames = []
+    frames: list[RainFrame] = []
     for count in counts:
         if count == 0:
             frames.append(_clean_frame(rgb))
             continue
-        if count > drawn:
-            segment_alpha, segment_color, touched = accumulator.segment(view, drawn, count)
-            sums.alpha += segment_alpha  # integer-valued float64: exact in any order
-            sums.alpha_color += segment_color
-            # only pixels under the new drops change; their values depend only on their own sums
-            lens_mod.update_lens(image, coverage, rgb, sums, touched)
-            drawn = count
-        frames.append(RainFrame(image.copy(), coverage.copy(), count))
+        if count == drawn and frames:  # the same count as the previous rate: the same image
+            previous = frames[-1]
+            frames.append(RainFrame(previous.rgb.copy(), previous.coverage.copy(), count))
+            continue
+        accumulator.add(sums, view, drawn, count)
+        drawn = count
+        image, coverage = lens_mod.apply_lens(rgb, sums)
+        frames.append(RainFrame(image, coverage, count))
     return frames
 
 
 def _physical_sweep(
-    rgb: np.ndarray, depth: np.ndarray, ascending: list[float], config: RainConfig, K: np.ndarray, seed_sequence: np.random.SeedSequence
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    ascending: list[float],
+    config: RainConfig,
+    K: np.ndarray,
+    seed_sequence: np.random.SeedSequence,
+    lens_clock: lens_mod.LensClock,
+    scene_of: dict[float, np.ndarray] | None = None,
 ) -> list[RainFrame]:
     height, width = rgb.shape[:2]
     top_rate = ascending[-1]
     if top_rate == 0:
-        return [_clean_frame(rgb) for _ in ascending]
+        return [_clean_frame(scene_of[rate] if scene_of else rgb) for rate in ascending]
 
     # falling drops: candidates are rate independent; draw those present at the top rate once,
     # ordered by threshold rate so that each rate adds a contiguous run of raster entries
@@ -300,20 +343,30 @@ def _physical_sweep(
 
     # extinction and airlight, channel-planar float32 for fast per-rate blending
     path_m = phys.ray_length_m(depth, K, config.sky_distance_m)
-    airlight = np.asarray(config.airlight_rgb, dtype=np.float64) if config.airlight_rgb is not None else phys.estimate_airlight(rgb, depth)
-    drop_radiance = np.asarray(cv2.mean(rgb)[:3], dtype=np.float64)  # mean environment radiance
-    scene_minus_air = [rgb[..., channel].astype(np.float32) - np.float32(airlight[channel]) for channel in range(3)]
-    radiance_minus_air = [float(drop_radiance[channel] - airlight[channel]) for channel in range(3)]
+
+    def blend_terms(scene: np.ndarray):
+        airlight = np.asarray(config.airlight_rgb, dtype=np.float64) if config.airlight_rgb is not None else phys.estimate_airlight(scene, depth)
+        # a drop refracts a ~165 degree view, mostly of the sky: streak radiance is a blend of
+        # the sky's colour (the airlight) and the frame's mean colour (Garg & Nayar)
+        sky_weight = config.streak_sky_weight
+        drop_radiance = sky_weight * airlight + (1.0 - sky_weight) * np.asarray(cv2.mean(scene)[:3], dtype=np.float64)
+        scene_minus_air = [scene[..., channel].astype(np.float32) - np.float32(airlight[channel]) for channel in range(3)]
+        radiance_minus_air = [float(drop_radiance[channel] - airlight[channel]) for channel in range(3)]
+        return airlight, scene_minus_air, radiance_minus_air
+
+    shared_terms = blend_terms(rgb) if scene_of is None else None
 
     lens_counts = [_lens_count(rate, config, height, width) for rate in ascending]
-    lens_accumulator = _LensAccumulator(max(lens_counts), config, height, width, seed_sequence) if max(lens_counts) > 0 else None
+    lens_accumulator = _LensAccumulator(max(lens_counts), config, height, width, lens_clock) if max(lens_counts) > 0 else None
 
     frames = []
     drawn = 0
     for rate, lens_count in zip(ascending, lens_counts):
+        scene = scene_of[rate] if scene_of is not None else rgb
         if rate == 0:
-            frames.append(_clean_frame(rgb))
+            frames.append(_clean_frame(scene))
             continue
+        airlight, scene_minus_air, radiance_minus_air = shared_terms or blend_terms(scene)
         upto = int(np.searchsorted(element_threshold, rate, side="right"))
         streaks.add(drawn, upto)
         drawn = upto
@@ -333,9 +386,7 @@ def _physical_sweep(
         drop_count = int(np.count_nonzero(raster.visible & (air.threshold_rate_mm_h <= rate)))
 
         if lens_accumulator is not None and lens_count > 0:
-            view = lens_mod.lens_view(rainy, config)
-            alpha, alpha_color = lens_accumulator.sums(view, 0, lens_count)
-            rainy, lens_coverage = lens_mod.apply_lens(rainy, lens_mod.LensSums(lens_accumulator.pixels, alpha, alpha_color))
+            rainy, lens_coverage = lens_accumulator.composite(rainy, lens_count)  # drops show the rainy scene
             coverage = (1.0 - (1.0 - coverage) * (1.0 - lens_coverage)).astype(np.float32)
             drop_count += lens_count
         frames.append(RainFrame(rainy, coverage, drop_count))

@@ -34,9 +34,12 @@ def small_shard(tmp_path_factory):
     return generate_shard(GenerateConfig(seed=5, frame_offset=60, **SMALL), out)
 
 
-def test_shard_layout_follows_format_v1(small_shard):
+def test_shard_layout_follows_format_v2(small_shard):
     with open_shard(small_shard) as f:
-        assert f.attrs["format"] == "rainbench.shard" and f.attrs["format_version"] == 1
+        assert f.attrs["format"] == "rainbench.shard" and f.attrs["format_version"] == 2
+        assert f.attrs["sky"] in ("clear", "cloudy", "overcast")
+        assert not f.attrs["weather_follows_rate"]  # jeon2022's default: the paper's method
+        assert f["weather/rain_mm_h"][()].tolist() == [0.0]
         assert json.loads(f.attrs["class_names"]) == ["person", "bicycle", "car", "motorcycle"]
         assert f.attrs["scene_seed"] == 5 and f.attrs["frame_offset"] == 60
         assert json.loads(f.attrs["config"])["width"] == 160
@@ -191,6 +194,6 @@ def test_open_shard_rejects_bad_files(tmp_path, small_shard):
     future = tmp_path / "future.h5"
     future.write_bytes(small_shard.read_bytes())
     with h5py.File(future, "a") as f:
-        f.attrs["format_version"] = 2
-    with pytest.raises(ShardFormatError, match="unknown format_version 2"):
+        f.attrs["format_version"] = 3
+    with pytest.raises(ShardFormatError, match="unknown format_version 3"):
         open_shard(future)

@@ -1,0 +1,743 @@
+"""Issue 18, hardening: interrupted runs that resume, every image size, tracebacks turned into
+one-line errors, label checks in every reader, leftovers and edges, a Ray cluster by address,
+safe .pt loading. (The property-based fuzzer is tests/test_fuzz.py.)"""
+
+import ctypes.util
+import json
+import os
+import re
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from rainbench import ShardDataset, cli
+from rainbench.gen import dataset as ds
+from rainbench.gen import export as ex
+from rainbench.gen import gl
+from rainbench.gen.generate import GenerateConfig, build_scene, generate_shard
+from rainbench.gen.render import FrameRenderer, padded_size
+from rainbench.gen.shard import ShardFormatError
+from rainbench.mjcf.scene import build_spec
+
+# torch's triton segfaults when first loaded after Mesa's llvmpipe rendered in this process
+# (tests/test_eval_pipeline.py): load it at collection, before any fixture renders.
+from rainbench.eval import backends  # noqa: E402
+
+backends._offline_ultralytics()
+import torch._dynamo  # noqa: E402,F401
+
+SMALL = dict(scenes=1, frames=4, frames_per_shard=2, width=96, height=72, rates=(0.0, 50.0))
+# The issue's interrupted run (three shards, two workers), with shards long enough (~3 s each)
+# to be interrupted in the middle.
+GEN = ["generate", "--frames", "96", "--frames-per-shard", "32", "--width", "160", "--height", "120",
+       "--rates", "0,50,100", "--quiet"]
+SLOW = ["--workers", "2", "--threads", "1", "--render-threads", "1"]
+
+
+def _hashes(root):
+    manifest = json.loads((Path(root) / ds.MANIFEST).read_text())
+    return [(entry["path"], entry["sha256"]) for entry in manifest["shards"]]
+
+
+def _cli(argv):
+    """cli.main's exit status, argparse's SystemExit included."""
+    try:
+        return cli.main(argv)
+    except SystemExit as exit:
+        return exit.code
+
+
+def _one_line_error(capsys, code, pattern):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert re.fullmatch(r"rainbench: error: " + pattern, err[0]), err[0]
+    return err[0]
+
+
+def _copy_tree(source, target):
+    shutil.copytree(source, target)
+    return Path(target)
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """A complete small dataset: 2 shards of 2 frames, 96 x 72, 0 and 50 mm/h."""
+    root = tmp_path_factory.mktemp("small")
+    ds.run_dataset(ds.DatasetConfig(**SMALL), root, workers=1)
+    return root
+
+
+@pytest.fixture(scope="module")
+def labelled(tmp_path_factory):
+    """One shard of 3 frames whose frames 1 and 2 hold one label each (frame 0 none)."""
+    root = tmp_path_factory.mktemp("labelled")
+    path = generate_shard(GenerateConfig(frames=3, width=96, height=72, rates=(0.0, 50.0)), root)
+    with h5py.File(path) as handle:
+        assert handle["labels/offsets"][()].tolist() == [0, 0, 1, 2]
+    return path
+
+
+def _mutated(source, target_dir, **changes):
+    """A copy of shard ``source`` in ``target_dir`` with /labels datasets replaced."""
+    target_dir.mkdir(parents=True, exist_ok=True)
+    path = target_dir / source.name
+    shutil.copy(source, path)
+    with h5py.File(path, "r+") as handle:
+        for key, value in changes.items():
+            data = handle[f"labels/{key}"][()]
+            value = value(data.copy()) if callable(value) else value
+            del handle[f"labels/{key}"]
+            handle.create_dataset(f"labels/{key}", data=value)
+    return path
+
+
+def _nan_box(bbox):
+    bbox[0, 1] = np.nan
+    return bbox
+
+
+# -- 1. interrupted multi-worker runs -------------------------------------------------------------
+
+def _proc_stat(pid):
+    """(state, ppid, pgrp) of a process, None when it is gone."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = text[text.rindex(")") + 2:].split()
+    return fields[0], int(fields[1]), int(fields[2])
+
+
+def _live_group(pgid):
+    """Live (not zombie) processes of process group ``pgid``."""
+    live = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            stat = _proc_stat(int(entry.name))
+            if stat and stat[2] == pgid and stat[0] != "Z":
+                live.append(int(entry.name))
+    return live
+
+
+def _start(out, *extra):
+    argv = [sys.executable, "-m", "rainbench.cli", *GEN, "--out", str(out), *extra]
+    return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+def _wait_for_temporary(process, out, timeout=180):
+    deadline = time.time() + timeout
+    while time.time() < deadline and process.poll() is None:
+        if list(out.glob(".scene*.tmp-*")):
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"no temporary shard appeared (rc {process.poll()})")
+
+
+def _wait_group_gone(pgid, timeout=20):
+    deadline = time.time() + timeout
+    while _live_group(pgid) and time.time() < deadline:
+        time.sleep(0.1)
+    return _live_group(pgid)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The issue's dataset rendered by one uninterrupted run (one worker)."""
+    root = tmp_path_factory.mktemp("reference")
+    assert cli.main(GEN + ["--out", str(root), "--workers", "1"]) == 0
+    return _hashes(root)
+
+
+def test_kill_9_of_a_two_worker_run_kills_its_workers_and_the_rerun_resumes(reference, tmp_path):
+    out = tmp_path / "k3"
+    process = _start(out, *SLOW)
+    try:
+        _wait_for_temporary(process, out)
+        workers = [pid for pid in _live_group(process.pid) if pid != process.pid]
+        assert len(workers) >= 2  # two workers (and multiprocessing's resource tracker)
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        assert _wait_group_gone(process.pid) == []  # no orphan renders on
+        listing = sorted(p.name for p in out.iterdir())
+        time.sleep(2)
+        assert sorted(p.name for p in out.iterdir()) == listing  # nothing appears afterwards
+        # the manifest was written before the first shard and lists only complete ones
+        manifest = json.loads((out / ds.MANIFEST).read_text())
+        assert manifest["complete"] is False and len(manifest["shards"]) < 3
+    finally:
+        if _live_group(process.pid):
+            os.killpg(process.pid, signal.SIGKILL)
+    rerun = subprocess.run([sys.executable, "-m", "rainbench.cli", *GEN, "--out", str(out),
+                            "--workers", "2"], capture_output=True, text=True)
+    assert rerun.returncode == 0, rerun.stderr
+    assert ds.verify_dataset(out) == [] and _hashes(out) == reference
+    assert not list(out.glob(".*"))  # no temporary file, no lock file left
+
+
+def test_ctrl_c_stops_the_workers_tells_the_truth_and_the_rerun_resumes(reference, tmp_path,
+                                                                        capsys):
+    out = tmp_path / "k3"
+    process = _start(out, *SLOW)
+    try:
+        _wait_for_temporary(process, out)
+        # a second generate on the same OUT meanwhile is refused (real processes)
+        code = cli.main(GEN + ["--out", str(out), "--workers", "1"])
+        _one_line_error(capsys, code, re.escape(f"OUT: {out} is being written by another rainbench "
+                                                f"generate (pid {process.pid}); wait for it to "
+                                                "finish or choose another OUT"))
+        os.killpg(process.pid, signal.SIGINT)  # Ctrl-C: the whole process group
+        _, err = process.communicate(timeout=120)
+        assert process.returncode == 130
+        assert err.strip().splitlines() == [
+            f"rainbench: interrupted; the workers are stopped, {out / 'manifest.json'} lists the "
+            "complete shards and nothing partial is under a final name; run the same command "
+            "again to resume"]
+        assert _wait_group_gone(process.pid, timeout=10) == []
+        finals = sorted(p.name for p in out.glob("scene*.h5"))
+        time.sleep(2)
+        assert sorted(p.name for p in out.glob("scene*.h5")) == finals  # no shard afterwards
+        assert not list(out.glob(".*tmp*"))  # the stopped workers' temporary files are removed
+        if finals:
+            listed = sorted(e["path"] for e in json.loads((out / ds.MANIFEST).read_text())["shards"])
+            assert listed == finals
+    finally:
+        if _live_group(process.pid):
+            os.killpg(process.pid, signal.SIGKILL)
+    assert cli.main(GEN + ["--out", str(out), "--workers", "2"]) == 0
+    assert _hashes(out) == reference
+
+
+def test_the_manifest_exists_before_the_first_shard(tmp_path):
+    seen = []
+
+    def interrupt(frames):
+        seen.append(sorted(p.name for p in tmp_path.iterdir()))
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1, progress=interrupt)
+    assert seen and "manifest.json" in seen[0]  # a kill -9 here leaves a manifest to resume
+    assert list(tmp_path.iterdir()) == []  # a caught failure with nothing done leaves nothing
+
+
+def test_a_complete_shard_missing_from_the_manifest_is_adopted(small, tmp_path, monkeypatch):
+    """A run killed between a shard's rename and the manifest update: the re-run adopts it."""
+    out = _copy_tree(small, tmp_path / "copy")
+    manifest = json.loads((out / ds.MANIFEST).read_text())
+    manifest["shards"], manifest["complete"] = manifest["shards"][:1], False
+    (out / ds.MANIFEST).write_text(json.dumps(manifest))
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("the shard should have been adopted, not rendered")
+
+    monkeypatch.setattr(ds, "generate_shard", no_render)
+    ds.run_dataset(ds.DatasetConfig(**SMALL), out, workers=1)
+    assert _hashes(out) == _hashes(small) and ds.verify_dataset(out) == []
+
+
+def test_a_corrupt_unlisted_shard_is_rendered_again(small, tmp_path, monkeypatch):
+    out = _copy_tree(small, tmp_path / "copy")
+    manifest = json.loads((out / ds.MANIFEST).read_text())
+    manifest["shards"], manifest["complete"] = manifest["shards"][:1], False
+    (out / ds.MANIFEST).write_text(json.dumps(manifest))
+    corrupt = out / "scene000000_f00002.h5"
+    with h5py.File(corrupt) as handle:
+        info = handle["rgb"].id.get_chunk_info_by_coord((0, 0, 0, 0, 0))
+    data = bytearray(corrupt.read_bytes())
+    data[info.byte_offset + info.size // 2] ^= 0x55  # inside an RGB chunk: h5py still opens it
+    corrupt.write_bytes(bytes(data))
+    task = ds.DatasetConfig(**SMALL).tasks()[1]
+    assert not ds._adoptable(corrupt, task)
+    assert ds._adoptable(small / corrupt.name, task)
+    rendered = []
+    real = ds.generate_shard
+
+    def spy(task, out_dir, **kwargs):
+        rendered.append(task.frame_offset)
+        return real(task, out_dir, **kwargs)
+
+    monkeypatch.setattr(ds, "generate_shard", spy)
+    ds.run_dataset(ds.DatasetConfig(**SMALL), out, workers=1)
+    assert rendered == [2] and _hashes(out) == _hashes(small)
+
+
+def test_the_lock_refuses_a_second_run_and_is_released(tmp_path, capsys):
+    with ds._locked(tmp_path):
+        assert (tmp_path / ds.LOCK).read_text() == str(os.getpid())
+        code = cli.main(["generate", "--out", str(tmp_path), "--frames", "1", "--quiet"])
+        _one_line_error(capsys, code, re.escape(f"OUT: {tmp_path} is being written by another "
+                                                f"rainbench generate (pid {os.getpid()})") + ".*")
+    assert list(tmp_path.iterdir()) == []  # released and removed
+    with ds._locked(tmp_path):  # and can be taken again
+        pass
+
+
+def test_workers_die_with_their_parent(tmp_path):
+    """_die_with_parent in a process whose parent is then killed with SIGKILL."""
+    script = (
+        "import os, sys, time\n"
+        "from rainbench.gen.dataset import _die_with_parent\n"
+        "child = os.fork()\n"
+        "if child == 0:\n"
+        "    _die_with_parent(os.getppid())\n"
+        "    open(sys.argv[1], 'w').write(str(os.getpid()))\n"
+        "    time.sleep(60)\n"
+        "    os._exit(0)\n"
+        "time.sleep(60)\n")
+    marker = tmp_path / "child.pid"
+    process = subprocess.Popen([sys.executable, "-c", script, str(marker)], start_new_session=True)
+    try:
+        deadline = time.time() + 60
+        while not (marker.exists() and marker.read_text()) and time.time() < deadline:
+            time.sleep(0.05)
+        child = int(marker.read_text())
+        assert _proc_stat(child)[0] != "Z"
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        deadline = time.time() + 5
+        while _proc_stat(child) and _proc_stat(child)[0] != "Z" and time.time() < deadline:
+            time.sleep(0.05)
+        assert _proc_stat(child) is None or _proc_stat(child)[0] == "Z"
+    finally:
+        if _live_group(process.pid):
+            os.killpg(process.pid, signal.SIGKILL)
+
+
+# -- 2. every image size ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("width, height", [(200, 150), (250, 190), (333, 250), (801, 601)])
+def test_every_accepted_size_gets_a_big_enough_framebuffer(width, height):
+    config = GenerateConfig(frames=1, width=width, height=height)
+    setup = build_scene(config)
+    vis = setup.model.vis.global_
+    assert (vis.offwidth, vis.offheight) == padded_size(width, height)[:2]
+    with FrameRenderer(setup.model, width, height, setup.geom_instance) as renderer:
+        assert (renderer.padded_width, renderer.padded_height) == padded_size(width, height)[:2]
+
+
+def test_the_issue_size_generates(tmp_path, capsys):
+    assert cli.main(["generate", "--frames", "1", "--width", "200", "--height", "150", "--quiet",
+                     "--out", str(tmp_path)]) == 0
+    with h5py.File(tmp_path / "scene000000_f00000.h5") as handle:
+        assert handle["rgb"].shape == (1, 1, 150, 200, 3)
+
+
+def test_build_spec_and_the_renderer_share_one_size_rule():
+    from rainbench.mjcf import layout as L
+
+    config = GenerateConfig(frames=1)
+    layout = L.sample_layout(0, config.scenario_config(), np.random.default_rng(0))
+    for width, height in ((16, 16), (17, 19), (200, 150), (8192, 16), (16, 8191)):
+        spec = build_spec(layout, width, height)
+        assert (spec.visual.global_.offwidth, spec.visual.global_.offheight) == \
+            padded_size(width, height)[:2]
+        padded_w, padded_h, margin_x, margin_y = padded_size(width, height)
+        assert margin_x >= width * 0.25 and margin_y >= height * 0.25
+        assert (padded_w, padded_h) == (width + 2 * margin_x, height + 2 * margin_y)
+
+
+# -- 3. one-line errors instead of tracebacks ---------------------------------------------------
+
+def _manifest_cases():
+    def drop(key):
+        return lambda m: {k: v for k, v in m.items() if k != key}
+
+    def entry(change):
+        def apply(m):
+            m["shards"][0] = change(dict(m["shards"][0]))
+            return m
+        return apply
+
+    return [
+        ("no shards", drop("shards"), r'"shards" must be a list of shard entries, got None'),
+        ("shards null", lambda m: dict(m, shards=None),
+         r'"shards" must be a list of shard entries, got None'),
+        ("no sha256", entry(lambda e: {k: v for k, v in e.items() if k != "sha256"}),
+         r'shards\[0\]: "sha256" is missing'),
+        ("no path", entry(lambda e: {k: v for k, v in e.items() if k != "path"}),
+         r'shards\[0\]: "path" is missing'),
+        ("passwd", entry(lambda e: dict(e, path="../../../etc/passwd")),
+         r"shards\[0\]: path '\.\./\.\./\.\./etc/passwd' leaves the dataset directory; shard paths "
+         r"must be relative paths inside it"),
+        ("absolute", entry(lambda e: dict(e, path="/etc/passwd")),
+         r"shards\[0\]: path '/etc/passwd' leaves the dataset directory.*"),
+        ("bad sha", entry(lambda e: dict(e, sha256="xyz")),
+         r'shards\[0\]: "sha256" must be 64 lowercase hex digits, got \'xyz\''),
+        ("bytes null", entry(lambda e: dict(e, bytes=None)),
+         r'shards\[0\]: "bytes" must be an integer >= 0, got None'),
+        ("config list", lambda m: dict(m, config=[]), r'"config" must be an object, got list'),
+    ]
+
+
+@pytest.mark.parametrize("name, change, message", _manifest_cases(), ids=[c[0] for c in _manifest_cases()])
+def test_bad_manifests_are_one_line_errors_everywhere(small, tmp_path, capsys, name, change, message):
+    out = _copy_tree(small, tmp_path / "copy")
+    manifest = change(json.loads((out / ds.MANIFEST).read_text()))
+    (out / ds.MANIFEST).write_text(json.dumps(manifest))
+    where = re.escape(str(out / ds.MANIFEST)) + ": "
+    for argv in (["verify", str(out)],
+                 ["generate", "--out", str(out), "--frames", "4", "--frames-per-shard", "2",
+                  "--width", "96", "--height", "72", "--rates", "0,50", "--quiet"],
+                 ["export", str(out), "--format", "coco", "--out", str(tmp_path / "export")],
+                 ["preview", str(out), "--out", str(tmp_path / "p.png")]):
+        _one_line_error(capsys, cli.main(argv), where + message)
+    assert not (tmp_path / "export").exists() and not (tmp_path / "p.png").exists()
+    with pytest.raises(ds.DatasetError, match=where + message):
+        ShardDataset(out)
+
+
+def test_deeply_nested_manifest_names_the_file(small, tmp_path, capsys):
+    out = _copy_tree(small, tmp_path / "copy")
+    (out / ds.MANIFEST).write_text("[" * 200_000)
+    _one_line_error(capsys, cli.main(["verify", str(out)]),
+                    re.escape(f"{out / ds.MANIFEST}: not a readable manifest (nested too deeply)"))
+
+
+def _run_cli_env(tmp_path, env_changes):
+    env = dict(os.environ)
+    env.pop("DISPLAY", None)
+    env.pop("WAYLAND_DISPLAY", None)
+    env.update(env_changes)
+    return subprocess.run([sys.executable, "-m", "rainbench.cli", "generate", "--frames", "1",
+                           "--width", "64", "--height", "48", "--quiet", "--out",
+                           str(tmp_path / "gl")], capture_output=True, text=True, env=env,
+                          timeout=300)
+
+
+@pytest.mark.skipif(ctypes.util.find_library("OSMesa") is not None, reason="OSMesa is installed")
+def test_mujoco_gl_osmesa_without_osmesa_is_one_line(tmp_path):
+    result = _run_cli_env(tmp_path, {"MUJOCO_GL": "osmesa"})
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        "rainbench: error: MUJOCO_GL=osmesa: the OSMesa library is not installed (package "
+        "libosmesa6); " + ("set MUJOCO_GL=egl (installed here) or unset MUJOCO_GL"
+                            if ctypes.util.find_library("EGL") else
+                            "install libegl1 for egl; install libosmesa6 for osmesa")]
+    assert not (tmp_path / "gl").exists()
+
+
+def test_mujoco_gl_glfw_without_a_display_is_one_line(tmp_path):
+    result = _run_cli_env(tmp_path, {"MUJOCO_GL": "glfw"})
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "rainbench: error: MUJOCO_GL=glfw: needs a display and DISPLAY is unset; rainbench renders "
+        "offscreen: "), lines
+    assert "EGL" not in lines[0] or ctypes.util.find_library("EGL") is None
+
+
+def test_check_environment_says_what_works_instead():
+    found = {"EGL": "libEGL.so.1"}.get
+    gl.check_environment({"MUJOCO_GL": "egl"}, found)  # fine
+    gl.check_environment({}, found)
+    with pytest.raises(gl.GLBackendError, match=r"^MUJOCO_GL=osmesa: the OSMesa library is not "
+                       r"installed \(package libosmesa6\); set MUJOCO_GL=egl \(installed here\)"):
+        gl.check_environment({"MUJOCO_GL": "osmesa"}, found)
+    with pytest.raises(gl.GLBackendError, match=r"^MUJOCO_GL=egl: .* install libegl1 for egl; "
+                       r"install libosmesa6 for osmesa$"):
+        gl.check_environment({"MUJOCO_GL": "egl"}, lambda name: None)
+    gl.check_environment({"MUJOCO_GL": "glfw", "DISPLAY": ":0"}, found)
+
+
+def test_preview_out_directory_and_bad_suffix(labelled, tmp_path, capsys):
+    folder = tmp_path / "somedir"
+    folder.mkdir()
+    assert cli.main(["preview", str(labelled), "--frame", "1", "--out", str(folder)]) == 0
+    written = folder / f"{labelled.stem}_frame0001_rates.png"
+    assert capsys.readouterr().out.strip() == str(written) and written.stat().st_size > 0
+    assert [p.name for p in folder.iterdir()] == [written.name]  # no temporary left
+    code = cli.main(["preview", str(labelled), "--out", str(tmp_path / "x.txt")])
+    _one_line_error(capsys, code, re.escape(f"--out: expected a .png file name or a directory, got "
+                                            f"{tmp_path / 'x.txt'}"))
+    assert not (tmp_path / "x.txt").exists()
+
+
+def test_preview_boxes_on_a_nan_box_and_a_corrupt_chunk_name_the_file(labelled, tmp_path, capsys):
+    bad = _mutated(labelled, tmp_path / "nan", bbox=_nan_box)
+    code = cli.main(["preview", str(bad), "--frame", "1", "--boxes", "--out", str(tmp_path / "p.png")])
+    _one_line_error(capsys, code, re.escape(f"{bad}: frame 1: label 0 has bbox [44.0, nan, ") + ".*")
+    corrupt = tmp_path / "corrupt" / labelled.name
+    corrupt.parent.mkdir()
+    shutil.copy(labelled, corrupt)
+    with h5py.File(corrupt) as handle:
+        info = handle["rgb"].id.get_chunk_info_by_coord((0, 1, 0, 0, 0))  # rate row 0, frame 1
+    data = bytearray(corrupt.read_bytes())
+    data[info.byte_offset + 40] ^= 0xFF
+    corrupt.write_bytes(bytes(data))
+    code = cli.main(["preview", str(corrupt), "--frame", "1", "--out", str(tmp_path / "p.png")])
+    _one_line_error(capsys, code, re.escape(f"{corrupt}: /rgb chunk of rate row 0, frame 1 is corrupt")
+                    + ".*")
+    assert not (tmp_path / "p.png").exists()
+
+
+# -- 4. readers check labels --------------------------------------------------------------------
+
+LABEL_DEFECTS = [
+    ("nan box", dict(bbox=_nan_box), r"frame 1: label 0 has bbox \[44\.0, nan, 52\.0, 42\.0\]; "
+                                     r"expected finite 0 <= x1 < x2 <= 96, 0 <= y1 < y2 <= 72"),
+    ("offsets decrease", dict(offsets=np.array([0, 1, 0, 2])),
+     r"frame 1: /labels/offsets decreases \(1 -> 0\)"),
+    ("offsets past the labels", dict(offsets=np.array([0, 0, 1, 3])),
+     r"frame 2: /labels/offsets ends at 3 but /labels/bbox has 2 rows"),
+    ("class out of range", dict(class_id=np.array([2, 9], np.int32)),
+     r"frame 2: label 0 has a class_id outside 0\.\.3"),
+    ("visible fraction nan", dict(visible_fraction=np.array([0.5, np.nan], np.float32)),
+     r"frame 2: label 0 has visible_fraction outside \[0, 1\]"),
+    ("short instance ids", dict(instance_id=np.array([1], np.int32)),
+     r"/labels/instance_id has shape \(1,\), expected \(2,\)"),
+]
+
+
+@pytest.mark.parametrize("name, change, message", LABEL_DEFECTS, ids=[d[0] for d in LABEL_DEFECTS])
+def test_every_reader_refuses_bad_labels_naming_file_and_frame(labelled, tmp_path, capsys, name,
+                                                               change, message):
+    bad = _mutated(labelled, tmp_path / "data", **change)
+    pattern = re.escape(str(bad)) + ": " + message
+    with pytest.raises(ShardFormatError, match=pattern):
+        ShardDataset(bad)
+    with pytest.raises(ShardFormatError, match=pattern):
+        ds.image_index([bad])
+    for fmt in ("yolo", "coco"):
+        code = cli.main(["export", str(bad), "--format", fmt, "--out", str(tmp_path / fmt)])
+        _one_line_error(capsys, code, pattern)
+        assert not (tmp_path / fmt).exists()
+    predictions = tmp_path / "predictions" / "model"
+    predictions.mkdir(parents=True)
+    for token in ("0", "50"):
+        (predictions / f"rate_{token}.json").write_text("[]")
+    code = cli.main(["eval", "--data", str(bad.parent), "--predictions", str(predictions.parent),
+                     "--out", str(tmp_path / "eval"), "--n-boot", "5", "--quiet"])
+    _one_line_error(capsys, code, pattern)
+
+
+def test_good_labels_pass_the_check(labelled, small):
+    for path in [labelled, *sorted(small.glob("*.h5"))]:
+        with ds.open_checked(path) as handle:
+            assert handle["labels/offsets"][-1] == handle["labels/bbox"].shape[0]
+
+
+# -- 5. leftovers and edges ---------------------------------------------------------------------
+
+def test_a_failed_export_leaves_nothing_and_an_old_export_intact(small, tmp_path, capsys,
+                                                                monkeypatch):
+    out = tmp_path / "export"
+    real = ex._write_image
+    calls = []
+
+    def fail_third(path, rgb):
+        calls.append(path)
+        if len(calls) == 3:
+            raise OSError(28, "No space left on device")
+        real(path, rgb)
+
+    monkeypatch.setattr(ex, "_write_image", fail_third)
+    code = cli.main(["export", str(small), "--format", "yolo", "--out", str(out)])
+    _one_line_error(capsys, code, r"\[Errno 28\] No space left on device")
+    assert not out.exists()
+    monkeypatch.setattr(ex, "_write_image", real)
+    assert cli.main(["export", str(small), "--format", "yolo", "--out", str(out)]) == 0
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert len([p for p in before if p.suffix == ".png"]) == 8  # 4 frames x 2 rates
+    calls.clear()
+    monkeypatch.setattr(ex, "_write_image", fail_third)
+    code = cli.main(["export", str(small), "--format", "yolo", "--out", str(out), "--overwrite"])
+    assert code == 2
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before  # the failed --overwrite touched nothing
+    capsys.readouterr()
+
+
+def test_export_cleans_a_killed_exports_staging_folder(small, tmp_path):
+    out = tmp_path / "export"
+    stale = out / ".export-tmp-999999999" / "rate_0" / "images"
+    stale.mkdir(parents=True)
+    paths = ex.export_coco(small, out, images=False)
+    assert sorted(p.name for p in out.iterdir()) == ["rate_0.json", "rate_50.json"]
+    assert paths == [out / "rate_0.json", out / "rate_50.json"]
+
+
+def test_verify_warns_about_shards_outside_the_manifest(small, tmp_path, capsys):
+    out = _copy_tree(small, tmp_path / "copy")
+    shutil.copy(out / "scene000000_f00000.h5", out / "extra.h5")
+    (out / "old").mkdir()
+    shutil.copy(out / "scene000000_f00000.h5", out / "old" / "scene000000_f00000.h5")
+    assert cli.main(["verify", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert captured.out.strip() == f"{out}: ok"
+    assert captured.err.strip().splitlines() == [
+        f"rainbench: warning: {out / name}: not listed in the manifest, so not part of the "
+        "dataset (ignored)" for name in ("extra.h5", "old/scene000000_f00000.h5")]
+    assert ds.unlisted_shards(small) == []
+
+
+@pytest.mark.parametrize("value", ["100001", "99999999999999999999", "0", "-3", "1e3"])
+def test_frames_is_bounded_up_front(tmp_path, capsys, value):
+    code = _cli(["generate", "--frames", value, "--out", str(tmp_path / "o"), "--quiet"])
+    expected = "an integer, got '1e3'" if value == "1e3" else f"an integer in 1..100000, got {value}"
+    line = _one_line_error(capsys, code, r"argument --frames: FRAMES: expected " + re.escape(expected))
+    assert "frame_offset" not in line and not (tmp_path / "o").exists()
+    assert cli.MAX_FRAMES == ds.MAX_FRAMES
+    with pytest.raises(ds.DatasetError, match=r"^FRAMES: expected an integer in 1\.\.100000, got 100001$"):
+        ds.DatasetConfig(frames=100_001)
+
+
+def test_too_many_shards_are_refused_up_front():
+    with pytest.raises(ds.DatasetError, match=r"SCENES x ceil\(FRAMES / FRAMES_PER_SHARD\) = "
+                                              r"10000000 shards; at most 100000"):
+        ds.DatasetConfig(scenes=100, frames=100_000, frames_per_shard=1)
+
+
+def test_deeply_nested_predictions_name_the_file(tmp_path):
+    from rainbench.eval import pipeline
+
+    path = tmp_path / "rate_0.json"
+    path.write_text("[" * 200_000)
+    with pytest.raises(pipeline.EvalError, match=re.escape(f"predictions: {path} is not a COCO results "
+                                                           "list (JSON nested too deeply to read)")):
+        pipeline.load_predictions_file(path, {1})
+    path.write_text(json.dumps([{"image_id": 1, "category_id": 0, "bbox": "1234", "score": 1}]))
+    with pytest.raises(pipeline.EvalError, match=re.escape(f"{path}: record 0: bbox '1234' is not")):
+        pipeline.load_predictions_file(path, {1})
+    path.write_text('[{"image_id": 1, "category_id": 0, "bbox": [0, 0, 1, 1], "score": 1' + "0" * 400 + "}]")
+    with pytest.raises(pipeline.EvalError, match=re.escape(f"{path}: record 0: expected image_id")):
+        pipeline.load_predictions_file(path, {1})
+
+
+# -- 6. a Ray cluster by address ----------------------------------------------------------------
+
+def _free_port():
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def ray_head(tmp_path_factory):
+    """A head started by ``ray start --block`` with token authentication (what Ray 2.60 turns on
+    once a token exists), on a free port, its token in HOME/.ray/auth_token; yields
+    (port, env). Stopped in teardown by terminating that ``ray start`` (which stops what it
+    started), never by ``ray stop`` (that would stop other people's Ray instances too)."""
+    pytest.importorskip("ray")
+    home = tmp_path_factory.mktemp("home")
+    (home / ".ray").mkdir()
+    (home / ".ray" / "auth_token").write_text(secrets.token_hex(32))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    env.update(HOME=str(home), RAY_AUTH_MODE="token", RAY_USAGE_STATS_ENABLED="0")
+    port = _free_port()
+    temp_dir = Path(f"/tmp/rb-ray-{os.getpid()}-{port}")  # short: Ray's sockets live there
+    log = home / "ray-start.log"
+    with open(log, "w") as output:
+        head = subprocess.Popen([str(Path(sys.executable).with_name("ray")), "start", "--head",
+                                 f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
+                                 "--disable-usage-stats", f"--temp-dir={temp_dir}", "--block"],
+                                env=env, stdout=output, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    try:
+        deadline = time.time() + 90
+        while "Ray runtime started" not in log.read_text():
+            assert head.poll() is None and time.time() < deadline, log.read_text()[-2000:]
+            time.sleep(0.5)
+        yield port, env
+    finally:
+        head.terminate()
+        try:
+            head.wait(60)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+            head.wait()
+        if _live_group(head.pid):
+            os.killpg(head.pid, signal.SIGKILL)
+        shutil.rmtree(temp_dir, ignore_errors=True)
+
+
+def _ray_argv(out, port):
+    return [sys.executable, "-m", "rainbench.cli", "generate", "--out", str(out), "--frames", "4",
+            "--frames-per-shard", "2", "--width", "96", "--height", "72", "--rates", "0,50",
+            "--quiet", "--executor", "ray", "--ray-address", f"127.0.0.1:{port}"]
+
+
+def test_ray_cluster_by_address_with_token_authentication(ray_head, tmp_path):
+    """The issue: after ``ray start --head``, ``--ray-address 127.0.0.1:PORT`` with RAY_AUTH_MODE
+    unset and the token in ~/.ray/auth_token (Ray 2.60 sent no token and failed); the shards
+    are byte-identical to the local executor's."""
+    port, env = ray_head
+    driver_env = {k: v for k, v in env.items() if k != "RAY_AUTH_MODE"}
+    result = subprocess.run(_ray_argv(tmp_path / "ray", port), env=driver_env, capture_output=True,
+                            text=True, timeout=240)
+    assert result.returncode == 0, result.stderr[-2000:]
+    local = _ray_argv(tmp_path / "local", port)[3:-4]
+    assert cli.main(local) == 0
+    assert _hashes(tmp_path / "ray") == _hashes(tmp_path / "local")
+
+
+@pytest.mark.slow  # Ray retries a refused token for about 20 s before it gives up
+def test_ray_cluster_with_a_wrong_token_is_one_line(ray_head, tmp_path):
+    port, env = ray_head
+    wrong = dict(env, RAY_AUTH_TOKEN="0" * 64)  # RAY_AUTH_MODE=token, the wrong token
+    result = subprocess.run(_ray_argv(tmp_path / "wrong", port), env=wrong, capture_output=True,
+                            text=True, timeout=240)
+    errors = [line for line in result.stderr.splitlines() if line.startswith("rainbench")]
+    assert result.returncode == 2 and len(errors) == 1, result.stderr[-2000:]
+    assert errors[0].startswith(f"rainbench: error: --ray-address 127.0.0.1:{port}: cannot "
+                                "connect to the Ray cluster (")
+    assert errors[0].endswith("; " + ds.RAY_AUTH_HINT)
+    assert not (tmp_path / "wrong" / "manifest.json").exists()
+
+
+# -- 7. .pt loading -----------------------------------------------------------------------------
+
+class _Evil:
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.mkdir, (str(self.marker),))
+
+
+def test_pt_files_load_safely_and_an_unsafe_one_needs_trust(tmp_path, monkeypatch, capsys):
+    import torch
+
+    monkeypatch.setenv("YOLO_CONFIG_DIR", str(tmp_path / "ultralytics"))
+    monkeypatch.delenv(backends.TRUST_PICKLE_ENV, raising=False)
+    marker = tmp_path / "ran"
+    evil = tmp_path / "evil.pt"
+    torch.save({"model": _Evil(marker)}, evil)
+    with pytest.raises(backends.BackendError, match=re.escape(
+            f"--weights: {evil} cannot be loaded safely: it pickles posix.mkdir, which is outside "
+            "ultralytics' allow-list of model classes, and loading it with Python's full unpickler "
+            "runs code from the file; if you trust this file, pass --trust-pickle (or set "
+            "RAINBENCH_TRUST_PICKLE=1)")):
+        backends.load_detector(evil, device="cpu")
+    assert not marker.exists()  # nothing from the file ran
+    from ultralytics.nn import tasks
+
+    seen = []
+    real = tasks.torch_safe_load
+
+    def spy(weight, safe_only=None):
+        seen.append(safe_only)
+        return real(weight, safe_only=safe_only)
+
+    monkeypatch.setattr(tasks, "torch_safe_load", spy)
+    detector = backends.load_detector(backends.WEIGHTS_DIR / "rainbench-yolo11n.pt", device="cpu")
+    assert seen == [True] and detector.name == "rainbench-yolo11n"
+    assert tasks.torch_safe_load is spy  # restored
+    boxes, scores, ids = detector.predict([np.zeros((72, 96, 3), np.uint8)], imgsz=96, conf=0.5,
+                                          iou=0.7, max_det=10)[0]
+    assert boxes.shape[1] == 4
+    capsys.readouterr()
+    with pytest.raises(backends.BackendError, match="is not a loadable ultralytics checkpoint"):
+        backends.load_detector(evil, device="cpu", trust_pickle=True)
+    assert marker.exists()  # the trusted, unsafe path is the full unpickler
+    assert (f"rainbench: warning: loading {evil} with Python's full unpickler (it pickles posix.mkdir; "
+            "trusted by --trust-pickle): this runs code from the file") in capsys.readouterr().err.splitlines()

@@ -1,0 +1,279 @@
+"""The world under the rain: base weather, weather that follows the rate, wet road, spray, camera."""
+
+import argparse
+import math
+
+import cv2
+import h5py
+import mujoco
+import numpy as np
+import pytest
+
+from rainbench import rain
+from rainbench.cli import _seed_and_sky
+from rainbench.gen.generate import GenerateConfig, build_scene, generate_shard
+from rainbench.gen.render import FrameRenderer
+from rainbench.mjcf.scene import _camera_quat, horizontal_to_vertical_fov
+from rainbench.rain import weather as wx
+
+SMALL = dict(frames=2, frame_offset=100, clip_frames=200, width=160, height=120,
+             store=("depth",))
+
+
+def _saturation(rgb, mask):
+    hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)
+    return float(hsv[..., 1][mask].mean()) / 255.0
+
+
+def _luma(rgb):
+    return float(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).mean())
+
+
+# -- laws ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("sky", wx.SKIES)
+def test_weather_is_monotonic_in_the_rate_and_base_at_zero(sky):
+    rates = [0, 0.5, 2, 5, 10, 25, 50, 75, 100]
+    series = [wx.weather_at(sky, rate) for rate in rates]
+    for name in ("cloud_cover", "wetness", "puddle_fraction", "road_reflectance", "spray",
+                 "gain", "exposure_s"):
+        values = [getattr(w, name) for w in series]
+        assert values == sorted(values), name
+    for name in ("sun", "illuminance_lux", "image_level"):
+        values = [getattr(w, name) for w in series]
+        assert values == sorted(values, reverse=True), name
+    base = series[0]
+    assert base.gain == 1.0 and base.image_level == 1.0 and base.wetness == 0.0
+    assert base.puddle_fraction == 0.0 and base.spray == 0.0
+    assert series[-1].sun < 1e-6 and series[-1].illuminance_lux == pytest.approx(100.0)
+    assert 1 / 100 <= series[-1].exposure_s <= 1 / 60  # rain light: 1/60-1/100 s
+
+
+def test_weather_not_following_the_rate_is_the_base_weather():
+    assert wx.weather_at("clear", 80.0, follows_rate=False) == wx.weather_at("clear", 0.0)
+    with pytest.raises(ValueError, match="SKY: expected one of clear, cloudy, overcast, got 'foggy'"):
+        wx.weather_at("foggy", 0.0)
+
+
+def test_cloud_sky_is_grey_and_cie_graded():
+    def saturation(colours):
+        return (colours.max(axis=1) - colours.min(axis=1)) / colours.max(axis=1)
+
+    cloudy = wx.sky_colours(wx.weather_at("cloudy", 0.0), np.array([0.0, 0.5, 1.0]))
+    assert (saturation(cloudy) < 0.15).all()  # 80 % cloud cover: a trace of blue at most
+    colours = wx.sky_colours(wx.weather_at("overcast", 0.0), np.array([0.0, 0.5, 1.0]))
+    assert (saturation(colours) < 0.05).all()
+    # CIE overcast: L(zenith) / L(horizon) = 3 in luminance, (3) ** (1 / 2.2) after the tone curve
+    assert colours[2].mean() / colours[0].mean() == pytest.approx(3 ** (1 / 2.2), rel=1e-6)
+    clear = wx.sky_colours(wx.weather_at("clear", 0.0), np.array([1.0]))[0]
+    assert clear[2] - clear[0] > 0.3  # a blue sky
+
+
+def test_camera_response_is_identity_at_base_and_darker_and_noisier_in_rain():
+    rng = np.random.default_rng(0)
+    image = rng.integers(40, 200, (60, 80, 3), dtype=np.uint8)
+    noise = rng.standard_normal((60, 80, 3)).astype(np.float32)
+    base = wx.weather_at("cloudy", 0.0)
+    assert np.array_equal(wx.camera_response(image, base, noise), image)
+    heavy = wx.weather_at("cloudy", 100.0)
+    out = wx.camera_response(image, heavy, noise)
+    assert out.mean() == pytest.approx(image.mean() * heavy.image_level, abs=1.0)
+    residual = out.astype(np.float64) - image * heavy.image_level
+    expected = math.sqrt(wx.NOISE_SIGNAL_DN * (heavy.gain - 1) * image.mean() * heavy.image_level
+                         + wx.NOISE_FLOOR_DN2 * (heavy.gain ** 2 - 1))
+    assert residual.std() == pytest.approx(expected, rel=0.1)
+
+
+def test_spray_is_occluded_by_nearer_surfaces():
+    K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
+    depth = np.full((120, 160), np.inf, np.float32)
+    depth[:, :80] = 2.0  # a wall 2 m away on the left half
+    points = np.array([[-0.5, 0.0, 5.0], [0.5, 0.0, 5.0]])  # 5 m away: left one behind the wall
+    opacity = wx.spray_opacity(depth, K, points, np.array([0.5, 0.5]))
+    assert opacity[:, 85:96].max() > 0.3 and opacity[:, :60].max() == 0.0
+    assert wx.composite_spray(np.zeros((120, 160, 3), np.uint8), opacity, [200, 200, 200])[60, 90:110].mean() > 20
+
+
+def test_streaks_are_brighter_than_a_dark_wall():
+    height, width = 120, 160
+    rgb = np.zeros((height, width, 3), np.uint8)
+    rgb[:40] = (200, 205, 210)  # sky
+    rgb[40:] = (25, 25, 25)  # a dark wall 6 m away
+    depth = np.full((height, width), 6.0, np.float32)
+    depth[:40] = np.inf
+    K = np.array([[80.0, 0, 80], [0, 80.0, 60], [0, 0, 1]])
+    frame = rain.render_rain(rgb, depth, 100.0, config=rain.RainConfig(model="physical", lens_drops=False),
+                             K=K, seed_sequence=np.random.SeedSequence([1, 2, 3]))
+    coverage, wall = frame.coverage[40:], frame.rgb[40:].astype(float)
+    streaks, plain = coverage > 0.03, coverage < 1e-3
+    assert streaks.sum() > 20 and plain.sum() > 1000
+    # streaks take the sky's light: brighter than the wall (and its airlight) around them
+    assert wall[streaks].mean() > wall[plain].mean() + 3 and wall[plain].mean() >= 25
+
+
+# -- a tiny inline scene with the weather rig ------------------------------------------------
+def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=True,
+               road="asphalt"):
+    spec = mujoco.MjSpec()
+    spec.stat.extent = 100.0
+    spec.visual.map.znear = 0.001
+    spec.visual.map.zfar = 10.0
+    spec.visual.global_.offwidth = width * 2
+    spec.visual.global_.offheight = height * 2
+    spec.visual.quality.shadowsize = 2048
+    spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT, rgb1=[1, 1, 1], rgb2=[1, 1, 1],
+                     width=32, height=32)
+    spec.add_material(name=road, rgba=[0.4, 0.4, 0.4, 1])  # the rig re-colours "asphalt" only
+    world = spec.worldbody
+    world.add_geom(name="scenery/road", type=mujoco.mjtGeom.mjGEOM_BOX, size=[20, 20, 0.05],
+                   pos=[0, 0, -0.05], material=road)
+    world.add_geom(name="actor000/box", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.5, 0.5, 0.5],
+                   pos=[0, 0, 0.5], rgba=[0.9, 0.05, 0.05, 1] if red_box else [0.5, 0.5, 0.5, 1])
+    ego = world.add_body(name="ego", mocap=True)
+    ego.add_camera(name="ego", pos=list(camera_pos), quat=list(camera_quat), fovy=fovy)
+    direction = np.array([-1.0, 0.0, -1.0]) / math.sqrt(2)  # sun at 45 degrees from +x
+    ego.add_light(name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+                  pos=(-20 * direction).tolist(), dir=direction.tolist(), castshadow=True)
+    ego.add_light(name="skylight", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, pos=[0, 0, 20],
+                  dir=[0, 0, -1], castshadow=False)
+    model = spec.compile()
+    table = np.array([0 if model.geom(i).name.startswith("actor") else -1
+                      for i in range(model.ngeom)], np.int32)
+    return model, table
+
+
+def _render(model, table, weather, base, width=120, height=90):
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    with FrameRenderer(model, width, height, table, base_weather=base) as renderer:
+        renderer.update(data)
+        rgb, _ = renderer.render_rgb_depth()
+        return rgb if weather == base else renderer.render_weather(data, weather)
+
+
+def test_cloudy_light_casts_no_hard_shadow_and_clear_sun_does():
+    """Top-down view of a 1 m box: the sun at 45 degrees from +x shades x in [-1.5, -0.5] m."""
+    down = [1.0, 0.0, 0.0, 0.0]  # camera looking along -z, image x along +x, up along +y
+    model, table = _rig_scene(camera_pos=[0, 0, 10], camera_quat=down, fovy=60.0, road="grey")
+    steps = {}
+    for sky in ("clear", "cloudy"):
+        base = wx.weather_at(sky, 0.0)
+        luma = cv2.cvtColor(_render(model, table, base, base), cv2.COLOR_RGB2GRAY).astype(float)
+        metres_per_px = 2 * 10 * math.tan(math.radians(30)) / 90  # vertical fov 60 deg over 90 px
+
+        def patch(x, y):
+            col = int(60 + x / metres_per_px)
+            row = int(45 - y / metres_per_px)
+            return luma[row - 2:row + 3, col - 2:col + 3].mean()
+
+        shadow, lit = patch(-1.0, 0.0), patch(-1.0, 1.6)
+        steps[sky] = (lit - shadow) / lit
+    # documented threshold (docs/rain.md): a shadow edge under 5 % is no hard shadow
+    assert steps["cloudy"] < 0.05 < 0.15 < steps["clear"]
+
+
+def test_wet_road_mirrors_a_red_box_only_when_wet():
+    model, table = _rig_scene(camera_pos=[-6, 0, 1.0], camera_quat=_camera_quat(),
+                              fovy=horizontal_to_vertical_fov(60, 120, 90))
+    base = wx.weather_at("overcast", 0.0)
+    counts = {}
+    for rate in (0.0, 50.0):
+        rgb = _render(model, table, wx.weather_at("overcast", rate), base).astype(int)
+        red = (rgb[..., 0] > rgb[..., 1] + 40) & (rgb[..., 0] > rgb[..., 2] + 40)
+        rows = np.flatnonzero(red.any(axis=1))
+        # the box's ground line: the lowest row of the box in the dry render
+        counts[rate] = red, rows
+    dry_red, dry_rows = counts[0.0]
+    ground_line = dry_rows.max()
+    wet_red, _ = counts[50.0]
+    assert dry_red[ground_line + 1:].sum() == 0
+    assert wet_red[ground_line + 2:].sum() > 30
+
+
+# -- the generator ---------------------------------------------------------------------------
+def test_paper_default_clip_is_cloudy_with_a_grey_sky(tmp_path):
+    assert _seed_and_sky(argparse.Namespace(seed=None, sky=None)) == (0, "cloudy")
+    assert _seed_and_sky(argparse.Namespace(seed=7, sky=None)) == (7, None)
+    assert _seed_and_sky(argparse.Namespace(seed=None, sky="clear")) == (0, "clear")
+    shard = generate_shard(GenerateConfig(seed=0, sky="cloudy", **SMALL), tmp_path)
+    with h5py.File(shard) as f:
+        assert f.attrs["sky"] == "cloudy"
+        rgb, depth = f["rgb"][0, 0], f["depth"][0]
+    sky = ~np.isfinite(depth)
+    assert sky.sum() > 500
+    assert _saturation(rgb, sky) <= 0.15
+
+
+@pytest.fixture(scope="module")
+def clear_physical(tmp_path_factory):
+    out = tmp_path_factory.mktemp("weather")
+    config = GenerateConfig(seed=1, sky="clear", rates=(0.0, 50.0, 100.0), rain_model="physical",
+                            **SMALL)
+    return config, generate_shard(config, out)
+
+
+def test_physical_weather_darkens_greys_and_wets_a_clear_scene(clear_physical):
+    config, shard = clear_physical
+    with h5py.File(shard) as f:
+        assert f.attrs["weather_follows_rate"] and f.attrs["sky"] == "clear"
+        rgb = f["rgb"][()]
+        depth = f["depth"][()]
+        weather = {key: f[f"weather/{key}"][()] for key in f["weather"]}
+    sky = ~np.isfinite(depth[0])
+    assert _luma(rgb[2, 0]) <= 0.8 * _luma(rgb[0, 0])
+    assert _saturation(rgb[0, 0], sky) > 0.2 and _saturation(rgb[2, 0], sky) < 0.10
+    assert list(weather["rain_mm_h"]) == [0.0, 50.0, 100.0]
+    assert np.all(np.diff(weather["wetness"]) >= 0) and weather["wetness"][0] == 0
+    assert np.all(np.diff(weather["sun"]) <= 0) and weather["sun"][0] == 1.0
+    assert set(wx.RECORD_FIELDS) == set(weather)
+
+
+def test_weather_sweep_nests_is_deterministic_and_rate_set_independent(tmp_path, clear_physical):
+    config, shard = clear_physical
+    import dataclasses
+
+    again = generate_shard(config, tmp_path / "again")
+    subset = generate_shard(dataclasses.replace(config, rates=(0.0, 100.0)), tmp_path / "subset")
+    clean = generate_shard(dataclasses.replace(config, rates=(0.0,)), tmp_path / "clean")
+    with h5py.File(shard) as f, h5py.File(again) as g, h5py.File(subset) as h, h5py.File(clean) as c:
+        assert np.array_equal(f["rgb"][()], g["rgb"][()])
+        assert np.array_equal(f["rgb"][2], h["rgb"][1])  # 100 mm/h, whatever else is asked
+        assert np.array_equal(f["rgb"][0], c["rgb"][0])  # rate 0 is the clean base render
+
+
+def test_stored_statistics_match_the_stored_images(clear_physical):
+    _, shard = clear_physical
+    with h5py.File(shard) as f:
+        rgb = f["rgb"][()]
+        ssim, psnr = f["rain/ssim"][()], f["rain/psnr"][()]
+        offsets = f["labels/offsets"][()]
+        boxes = f["labels/bbox"][()]
+        coverage, contrast = f["labels/rain_coverage"][()], f["labels/contrast_loss"][()]
+    for row in (1, 2):
+        for frame in range(rgb.shape[1]):
+            s, p = rain.image_quality(rgb[0, frame], rgb[row, frame])
+            assert ssim[row, frame] == pytest.approx(s, abs=1e-5)
+            assert psnr[row, frame] == pytest.approx(p, abs=1e-3)
+            lo, hi = offsets[frame], offsets[frame + 1]
+            _, expected = rain.box_rain_labels(rgb[0, frame], rgb[row, frame],
+                                               np.zeros(rgb.shape[2:4], np.float32), boxes[lo:hi])
+            np.testing.assert_allclose(contrast[row, lo:hi], expected, atol=1e-5)
+    assert (contrast[2] >= 0).all() and coverage[2].max() > 0
+
+
+def test_scene_renders_rainy_weather_without_changing_labels():
+    config = GenerateConfig(seed=1, sky="clear", **SMALL)
+    setup = build_scene(config)
+    data = mujoco.MjData(setup.model)
+    mujoco.mj_forward(setup.model, data)
+    with FrameRenderer(setup.model, 160, 120, setup.geom_instance,
+                       base_weather=setup.base_weather) as renderer:
+        renderer.update(data)
+        before, _ = renderer.render_rgb_depth()
+        ids_before, _ = renderer.render_instances()
+        wet = renderer.render_weather(data, wx.weather_at("clear", 100.0))
+        renderer.update(data)
+        after, _ = renderer.render_rgb_depth()
+        ids_after, _ = renderer.render_instances()
+    assert np.array_equal(before, after) and np.array_equal(ids_before, ids_after)
+    assert not np.array_equal(before, wet)
