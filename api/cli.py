@@ -130,15 +130,20 @@ def cmd_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _printable(text: str) -> str:
+    """``text`` on one line: control characters (a file name may hold a newline) escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     from rainbench.gen.dataset import unlisted_shards, verify_dataset
 
     problems = verify_dataset(args.out)
     for path in unlisted_shards(args.out):
-        print(f"rainbench: warning: {path}: not listed in the manifest, so not part of the "
-              "dataset (ignored)", file=sys.stderr)
+        print(_printable(f"rainbench: warning: {path}: not listed in the manifest, so not part of "
+                         "the dataset (ignored)"), file=sys.stderr)
     for problem in problems:
-        print(f"rainbench: bad: {problem}", file=sys.stderr)
+        print(_printable(f"rainbench: bad: {problem}"), file=sys.stderr)
     if problems:
         return 1
     print(f"{args.out}: ok")

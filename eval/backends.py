@@ -249,7 +249,7 @@ def class_lookup(names: dict[int, str] | list[str], class_map: str | None, sourc
         index_of = {name: index for index, name in by_index.items()}
         unknown = [name for name in mapping if name not in index_of]
         if unknown:
-            shown = ", ".join(list(index_of)[:12]) + (", ..." if len(index_of) > 12 else "")
+            shown = ", ".join(map(repr, list(index_of)[:12])) + (", ..." if len(index_of) > 12 else "")
             raise BackendError(f"--class-map: {source} has no class named {unknown[0]!r} (its classes: {shown})")
         for name, class_id in mapping.items():
             table[index_of[name]] = class_id
@@ -257,7 +257,7 @@ def class_lookup(names: dict[int, str] | list[str], class_map: str | None, sourc
     if all(by_index.get(i) == CLASS_NAMES[i] for i in CLASS_IDS):
         table[: len(CLASS_IDS)] = CLASS_IDS
         return table
-    shown = ", ".join(f"{i}={by_index.get(i)}" for i in range(min(size, 4)))
+    shown = ", ".join(f"{i}={by_index.get(i)!r}" for i in range(min(size, 4)))
     raise BackendError(f"{source}: its class names ({shown}, ...) are not COCO-80; pass --class-map "
                        "NAME=ID,... mapping its class names to 0 person, 1 bicycle, 2 car, 3 motorcycle")
 

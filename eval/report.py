@@ -504,6 +504,11 @@ def render_paper_md(
         if rain_model == paper_rain_model:
             lines += ["", "Rows marked (paper): the seed paper's published Tables III and IV (COCO-pretrained "
                       "YOLOv4, YOLOv5x, YOLOv7x on its CARLA Town04 clip), for reference."]
+        if any(model.endswith("-weak") for model in models):
+            lines += ["", "Rows of a `-weak` model: a deliberately weak in-domain control (the nano "
+                      "recipe's first epochs), whose clean AP is near the paper's detectors', so its "
+                      "drop shows whether the paper's size of drop appears for a detector of the "
+                      "paper's strength (docs/models.md)."]
         lines += ["", f"AP@0.5 and F1 against rain rate ({rain_model}):", "",
                   f"![AP@0.5 vs rate, {rain_model}]({rain_model}/ap50_vs_rate.png) "
                   f"![F1 vs rate, {rain_model}]({rain_model}/f1_vs_rate.png)", "",

@@ -245,9 +245,12 @@ def check_manifest(manifest, path: str | Path) -> dict:
                                    f"{_show(entry[key])}")
         relative = PurePosixPath(entry["path"])
         if (relative.is_absolute() or ".." in relative.parts or not relative.parts
-                or "\\" in entry["path"] or "\x00" in entry["path"]):
+                or "\\" in entry["path"]):
             raise DatasetError(f"{where}: path {_show(entry['path'])} leaves the dataset "
                                "directory; shard paths must be relative paths inside it")
+        if not entry["path"].isprintable():
+            raise DatasetError(f"{where}: path {_show(entry['path'])} holds control "
+                               "characters; shard paths must be printable")
         if relative in seen:
             raise DatasetError(f"{where}: {entry['path']} is listed twice")
         seen.add(relative)
@@ -292,8 +295,10 @@ def check_labels(handle, path: str | Path | None = None) -> None:
     """
     path = path if path is not None else handle.filename
     try:
-        rgb_shape = tuple(handle["rgb"].shape)
-        rates = handle["rates"].shape
+        rgb = handle["rgb"]
+        rgb_shape, _ = tuple(rgb.shape), (rgb.chunks, rgb.compression, rgb.dtype)
+        rate_values = handle["rates"][()]
+        rates = rate_values.shape
         width, height = int(handle.attrs["width"]), int(handle.attrs["height"])
         class_names = json.loads(handle.attrs["class_names"])
         group = handle["labels"]
@@ -307,6 +312,14 @@ def check_labels(handle, path: str | Path | None = None) -> None:
                                f"{width}, 3) with R = {rates[0] if rates else '?'} rates")
     if not isinstance(class_names, list):
         raise ShardFormatError(f"{path}: class_names is not a JSON list")
+    if rgb.dtype != np.uint8:
+        raise ShardFormatError(f"{path}: /rgb holds {rgb.dtype}, not uint8")
+    with np.errstate(invalid="ignore"):
+        values = rate_values.astype(np.float64) if rate_values.dtype.kind in "fiu" else None
+        if values is None or not (np.isfinite(values).all() and (values >= 0).all()
+                                  and (np.diff(values) > 0).all()):
+            raise ShardFormatError(f"{path}: /rates {rate_values.tolist()!r:.80} are not "
+                                   "ascending finite rates >= 0")
     frames, num_rates = rgb_shape[1], rgb_shape[0]
     for key in _LABEL_SHAPES:
         if key not in arrays and key not in ("rain_coverage", "contrast_loss"):
@@ -378,8 +391,17 @@ _LABEL_SHAPES = {
 
 
 def open_checked(path: str | Path):
-    """:func:`open_shard` then :func:`check_labels`: how every rainbench reader opens a shard."""
-    handle = open_shard(path)
+    """:func:`open_shard` then :func:`check_labels`: how every rainbench reader opens a shard.
+    Every failure is a one-line :class:`ShardFormatError` naming the file."""
+    try:
+        handle = open_shard(path)
+    except ShardFormatError:
+        raise
+    except (KeyError, OSError, RuntimeError, TypeError, ValueError) as error:
+        # damaged HDF5 metadata surfaces from h5py as KeyError, OSError, ...
+        reason = " ".join(str(error).split())
+        raise ShardFormatError(f"{path}: not a readable shard ({type(error).__name__}: "
+                               f"{reason})") from None
     try:
         check_labels(handle, path)
     except BaseException:

@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
-from rainbench.rain.weather import Weather
+from rainbench.rain.weather import Weather, road_mirror_weight
 
 from .gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
 from .gl import state as _gl_state
@@ -111,6 +111,7 @@ class FrameRenderer:
         self.base_weather = base_weather
         self._rig = WeatherRig(model) if base_weather is not None else None
         self._weather_option = mujoco.MjvOption()
+        self._mirror_weights: dict[tuple, np.ndarray] = {}
         self._weather: Weather | None = None
         self._set_weather(base_weather)
 
@@ -162,9 +163,30 @@ class FrameRenderer:
         option = self._weather_option
         option.geomgroup[PUDDLE_GROUP] = self._rig.puddles_visible
         option.geomgroup[CLOUD_DECK_GROUP] = self._rig.cloud_deck
+        self._set_segmentation(False)
+        surface = self._render_rgb(data, option)
+        if self._rig.road_reflectance <= 0:
+            return surface
+        # MuJoCo's mirror is angle independent: render the road as a full mirror and blend it
+        # over the plain render with water's Fresnel weight per pixel (rain/weather.py)
+        self._rig.set_mirror(True)
+        try:
+            mirror = self._render_rgb(data, option)
+        finally:
+            self._rig.set_mirror(False)
+        rotation = camera_pose(self.model, data, self.model.camera(self.camera_id).name)[:3, :3]
+        key = (np.round(rotation, 9).tobytes(), self._rig.road_reflectance)
+        if key not in self._mirror_weights:  # the camera rides a level car: a few keys a clip
+            self._mirror_weights[key] = road_mirror_weight(
+                self.K, rotation, self.height, self.width, self._rig.road_reflectance)
+        weight = self._mirror_weights[key]
+        blended = surface.astype(np.float32)
+        blended += weight[..., None] * (mirror.astype(np.float32) - blended)
+        return np.rint(blended).astype(np.uint8)
+
+    def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption) -> np.ndarray:
         mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
                                mujoco.mjtCatBit.mjCAT_ALL, self._scene)
-        self._set_segmentation(False)
         mujoco.mjr_render(self._rect, self._scene, self._mjr_context)
         mujoco.mjr_readPixels(self._rgb, None, self._rect, self._mjr_context)
         return np.flipud(self._rgb).copy()

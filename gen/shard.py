@@ -54,7 +54,7 @@ def read_rgb(handle: h5py.File, rate_row: int, frame: int) -> np.ndarray:
         if filter_mask != 0:  # the filter was skipped for this chunk: h5py knows what to do
             return rgb[rate_row, frame]
         raw = deflate.zlib_decompress(chunk, int(np.prod(shape)))
-    except (OSError, ValueError, deflate.DeflateError) as error:
+    except (OSError, RuntimeError, KeyError, ValueError, deflate.DeflateError) as error:
         raise ShardFormatError(f"{handle.filename}: /rgb chunk of rate row {rate_row}, frame "
                                f"{frame} is corrupt ({error})") from error
     return np.frombuffer(raw, np.uint8).reshape(shape)

@@ -75,6 +75,12 @@ class WeatherRig:
         self._sky_key: tuple | None = None
         self._sky_texels: dict[tuple, np.ndarray] = {}
         self.cloud_deck = self.puddles_visible = False
+        self.road_reflectance = 0.0
+
+    def set_mirror(self, on: bool) -> None:
+        """Full mirror reflectance on the road (``on``), or none."""
+        if "asphalt" in self._materials:
+            self.model.mat_reflectance[self._materials["asphalt"]] = 1.0 if on else 0.0
 
     def apply(self, weather: Weather, context: mujoco.MjrContext | None) -> None:
         """Write ``weather`` into the model; upload the sky to ``context`` if it changed."""
@@ -92,8 +98,9 @@ class WeatherRig:
                              ("grass", lighting.grass_factor)):
             if name in materials:
                 model.mat_rgba[materials[name]] = [factor, factor, factor, 1.0]
-        if "asphalt" in materials:
-            model.mat_reflectance[materials["asphalt"]] = lighting.road_reflectance
+        self.road_reflectance = lighting.road_reflectance if "asphalt" in materials else 0.0
+        if "asphalt" in materials:  # the renderer draws the mirror itself (FrameRenderer)
+            model.mat_reflectance[materials["asphalt"]] = 0.0
         if "puddle" in materials:
             model.mat_rgba[materials["puddle"]] = lighting.puddle_rgba
             model.geom_size[self._puddles] = self._puddle_size * [

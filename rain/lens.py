@@ -20,12 +20,12 @@ slot, generation, column), and every per-drop quantity that uses a transcendenta
 computed on whole blocks of :data:`LENS_BLOCK` slots, so drop i is identical however many drops
 are asked for.
 
-Exact accumulation: per-cell opacities and colours are integers (alpha in 1/1024 steps, colours
-0..255), so their sums are exact in float64 in any order. This lets ``render_rain_sweep`` add
+Exact accumulation: per-cell opacities, shades and colours are integers (alpha in 1/1024 steps,
+shade in 1/256 steps, colours 0..255), so their sums are exact in float64 in any order. This lets ``render_rain_sweep`` add
 drops rate by rate and still match single-rate calls byte for byte.
 
 Drawing resolution: lens water is smooth (defocused), so the drops are rasterised on a grid of
-``lens_view_blur_px`` pixel cells (4 px at 800x600) and the per-cell coverage and colour are
+cells half the defocus radius wide (5 px at 800x600) and the per-cell coverage and colour are
 upsampled bilinearly before they are blended over the full-resolution image.
 """
 
@@ -352,13 +352,13 @@ def sample_lens_drops(count: int, *, config: RainConfig, height: int, width: int
 
 
 GRID_PER_DEFOCUS = 0.5
-"""Drawing cell side as a fraction of the defocus radius (4 px for the default 10 px)."""
+"""Drawing cell side as a fraction of the defocus radius (5 px for the default 10 px)."""
 
 
 def lens_grid_factor(config: RainConfig, height: int, width: int) -> int:
-    """Side of a drawing cell in pixels: ``round(0.4 * lens_defocus_px * image_scale)``, >= 1.
+    """Side of a drawing cell in pixels: ``round(0.5 * lens_defocus_px * image_scale)``, >= 1.
 
-    Lens water is blurred by the defocus (radius b), so cells of 0.4 b lose nothing visible."""
+    Lens water is blurred by the defocus (radius b), so cells of b / 2 lose nothing visible."""
     return max(1, int(round(GRID_PER_DEFOCUS * config.lens_defocus_px * image_scale(height, width))))
 
 
@@ -374,7 +374,7 @@ def lens_view(rgb: np.ndarray, config: RainConfig) -> np.ndarray:
 
     Args:
         rgb: (H, W, 3) uint8 image.
-        config: gives ``lens_view_blur_px`` and the cell size.
+        config: gives ``lens_view_blur_px`` and ``lens_defocus_px`` (the cell size).
 
     Returns:
         (h, w, 3) uint8: the image area-averaged down to :func:`lens_view_shape`, then blurred
@@ -471,9 +471,9 @@ def rasterize_lens_drops(drops: LensDrops, *, config: RainConfig, height: int, w
     # does not depend on which other drops are drawn)
     radius = drops.radius_px
     reach = radius + blur
-    # cells whose centre can be within the reach: |(j + 0.5) k - x| < reach, j - floor(x / k) in
-    # (-reach / k - 0.5, reach / k + 0.5)
-    half = np.ceil(reach / factor + 0.5).astype(np.int64)
+    # cells whose centre can be within the reach: |(j + 0.5) k - x| < reach, so the offset
+    # o = j - floor(x / k) has |o| < reach / k + 0.5
+    half = np.ceil(reach / factor + 0.5).astype(np.int64) - 1
     cell_x = np.floor(drops.x_px / factor)
     cell_y = np.floor(drops.y_px / factor)
     # offset of the drop centre from the centre of its cell, in pixels
@@ -499,27 +499,32 @@ def rasterize_lens_drops(drops: LensDrops, *, config: RainConfig, height: int, w
         offsets = np.arange(-half_size, half_size + 1, dtype=np.int64)
         offset_x = np.tile(offsets, offsets.shape[0])
         offset_y = np.repeat(offsets, offsets.shape[0])
-        # drop the corners that no drop of this group can reach
+        # drop the corners that no drop of this group can reach: a cell centre is at least
+        # k (|o| - 0.5)+ from the drop centre along each axis, and reach / k < half + 0.5
         gap_x = np.maximum(np.abs(offset_x) - 0.5, 0.0)
         gap_y = np.maximum(np.abs(offset_y) - 0.5, 0.0)
-        corner = gap_x * gap_x + gap_y * gap_y < (half_size - 0.5) ** 2
+        corner = gap_x * gap_x + gap_y * gap_y < (half_size + 0.5) ** 2
         offset_x, offset_y = offset_x[corner], offset_y[corner]
         cells = offset_x.shape[0]
-        gx = cell_x[index].astype(np.int64)[:, None] + offset_x[None, :]
-        gy = cell_y[index].astype(np.int64)[:, None] + offset_y[None, :]
         dx = shift_x[index][:, None] + (offset_x * factor).astype(np.float32)[None, :]
         dy = shift_y[index][:, None] + (offset_y * factor).astype(np.float32)[None, :]
         along = dx * along_x[index][:, None] + dy * along_y[index][:, None]
         across = dx * across_x[index][:, None] + dy * across_y[index][:, None]
         q_squared = along * along + across * across  # (d / reach)^2
-        inside = (q_squared < 1.0) & (gx >= 0) & (gx < view_width) & (gy >= 0) & (gy < view_height)
-        flat = np.flatnonzero(inside)
-        drop_index = index.take(flat // cells)
+        flat = np.flatnonzero(q_squared < 1.0)
+        rows = flat // cells
+        columns = flat - rows * cells
+        drop_index = index.take(rows)
+        gx = cell_x.take(drop_index).astype(np.int64) + offset_x.take(columns)
+        gy = cell_y.take(drop_index).astype(np.int64) + offset_y.take(columns)
+        on_grid = np.flatnonzero((gx >= 0) & (gx < view_width) & (gy >= 0) & (gy < view_height))
+        if on_grid.shape[0] < flat.shape[0]:
+            flat, drop_index, gx, gy = flat.take(on_grid), drop_index.take(on_grid), gx.take(on_grid), gy.take(on_grid)
         q = np.sqrt(q_squared.take(flat))
         ramp = np.minimum((np.float32(1.0) - q) * edge.take(drop_index), np.float32(1.0))
         alpha_units = np.rint(peak.take(drop_index) * _smoothstep(ramp) * np.float32(ALPHA_UNITS)).astype(np.int64)
         keep = np.flatnonzero(alpha_units > 0)
-        flat, drop_index, alpha_units, q = flat.take(keep), drop_index.take(keep), alpha_units.take(keep), q.take(keep)
+        flat, drop_index, alpha_units, q, gx, gy = flat.take(keep), drop_index.take(keep), alpha_units.take(keep), q.take(keep), gx.take(keep), gy.take(keep)
         # the dark rim is blurred with the rest of the drop: it is placed on the blurred footprint
         rim = _smoothstep(np.clip((q - np.float32(0.5)) * np.float32(2.0), np.float32(0.0), np.float32(1.0)))
         shade_units = np.rint((np.float32(1.0) - rim_strength * rim) * np.float32(SHADE_UNITS)).astype(np.int64)
@@ -529,7 +534,7 @@ def rasterize_lens_drops(drops: LensDrops, *, config: RainConfig, height: int, w
         source_y = (drops.y_px.take(drop_index) - step * dy.take(flat)) * view_scale_y
         view_x = np.clip(np.floor(source_x), 0, view_width - 1).astype(np.int64)
         view_y = np.clip(np.floor(source_y), 0, view_height - 1).astype(np.int64)
-        pixel = gy.take(flat) * view_width + gx.take(flat)
+        pixel = gy * view_width + gx
         pieces.append((pixel, drop_index, alpha_units, shade_units, view_y * view_width + view_x))
     if not pieces:
         return LensRaster(empty, empty, empty, empty, empty, view_height, view_width, factor)
@@ -600,7 +605,7 @@ def compress_pixels(pixel: np.ndarray, n_pixels: int) -> tuple[np.ndarray, np.nd
     return unique, lookup[pixel]
 
 
-def apply_lens(base: np.ndarray, sums: LensSums) -> tuple[np.ndarray, np.ndarray]:
+def apply_lens(base: np.ndarray, sums: LensSums, workspace: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Composite lens water over an image.
 
     Per cell: coverage ``c = min(sum alpha / 1024, 1)`` and water colour ``m = sum(alpha shade
@@ -614,6 +619,8 @@ def apply_lens(base: np.ndarray, sums: LensSums) -> tuple[np.ndarray, np.ndarray
     Args:
         base: (H, W, 3) uint8 image under the drops.
         sums: exact sums from :meth:`LensSums.add`.
+        workspace: optional dict in which intermediate buffers are kept between calls (one per
+            thread; the results never alias them).
 
     Returns:
         (rgb (H, W, 3) uint8 new array, coverage (H, W) float32 in [0, 1]: ``1 - T / 255`` with
@@ -627,12 +634,31 @@ def apply_lens(base: np.ndarray, sums: LensSums) -> tuple[np.ndarray, np.ndarray
     transmitted = np.rint(255.0 * (1.0 - opacity)).astype(np.uint8).reshape(grid_height, grid_width)
     # c * (alpha-weighted mean colour): a convex combination, at most 255
     water = cv2.merge([np.rint(sums.alpha_color[channel] * gain).astype(np.uint8).reshape(grid_height, grid_width) for channel in range(3)])
+    scratch = _Scratch(workspace)
     if factor > 1:
         size = (grid_width * factor, grid_height * factor)
-        transmitted = cv2.resize(transmitted, size, interpolation=cv2.INTER_LINEAR)
-        water = cv2.resize(water, size, interpolation=cv2.INTER_LINEAR)
-    transmitted = np.ascontiguousarray(transmitted[:height, :width])
+        transmitted = cv2.resize(transmitted, size, dst=scratch.get("transmitted", (size[1], size[0]), 1), interpolation=cv2.INTER_LINEAR)
+        water = cv2.resize(water, size, dst=scratch.get("water", (size[1], size[0]), 3), interpolation=cv2.INTER_LINEAR)
+    transmitted = transmitted[:height, :width]
     # the coverage is exactly the blend weight of the water: 1 - T / 255
-    coverage = np.divide(cv2.bitwise_not(transmitted), np.float32(255.0), dtype=np.float32)  # exact 0 and 1
-    out = cv2.add(cv2.multiply(base, cv2.cvtColor(transmitted, cv2.COLOR_GRAY2RGB), scale=1.0 / 255.0), water[:height, :width])
+    coverage = np.divide(cv2.bitwise_not(transmitted, dst=scratch.get("inverse", (height, width), 1)), np.float32(255.0), dtype=np.float32)  # exact 0 and 1
+    transmitted3 = cv2.cvtColor(transmitted, cv2.COLOR_GRAY2RGB, dst=scratch.get("transmitted3", (height, width), 3))
+    kept = cv2.multiply(base, transmitted3, dst=scratch.get("kept", (height, width), 3), scale=1.0 / 255.0)
+    out = cv2.add(kept, water[:height, :width])
     return out, coverage
+
+
+class _Scratch:
+    """Reusable uint8 buffers for the intermediates of :func:`apply_lens` (fewer page faults)."""
+
+    def __init__(self, workspace: dict | None) -> None:
+        self.workspace = workspace
+
+    def get(self, name: str, shape: tuple[int, int], channels: int) -> np.ndarray | None:
+        if self.workspace is None:
+            return None
+        full = shape + ((channels,) if channels > 1 else ())
+        buffer = self.workspace.get(name)
+        if buffer is None or buffer.shape != full:
+            buffer = self.workspace[name] = np.empty(full, dtype=np.uint8)
+        return buffer

@@ -95,9 +95,13 @@ def parse_rates(spec: str) -> tuple[float, ...]:
             raise _fail(spec, f"stop {stop:g} is below start {start:g}; expected start <= stop")
         span = (stop - start) / step
         if span + 1 > MAX_RATE_COUNT:
-            raise _fail(spec, f"expands to {math.floor(span) + 1} rates; at most {MAX_RATE_COUNT} are allowed")
+            count_text = f"{math.floor(span) + 1}" if math.isfinite(span) else "more than 10^308"
+            raise _fail(spec, f"expands to {count_text} rates; at most {MAX_RATE_COUNT} are allowed")
         count = math.floor(span + _RANGE_EPS * max(1.0, span)) + 1
         values = tuple(min(round(start + index * step, _DECIMALS), stop) + 0.0 for index in range(count))
+        if any(lower >= upper for lower, upper in zip(values, values[1:])):
+            raise _fail(spec, f"step {step:g} is finer than the {10.0 ** -_DECIMALS:g} mm/h "
+                              "resolution of a range: its rates would repeat")
         return values
 
     if "," in text:

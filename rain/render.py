@@ -45,7 +45,7 @@ class Drops:
     """The drops of one frame at one rate.
 
     Attributes:
-        lens: lens drops (jeon2022; physical with ``lens_drops``), a prefix of the frame's sequence.
+        lens: lens drops (jeon2022; physical with ``lens_drops``), the drops in the first slots of the clip's lens at the frame's time.
         air: falling drops drawn as streaks (physical), the candidates with threshold <= rate.
     """
 
@@ -274,6 +274,7 @@ class _LensAccumulator:
         drops = lens_mod.sample_lens_drops(max_count, config=config, height=height, width=width, lens_clock=lens_clock)
         self.raster = lens_mod.rasterize_lens_drops(drops, config=config, height=height, width=width)
         self.config = config
+        self.workspace: dict = {}  # scratch buffers of apply_lens for this sweep
 
     def empty_sums(self) -> lens_mod.LensSums:
         """Zero sums on the drawing grid."""
@@ -289,7 +290,7 @@ class _LensAccumulator:
         """``base`` under the first ``count`` drops, each showing the view of ``base``."""
         sums = self.empty_sums()
         self.add(sums, lens_mod.planar_view(lens_mod.lens_view(base, self.config)), 0, count)
-        return lens_mod.apply_lens(base, sums)
+        return lens_mod.apply_lens(base, sums, self.workspace)
 
 
 def _jeon_sweep(rgb: np.ndarray, ascending: list[float], config: RainConfig, lens_clock: lens_mod.LensClock) -> list[RainFrame]:
@@ -312,7 +313,7 @@ def _jeon_sweep(rgb: np.ndarray, ascending: list[float], config: RainConfig, len
             continue
         accumulator.add(sums, view, drawn, count)
         drawn = count
-        image, coverage = lens_mod.apply_lens(rgb, sums)
+        image, coverage = lens_mod.apply_lens(rgb, sums, accumulator.workspace)
         frames.append(RainFrame(image, coverage, count))
     return frames
 

@@ -59,9 +59,13 @@ PAVEMENT_WET_DARKENING = 0.35
 GRASS_WET_DARKENING = 0.20
 ROAD_FILM_REFLECTANCE = 0.30
 ROAD_PUDDLE_REFLECTANCE = 0.12
-"""Mirror reflectance of the road: 0.30 x wetness + 0.12 x puddle fraction. MuJoCo's mirror is
-angle independent; water's Fresnel reflectance is 0.13-0.80 between 70 and 88 degrees, the
-angles a roof camera sees the road 5-50 m ahead at, so 0.30-0.42 is a middle value."""
+"""Mirror strength of the road: 0.30 x wetness + 0.12 x puddle fraction, the reflectance at the
+reference angle of 80 degrees from the normal (water's Fresnel reflectance there is 0.35). At
+other angles it scales with water's Fresnel reflectance (:func:`road_mirror_weight`): a roof
+camera sees the road 2.6 m ahead at 60 degrees (0.06: hardly a mirror) and 30 m ahead at 87
+degrees (0.69)."""
+WATER_INDEX = 1.333
+FRESNEL_REFERENCE_DEG = 80.0
 
 # -- camera -----------------------------------------------------------------------------------
 AE_REFERENCE_LUX = 50_000.0
@@ -220,6 +224,37 @@ rain, take the sky's colour at 14.5 degrees elevation: the middle of what a leve
 def airlight_rgb(weather: Weather) -> np.ndarray:
     """(3,) float64 0..255: the colour rain extinction fades towards (the overcast sky's)."""
     return sky_colours(weather, np.array([AIRLIGHT_SIN_ELEVATION]))[0] * 255.0
+
+
+def water_fresnel(cos_incidence: np.ndarray) -> np.ndarray:
+    """Unpolarised Fresnel reflectance of an air-water surface (n = 1.333) for the cosine of the
+    angle of incidence (from the normal): the mean of the s and p reflectances."""
+    cos_i = np.clip(np.asarray(cos_incidence, dtype=np.float64), 0.0, 1.0)
+    sin_t = np.sqrt(1.0 - cos_i ** 2) / WATER_INDEX
+    cos_t = np.sqrt(1.0 - sin_t ** 2)
+    r_s = (cos_i - WATER_INDEX * cos_t) / (cos_i + WATER_INDEX * cos_t)
+    r_p = (cos_t - WATER_INDEX * cos_i) / (cos_t + WATER_INDEX * cos_i)
+    return (r_s ** 2 + r_p ** 2) / 2.0
+
+
+def road_mirror_weight(K: np.ndarray, rotation_world_cam: np.ndarray, height: int, width: int,
+                       road_reflectance: float) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: how much of the mirror image a horizontal wet road shows at each
+    pixel, ``min(1, road_reflectance x F(theta) / F(80 deg))`` with theta the angle between the
+    pixel's ray and the road's normal (pixels whose ray does not go down get F(90 deg) = 1,
+    harmless: no road is seen there).
+
+    Args:
+        K: (3, 3) intrinsics. rotation_world_cam: (3, 3) camera-to-world rotation (OpenCV axes).
+    """
+    u = (np.arange(width, dtype=np.float64) + 0.5 - K[0, 2]) / K[0, 0]
+    v = (np.arange(height, dtype=np.float64) + 0.5 - K[1, 2]) / K[1, 1]
+    rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)
+    world = rays @ np.asarray(rotation_world_cam).T
+    cos_incidence = np.abs(world[..., 2]) / np.linalg.norm(world, axis=-1)
+    reference = water_fresnel(np.cos(np.radians(FRESNEL_REFERENCE_DEG)))
+    weight = road_reflectance * water_fresnel(cos_incidence) / reference
+    return np.minimum(weight, 1.0).astype(np.float32)
 
 
 # -- spray ------------------------------------------------------------------------------------

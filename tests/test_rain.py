@@ -161,7 +161,7 @@ def test_every_drop_of_a_lower_rate_is_present_at_a_higher_rate(model, small_fra
     drops = [sample_drops(rate, config=config, K=K, shape=rgb.shape, seed_sequence=_seed(3)) for rate in SWEEP_RATES]
     for lower, higher, lower_rate in zip(drops, drops[1:], SWEEP_RATES):
         assert len(lower) <= len(higher)
-        # lens drops: a prefix of the frame's sequence
+        # lens drops: the first slots of the clip's lens
         np.testing.assert_array_equal(lower.lens.as_array(), higher.lens.as_array()[: len(lower.lens)])
         # falling drops: the higher rate restricted to thresholds <= the lower rate, unchanged
         restricted = higher.air.select(higher.air.threshold_rate_mm_h <= lower_rate)

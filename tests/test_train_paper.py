@@ -37,6 +37,11 @@ def _run(capsys, *argv):
 
 
 def test_shipped_recipes_load_and_keep_seeds_apart():
+    weak = train.load_recipe("rainbench-yolo11n-weak")  # the nano recipe's data, cut short
+    nano = train.load_recipe("rainbench-yolo11n")
+    assert weak.train_data == nano.train_data and weak.val_data == nano.val_data
+    assert weak.arguments(cuda=False)["epochs"] < nano.arguments(cuda=False)["epochs"]
+    assert weak.stages(cuda=False)[1:] == []
     for name in ("rainbench-yolo11n", "rainbench-yolo11s"):
         recipe = train.load_recipe(name)
         assert recipe.name == name and recipe.architecture == name.split("-")[1] + ".yaml"
@@ -241,10 +246,14 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
     report = (tmp_path / "out" / "report.md").read_text()
     for heading in ("Table I.", "Table III. AP@0.5, Normal vs 100mm/h: jeon2022",
                     "Table IV. F1, Normal vs 100mm/h: physical", "falls to half its clean value",
-                    "jeon2022 vs physical", "AP@0.5 by visible fraction", "AP@0.5 by box size"):
+                    "jeon2022 vs physical", "AP@0.5 by visible fraction", "AP@0.5 by box size",
+                    "Table III. AP@0.5, Normal vs 100mm/h: physical-fixed-weather",
+                    "How much of the AP loss is the weather? physical with the weather following the "
+                    "rate vs physical-fixed-weather", "Base weather: cloudy (the paper clip)",
+                    "jeon2022 no, physical yes, physical-fixed-weather no"):
         assert heading in report, heading
     assert "| YOLOv7x (paper) | Normal | 0.669 |" in report  # the paper's Table III row
-    for rain in ("jeon2022", "physical"):
+    for rain in ("jeon2022", "physical", "physical-fixed-weather"):
         records = json.loads((tmp_path / "out" / rain / "metrics.json").read_text())
         assert {r["model"] for r in records} == {"rainbench-yolo11n"}
         assert sorted({r["rate"] for r in records}) == [0, 50, 100]

@@ -176,18 +176,19 @@ def test_wet_road_mirrors_a_red_box_only_when_wet():
     model, table = _rig_scene(camera_pos=[-6, 0, 1.0], camera_quat=_camera_quat(),
                               fovy=horizontal_to_vertical_fov(60, 120, 90))
     base = wx.weather_at("overcast", 0.0)
-    counts = {}
-    for rate in (0.0, 50.0):
-        rgb = _render(model, table, wx.weather_at("overcast", rate), base).astype(int)
-        red = (rgb[..., 0] > rgb[..., 1] + 40) & (rgb[..., 0] > rgb[..., 2] + 40)
-        rows = np.flatnonzero(red.any(axis=1))
-        # the box's ground line: the lowest row of the box in the dry render
-        counts[rate] = red, rows
-    dry_red, dry_rows = counts[0.0]
-    ground_line = dry_rows.max()
-    wet_red, _ = counts[50.0]
-    assert dry_red[ground_line + 1:].sum() == 0
-    assert wet_red[ground_line + 2:].sum() > 30
+    images = {rate: _render(model, table, wx.weather_at("overcast", rate), base).astype(int)
+              for rate in (0.0, 50.0)}
+    dry = images[0.0]
+    box = (dry[..., 0] > dry[..., 1] + 60) & (dry[..., 0] > dry[..., 2] + 60)
+    rows, cols = np.flatnonzero(box.any(axis=1)), np.flatnonzero(box.any(axis=0))
+    ground_line = rows.max()  # the box's lowest row in the dry render
+    below = (slice(ground_line + 2, ground_line + 12), slice(cols.min() + 2, cols.max() - 1))
+
+    def red_excess(image):
+        return image[..., 0] - (image[..., 1] + image[..., 2]) / 2
+
+    assert np.abs(red_excess(dry[below])).max() <= 8  # dry: grey road under the box
+    assert (red_excess(images[50.0][below]) > 15).mean() > 0.5  # wet: the box mirrored
 
 
 # -- the generator ---------------------------------------------------------------------------
@@ -277,3 +278,26 @@ def test_scene_renders_rainy_weather_without_changing_labels():
         ids_after, _ = renderer.render_instances()
     assert np.array_equal(before, after) and np.array_equal(ids_before, ids_after)
     assert not np.array_equal(before, wet)
+
+
+@pytest.mark.parametrize("model", ["physical", "jeon2022"])
+def test_sweep_over_per_rate_scenes_equals_single_rates(model):
+    rng = np.random.default_rng(3)
+    height, width = 90, 120
+    depth = np.full((height, width), 8.0, np.float32)
+    depth[:30] = np.inf
+    K = np.array([[60.0, 0, 60], [0, 60.0, 45], [0, 0, 1]])
+    rates = [0.0, 30.0, 100.0]
+    scenes = [rng.integers(0, 256, (height, width, 3), dtype=np.uint8) for _ in rates]
+    config = rain.RainConfig(model=model)
+    seeds = np.random.SeedSequence([4, 5, 6])
+    swept = rain.render_rain_sweep(scenes[0], depth, rates, config=config, K=K,
+                                   seed_sequence=seeds, scenes=scenes)
+    for rate, scene, frame in zip(rates, scenes, swept):
+        single = rain.render_rain(scene, depth, rate, config=config, K=K, seed_sequence=seeds)
+        assert np.array_equal(single.rgb, frame.rgb) and frame.drop_count == single.drop_count
+        assert np.array_equal(single.coverage, frame.coverage)
+    assert np.array_equal(swept[0].rgb, scenes[0])
+    with pytest.raises(ValueError, match=r"scenes: expected one image per rate \(3\), got 2"):
+        rain.render_rain_sweep(scenes[0], depth, rates, config=config, K=K, seed_sequence=seeds,
+                               scenes=scenes[:2])
