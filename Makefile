@@ -74,8 +74,11 @@ scene: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# The slow checks, then the fuzzer (tests/test_fuzz.py) with many more random examples than in
+# make test (hypothesis profile rainbench-slow).
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
+	RAINBENCH_HYPOTHESIS_PROFILE=rainbench-slow $(BIN)/python -m pytest -q -p no:cacheprovider tests/test_fuzz.py
 
 bench: $(STAMP)
 	mkdir -p results/bench

@@ -31,11 +31,10 @@ def _positive_int(name: str, high: int | None = None, low: int = 1):
         except ValueError:
             raise argparse.ArgumentTypeError(f"{name}: expected an integer, got {_shown(text)}") \
                 from None
-        if high is None and value < low:
+        if value < low:
             raise argparse.ArgumentTypeError(f"{name}: expected >= {low}, got {_shown(value)}")
-        if high is not None and not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"{name}: expected an integer in {low}..{high}, got "
-                                             f"{_shown(value)}")
+        if high is not None and value > high:
+            raise argparse.ArgumentTypeError(f"{name}: expected <= {high}, got {_shown(value)}")
         return value
     return parse
 
@@ -375,8 +374,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = sub.add_parser("eval", help="AP / F1 per class and rain rate of detectors on a dataset")
     evaluate.add_argument("--data", required=True, help="dataset directory of scene*_f*.h5 shards")
     evaluate.add_argument("--weights", action="append", default=None,
-                          help="local ultralytics .pt detector (repeat for several models); "
-                               "loading a .pt runs code from it: only load weights you trust")
+                          help="a shipped model name, or a local .pt, .onnx or Darknet .weights "
+                               "file (repeat for several models); a .pt is read with ultralytics' "
+                               "safe loading (see --trust-pickle)")
     evaluate.add_argument("--predictions", default=None,
                           help="instead of --weights: DIR/<model>/rate_<rate>.json COCO results files")
     evaluate.add_argument("--out", required=True, help="results directory")

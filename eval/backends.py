@@ -94,6 +94,34 @@ def _shipped_file(spec: str | Path, suffix: str) -> Path | None:
     return path if path.is_file() else None
 
 
+def cache_dir() -> Path:
+    """Where rainbench keeps files it builds on first use: ``$XDG_CACHE_HOME/rainbench``
+    (default ``~/.cache/rainbench``)."""
+    root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(root) / "rainbench"
+
+
+def cached_onnx(checkpoint: Path) -> Path:
+    """The ONNX copy of a shipped ``.pt`` that ships without one, exported by
+    :func:`export_onnx` on first use into :func:`cache_dir` (named by the checkpoint's sha256, so
+    a new checkpoint gets a new copy) and reused afterwards. Written under a temporary name and
+    renamed, so a cut-off export never leaves a partial file."""
+    import hashlib
+
+    digest = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:16]
+    path = cache_dir() / "onnx" / f"{checkpoint.stem}-{digest}.onnx"
+    if path.is_file():
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        export_onnx(checkpoint, partial)
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
+    return path
+
+
 def _on_cuda(device: str | None) -> bool:
     """Whether ``device`` (a torch device string; None: CUDA when present) is a CUDA device."""
     if device is None:
@@ -116,8 +144,9 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
     path = Path(text)
     checkpoint = _shipped_file(text, ".pt")
     if checkpoint is not None:
-        onnx = _shipped_file(text, ".onnx")
-        return (onnx if onnx is not None and not _on_cuda(device) else checkpoint), text
+        if _on_cuda(device):
+            return checkpoint, text
+        return (_shipped_file(text, ".onnx") or cached_onnx(checkpoint)), text
     if path.suffix.lower() == ".cfg":
         path = path.with_suffix(".weights")
     if not path.is_file():
@@ -707,8 +736,12 @@ def _load_yolo_safely(ultralytics: Any, path: Path) -> Any:
         cause = error.__cause__
         if isinstance(cause, pickle.UnpicklingError):
             found = re.search(r"GLOBAL ([\w.]+)", str(cause))
-            raise _SafeLoadRefused(found.group(1) if found else "a global") from None
-        raise
+            with open(path, "rb") as handle:
+                head = handle.read(2)
+            if found or head == b"PK" or head[:1] == b"\x80":  # a torch zip or a pickle
+                raise _SafeLoadRefused(found.group(1) if found else
+                                       "objects that weights_only loading cannot read") from None
+        raise  # not a checkpoint at all (garbage, an image renamed .pt): not loadable
     finally:
         tasks.torch_safe_load = unsafe_loader
 

@@ -67,6 +67,10 @@ MAX_FRAMES = 100_000
 """Most frames of one clip (``--frames``): 10 000 s of driving at 10 frames/s."""
 MAX_SHARDS = 100_000
 """Most shards of one dataset (scenes x shards per scene)."""
+MAX_PIXELS = 4096 * 4096
+"""Most pixels of one image: its framebuffer (the image plus the truncation margins, 2.25 times
+the pixels) is what Mesa's llvmpipe still allocates (measured: 4096 x 4096 and 8192 x 2048
+render; 8192 x 4096 and 5461 x 5461 do not)."""
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
@@ -107,6 +111,10 @@ class DatasetConfig:
         if not (_is_int(self.frames_per_shard) and self.frames_per_shard >= 1):
             raise DatasetError(
                 f"frames-per-shard: expected an integer >= 1, got {self.frames_per_shard!r}")
+        if _is_int(self.width) and _is_int(self.height) and self.width * self.height > MAX_PIXELS:
+            raise DatasetError(f"WIDTH x HEIGHT: {self.width}x{self.height} = "
+                               f"{self.width * self.height} pixels; at most {MAX_PIXELS} "
+                               "(4096x4096): larger framebuffers do not render")
         shards = self.scenes * math.ceil(self.frames / self.frames_per_shard)
         if shards > MAX_SHARDS:
             raise DatasetError(f"SCENES x ceil(FRAMES / FRAMES_PER_SHARD) = {shards} shards; at "
@@ -705,8 +713,8 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
 def _stop_workers(pool: ProcessPoolExecutor) -> None:
     """Kill the pool's worker processes now (they may be in the middle of a shard: its temporary
     file is removed by the caller) and shut the pool down."""
-    processes = list((getattr(pool, "_processes", None) or {}).values()) \
-        or multiprocessing.active_children()
+    known = getattr(pool, "_processes", None)  # CPython's pid -> Process of the pool
+    processes = list(known.values()) if known is not None else multiprocessing.active_children()
     for process in processes:
         process.kill()
     for process in processes:

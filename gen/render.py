@@ -170,6 +170,7 @@ class FrameRenderer:
         # MuJoCo's mirror is angle independent: render the road as a full mirror and blend it
         # over the plain render with water's Fresnel weight per pixel (rain/weather.py)
         self._rig.set_mirror(True)
+        option.geomgroup[PUDDLE_GROUP] = 0  # the mirror shows the world, not the puddles' film
         try:
             mirror = self._render_rgb(data, option)
         finally:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from rainbench.rain.weather import (GRASS_WET_DARKENING, PAVEMENT_WET_DARKENING,
-                                    ROAD_WET_DARKENING, Weather, airlight_rgb, mean_sky_rgb)
+                                    ROAD_WET_DARKENING, Weather, airlight_rgb)
 
 # The clear-sky sun (light "sun", directional, casts shadows) and the camera's headlight.
 SUN_DIFFUSE = (0.75, 0.72, 0.66)
@@ -22,9 +22,11 @@ HEADLIGHT_DIFFUSE = 0.15
 SKYLIGHT_DIFFUSE_CLOUD = 0.36
 """Light "skylight": a shadowless directional light from the zenith standing for the overcast
 dome (tops of cars and people brighter than their sides); zero under a clear sky."""
-PUDDLE_ALPHA = 0.6
-"""A puddle is a transparent film over the (mirroring) road that shows the sky: at grazing
-angles standing water reflects mostly the bright horizon."""
+PUDDLE_RGB = (0.07, 0.07, 0.08)
+PUDDLE_ALPHA = 0.55
+"""A puddle is a dark transparent film over the road in the plain render (standing water hides
+the asphalt's grain and looks dark where it does not mirror); the mirror render leaves it out,
+so puddles are dark near the camera and mirror the world at grazing angles."""
 
 
 @dataclass(frozen=True)
@@ -50,7 +52,6 @@ class SceneLighting:
 def scene_lighting(weather: Weather) -> SceneLighting:
     """The model values of ``weather`` (laws in docs/rain.md, "Weather that follows the rate")."""
     cover, wet = weather.cloud_cover, weather.wetness
-    sky = mean_sky_rgb(weather) / 255.0
     ambient = HEADLIGHT_AMBIENT_CLEAR + (HEADLIGHT_AMBIENT_CLOUD - HEADLIGHT_AMBIENT_CLEAR) * cover
     deck = airlight_rgb(weather) / 255.0  # a uniform deck in the airlight's colour
     return SceneLighting(
@@ -65,8 +66,7 @@ def scene_lighting(weather: Weather) -> SceneLighting:
         grass_factor=1.0 - GRASS_WET_DARKENING * wet,
         road_reflectance=weather.road_reflectance,
         puddle_scale=weather.puddle_fraction ** 0.5,
-        puddle_rgba=(float(sky[0]), float(sky[1]), float(sky[2]),
-                     PUDDLE_ALPHA if weather.puddle_fraction > 0 else 0.0),
+        puddle_rgba=PUDDLE_RGB + (PUDDLE_ALPHA if weather.puddle_fraction > 0 else 0.0,),
         cloud_deck=weather.rain_mm_h > 0 and weather.sun <= 0.02,
         # emission 1 plus the headlight's ambient light the deck also receives
         cloud_deck_rgba=tuple(float(c) for c in deck / (1.0 + ambient)) + (1.0,),

@@ -189,6 +189,7 @@ NUMBERS = st.one_of(
 def _check_config(config):
     assert 1 <= config.frames <= ds.MAX_FRAMES and 1 <= config.scenes <= 100_000
     assert 16 <= config.width <= 8192 and 16 <= config.height <= 8192
+    assert config.width * config.height <= ds.MAX_PIXELS
     assert 0 < config.fps <= 1000 and 0 <= config.seed and config.seed + config.scenes - 1 < 2 ** 31
     assert config.scenes * math.ceil(config.frames / config.frames_per_shard) <= ds.MAX_SHARDS
 
@@ -199,6 +200,7 @@ def _check_config(config):
 @example([("--frames", "99999999999999999999")])  # once refused naming frame_offset
 @example([("--frames", "100000"), ("--frames-per-shard", "1"), ("--scenes", "2")])
 @example([("--threads", "10000000000000000000000")])  # once an OverflowError in OpenCV
+@example([("--width", "8192"), ("--height", "4096")])  # beyond what the framebuffer takes
 def test_generate_numeric_flags(no_render, pairs):
     argv = ["generate", "--quiet"]
     for flag, value in pairs:
@@ -418,7 +420,7 @@ def test_manifest_loader_and_verify(dataset_dir, valid_manifest, data):
 
 # -- shard readers on damaged shards -------------------------------------------------------------
 
-def _readers_property(path, tmp):
+def _readers_property(path, tmp, with_eval=False):
     """Every reader of ``path``: a correct result or a one-line error naming the file, and no
     output under a final name on failure."""
     try:
@@ -452,6 +454,19 @@ def _readers_property(path, tmp):
         one_line_error(code, err, path)
         assert not png.exists()
     assert not [p for p in Path(tmp).iterdir() if ".tmp" in p.name]
+    if with_eval:
+        predictions = Path(tmp) / "predictions" / "model"
+        predictions.mkdir(parents=True)
+        for token in ("0", "50"):
+            (predictions / f"rate_{token}.json").write_text("[]")
+        results = Path(tmp) / "results"
+        code, _, err = run_cli(["eval", "--data", path.parent, "--predictions", predictions.parent,
+                                "--out", results, "--n-boot", "2", "--quiet"])
+        if code == 0:
+            records = json.loads((results / "metrics.json").read_text())
+            assert records and all(isinstance(r["n_gt"], int) and r["n_gt"] >= 0 for r in records)
+        else:
+            one_line_error(code, err, path)
 
 
 @FEW
@@ -506,4 +521,4 @@ def test_shards_with_bad_labels(shard_bytes, change):
                 flat[position % flat.size] = value if array.dtype.kind == "f" else \
                     int(np.clip(np.nan_to_num(value), -2 ** 31, 2 ** 31 - 1))
                 handle[f"labels/{key}"][...] = flat.reshape(array.shape)
-        _readers_property(path, tmp)
+        _readers_property(path, tmp, with_eval=True)

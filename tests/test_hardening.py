@@ -332,6 +332,23 @@ def test_the_issue_size_generates(tmp_path, capsys):
         assert handle["rgb"].shape == (1, 1, 150, 200, 3)
 
 
+def test_sizes_whose_framebuffer_does_not_render_are_refused_up_front(tmp_path, capsys):
+    code = _cli(["generate", "--width", "8192", "--height", "4096", "--frames", "1", "--quiet",
+                 "--out", str(tmp_path / "o")])
+    _one_line_error(capsys, code, re.escape("WIDTH x HEIGHT: 8192x4096 = 33554432 pixels; at most "
+                                            "16777216 (4096x4096): larger framebuffers do not render"))
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow  # about 11 s and 3 GB each
+@pytest.mark.parametrize("width, height", [(4096, 4096), (8192, 2048), (2048, 8192)])
+def test_the_largest_accepted_sizes_render(tmp_path, width, height):
+    assert cli.main(["generate", "--frames", "1", "--width", str(width), "--height", str(height),
+                     "--quiet", "--out", str(tmp_path)]) == 0
+    with h5py.File(tmp_path / "scene000000_f00000.h5") as handle:
+        assert handle["rgb"].shape == (1, 1, height, width, 3)
+
+
 def test_build_spec_and_the_renderer_share_one_size_rule():
     from rainbench.mjcf import layout as L
 
@@ -520,6 +537,23 @@ def test_every_reader_refuses_bad_labels_naming_file_and_frame(labelled, tmp_pat
     _one_line_error(capsys, code, pattern)
 
 
+def test_verify_reports_bad_labels(small, tmp_path, capsys):
+    out = _copy_tree(small, tmp_path / "copy")
+    shard = out / "scene000000_f00000.h5"
+    with h5py.File(shard, "r+") as handle:
+        offsets = handle["labels/offsets"][()]
+        assert offsets.shape == (3,)
+        del handle["labels/offsets"]
+        handle.create_dataset("labels/offsets", data=np.array([0, offsets[-1] + 1, offsets[-1]]))
+    manifest = json.loads((out / ds.MANIFEST).read_text())
+    manifest["shards"][0].update(sha256=ds.sha256_of(shard), bytes=shard.stat().st_size)
+    (out / ds.MANIFEST).write_text(json.dumps(manifest))
+    assert cli.main(["verify", str(out)]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"rainbench: bad: {shard}: frame 1: /labels/offsets decreases ({offsets[-1] + 1} -> "
+        f"{offsets[-1]})"]
+
+
 def test_good_labels_pass_the_check(labelled, small):
     for path in [labelled, *sorted(small.glob("*.h5"))]:
         with ds.open_checked(path) as handle:
@@ -583,7 +617,8 @@ def test_verify_warns_about_shards_outside_the_manifest(small, tmp_path, capsys)
 @pytest.mark.parametrize("value", ["100001", "99999999999999999999", "0", "-3", "1e3"])
 def test_frames_is_bounded_up_front(tmp_path, capsys, value):
     code = _cli(["generate", "--frames", value, "--out", str(tmp_path / "o"), "--quiet"])
-    expected = "an integer, got '1e3'" if value == "1e3" else f"an integer in 1..100000, got {value}"
+    expected = {"1e3": "an integer, got '1e3'", "0": ">= 1, got 0", "-3": ">= 1, got -3"}.get(
+        value, f"<= 100000, got {value}")
     line = _one_line_error(capsys, code, r"argument --frames: FRAMES: expected " + re.escape(expected))
     assert "frame_offset" not in line and not (tmp_path / "o").exists()
     assert cli.MAX_FRAMES == ds.MAX_FRAMES

@@ -310,8 +310,9 @@ def test_extinction_and_airlight_applied_with_the_depth_render():
     path = phys.ray_length_m(depth, K, config.sky_distance_m).astype(np.float64)
     transmission = np.exp(-phys.extinction_coefficient(100.0) * 1e-3 * path)[..., None]
     streaks = frame.coverage.astype(np.float64)[..., None]
-    drop_radiance = rgb.reshape(-1, 3).mean(axis=0)  # mean colour of the frame
     air = np.asarray(airlight)
+    # the sky's share (the airlight) plus the rest of the frame's mean colour
+    drop_radiance = config.streak_sky_weight * air + (1 - config.streak_sky_weight) * rgb.reshape(-1, 3).mean(axis=0)
     expected = air + (rgb - air) * transmission * (1 - streaks) + (drop_radiance - air) * streaks
     assert np.abs(frame.rgb.astype(np.float64) - expected).max() <= 1.0
     assert frame.coverage.max() > 0.01
