@@ -268,3 +268,29 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
         assert instances == n_gt and (objects > 0) == (instances > 0)
     code, _, err = _run(capsys, "paper", "--rates", "50,100", "--data", tmp_path / "d2", "--out", tmp_path / "o2")
     assert code == 2 and "needs rate 0" in err and len(err.strip().splitlines()) == 1
+
+
+def test_shipped_model_without_onnx_builds_its_copy_once_into_the_cache(tmp_path, monkeypatch):
+    """rainbench-yolo11n-weak ships its .pt only: the ONNX copy is exported on first use into
+    the user cache, reused after, and detects what the checkpoint detects."""
+    name = "rainbench-yolo11n-weak"
+    assert name in backends.shipped_models() and not (backends.WEIGHTS_DIR / f"{name}.onnx").exists()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    path, resolved = backends.resolve_weights(name, device="cpu")
+    assert resolved == name and path.suffix == ".onnx"
+    assert path.parent == tmp_path / "cache" / "rainbench" / "onnx"
+    stamp = path.stat().st_mtime_ns
+    assert backends.resolve_weights(name, device="cpu")[0] == path and path.stat().st_mtime_ns == stamp
+    assert not list(path.parent.glob(".*tmp*"))  # no partial file left behind
+    from conftest import assert_same_detections
+
+    from rainbench.gen.generate import GenerateConfig, render_clip
+
+    config = GenerateConfig(seed=7, frames=1, fps=1.0, width=800, height=600, rates=(0.0,))
+    image = [frame.rgb.copy() for _, frame, _ in render_clip(config)][0]
+    settings = dict(imgsz=backends.model_imgsz(name), conf=0.001, iou=0.7, max_det=300)
+    checkpoint = backends.load_detector(backends.WEIGHTS_DIR / f"{name}.pt", device="cpu")
+    onnx_copy = backends.load_detector(name, device="cpu")
+    assert isinstance(onnx_copy, backends.OnnxDetector)
+    assert_same_detections(checkpoint.predict([image], **settings)[0],
+                           onnx_copy.predict([image], **settings)[0], top=5)
