@@ -117,6 +117,11 @@ def cached_onnx(checkpoint: Path) -> Path:
     try:
         export_onnx(checkpoint, partial)
         os.replace(partial, path)
+    except BackendError:
+        raise
+    except Exception as error:  # torch/onnx export failures come as many exception types
+        raise BackendError(f"--weights: {checkpoint}: could not build its ONNX copy in {path.parent} "
+                           f"({type(error).__name__}: {error})") from error
     finally:
         partial.unlink(missing_ok=True)
     return path

@@ -285,8 +285,11 @@ def test_weights_errors_are_one_line(tmp_path):
 def test_shipped_names_resolve_by_device_and_carry_their_imgsz(tmp_path, monkeypatch):
     monkeypatch.setattr(backends, "WEIGHTS_DIR", tmp_path)
     (tmp_path / "m.pt").write_bytes(b"pt")
-    # Without an ONNX copy the checkpoint serves every device; without a card, 640.
-    assert backends.resolve_weights("m", "cpu") == (tmp_path / "m.pt", "m")
+    # Without a shipped ONNX copy, CPU runs the copy built on first use (cached_onnx); CUDA the
+    # checkpoint; without a card, 640.
+    monkeypatch.setattr(backends, "cached_onnx", lambda checkpoint: tmp_path / f"{checkpoint.stem}-cache.onnx")
+    assert backends.resolve_weights("m", "cpu") == (tmp_path / "m-cache.onnx", "m")
+    assert backends.resolve_weights("m", "cuda:0") == (tmp_path / "m.pt", "m")
     assert backends.model_imgsz("m") == backends.DEFAULT_IMGSZ == 640
     (tmp_path / "m.onnx").write_bytes(b"onnx")
     (tmp_path / "m.json").write_text('{"imgsz": 960}')

@@ -250,12 +250,14 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
                     "Table III. AP@0.5, Normal vs 100mm/h: physical-fixed-weather",
                     "How much of the AP loss is the weather? physical with the weather following the "
                     "rate vs physical-fixed-weather", "Base weather: cloudy (the paper clip)",
-                    "jeon2022 no, physical yes, physical-fixed-weather no"):
+                    "jeon2022 no, physical yes, physical-fixed-weather no",
+                    "a deliberately weak in-domain control"):
         assert heading in report, heading
     assert "| YOLOv7x (paper) | Normal | 0.669 |" in report  # the paper's Table III row
     for rain in ("jeon2022", "physical", "physical-fixed-weather"):
         records = json.loads((tmp_path / "out" / rain / "metrics.json").read_text())
-        assert {r["model"] for r in records} == {"rainbench-yolo11n"}
+        # the nano model and the weak control (a detector of the paper's strength)
+        assert {r["model"] for r in records} == {"rainbench-yolo11n", "rainbench-yolo11n-weak"}
         assert sorted({r["rate"] for r in records}) == [0, 50, 100]
         assert (tmp_path / "out" / rain / "ap50_vs_rate.png").stat().st_size > 1000
     # Table I counts equal the shard's labels.
