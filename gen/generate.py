@@ -174,9 +174,8 @@ def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup
     """Every pass of one frame at the state in ``data``: RGB + depth, segmentation, labels,
     then one RGB re-render per weather in ``weathers`` other than the base weather."""
     renderer.update(data)
-    rgb, depth = renderer.render_rgb_depth()
-    visible, geometry = renderer.render_instances()
-    depth[~geometry] = np.inf
+    rgb = renderer.render_rgb()
+    visible, _, depth = renderer.render_instances_depth()
     labels = frame_labels(renderer, data, visible, setup.class_of_instance, label_filter)
     rendered: dict[tuple, np.ndarray] = {render_key(renderer.base_weather): rgb}
     others = {}
@@ -247,7 +246,7 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     # lens water persists over the clip: seeded by the clip, placed by the frame's time
     clock = rain.LensClock(np.random.SeedSequence([config.rain_seed, config.seed]), global_frame,
                            config.fps)
-    if all(weathers[r] == weathers[0] for r in rainy_rows) and weathers[0].rain_mm_h == 0:
+    if not any(weathers[r].rain_mm_h > 0 for r in rainy_rows):  # the base weather throughout
         frames = rain.render_rain_sweep(frame.rgb, frame.depth, [rates[r] for r in rainy_rows],
                                         config=rain_config, K=K, seed_sequence=seeds,
                                         lens_clock=clock)

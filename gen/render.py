@@ -55,6 +55,7 @@ class FrameRenderer:
                  base_weather: Weather | None = None) -> None:
         self._gl_context = None
         self._mjr_context = None
+        self._label_context = None
         padded_w, padded_h, self._margin_x, self._margin_y = padded_size(width, height)
         if padded_w > model.vis.global_.offwidth or padded_h > model.vis.global_.offheight:
             raise ValueError(
@@ -95,6 +96,16 @@ class FrameRenderer:
             self._gl_context = mujoco.GLContext(padded_w, padded_h)
             self._gl_context.make_current()
             self._mjr_context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+            self._label_context = self._mjr_context
+            samples = int(model.vis.quality.offsamples)
+            if samples > 0:
+                # Segmentation, depth and actor-alone passes need no multisampling: a second
+                # context without it in the same GL context makes them 1.6-2x cheaper.
+                model.vis.quality.offsamples = 0
+                try:
+                    self._label_context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+                finally:
+                    model.vis.quality.offsamples = samples
         except Exception as error:  # GL failures surface as several exception types
             self.close()
             if _gl_state.mujoco_imported_first and self.backend:
@@ -106,8 +117,10 @@ class FrameRenderer:
             raise GLBackendError(
                 f"{missing_backend_message(tried)} (MUJOCO_GL={self.backend or 'unset'}: {error})"
             ) from error
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._mjr_context)
-        self._mjr_context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        for context in (self._mjr_context, self._label_context):
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, context)
+            context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self._current_context = self._label_context
         self.base_weather = base_weather
         self._rig = WeatherRig(model) if base_weather is not None else None
         self._weather_option = mujoco.MjvOption()
@@ -125,12 +138,23 @@ class FrameRenderer:
     def close(self) -> None:
         if self._gl_context is not None:
             self._gl_context.make_current()
+        if self._label_context is not None and self._label_context is not self._mjr_context:
+            self._label_context.free()
+        self._label_context = None
         if self._mjr_context is not None:
             self._mjr_context.free()
             self._mjr_context = None
         if self._gl_context is not None:
             self._gl_context.free()
             self._gl_context = None
+
+    def _context(self, labels: bool) -> mujoco.MjrContext:
+        """The context for a pass (labels: segmentation, depth, actor-alone; else RGB), bound."""
+        context = self._label_context if labels else self._mjr_context
+        if context is not self._current_context:
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, context)
+            self._current_context = context
+        return context
 
     def _require_open(self) -> None:
         if self._mjr_context is None:
@@ -188,8 +212,18 @@ class FrameRenderer:
     def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption) -> np.ndarray:
         mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
                                mujoco.mjtCatBit.mjCAT_ALL, self._scene)
-        mujoco.mjr_render(self._rect, self._scene, self._mjr_context)
-        mujoco.mjr_readPixels(self._rgb, None, self._rect, self._mjr_context)
+        context = self._context(labels=False)
+        mujoco.mjr_render(self._rect, self._scene, context)
+        mujoco.mjr_readPixels(self._rgb, None, self._rect, context)
+        return np.flipud(self._rgb).copy()
+
+    def render_rgb(self) -> np.ndarray:
+        """RGB (H, W, 3) uint8 of the scene built by :meth:`update` (multisampled)."""
+        self._require_open()
+        self._set_segmentation(False)
+        context = self._context(labels=False)
+        mujoco.mjr_render(self._rect, self._scene, context)
+        mujoco.mjr_readPixels(self._rgb, None, self._rect, context)
         return np.flipud(self._rgb).copy()
 
     def render_rgb_depth(self) -> tuple[np.ndarray, np.ndarray]:
@@ -199,22 +233,37 @@ class FrameRenderer:
         """
         self._require_open()
         self._set_segmentation(False)
-        mujoco.mjr_render(self._rect, self._scene, self._mjr_context)
-        mujoco.mjr_readPixels(self._rgb, self._depth, self._rect, self._mjr_context)
+        context = self._context(labels=False)
+        mujoco.mjr_render(self._rect, self._scene, context)
+        mujoco.mjr_readPixels(self._rgb, self._depth, self._rect, context)
         rgb = np.flipud(self._rgb).copy()
         return rgb, self._metric_depth(np.flipud(self._depth))
 
     def render_instances(self) -> tuple[np.ndarray, np.ndarray]:
         """Visible actor instance ids (H, W) int32 (-1: no actor) and a (H, W) bool mask of
         pixels showing any geometry (False: sky), from one segmentation pass."""
+        ids, geometry, _ = self._segmentation_pass(with_depth=False)
+        return ids, geometry
+
+    def render_instances_depth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`render_instances` plus depth (H, W) float32 metres along the optical axis,
+        +inf where no geometry is, read from the same (single-sample) rasterisation: the depth
+        of exactly the surface each pixel's id belongs to."""
+        ids, geometry, depth = self._segmentation_pass(with_depth=True)
+        depth[~geometry] = np.inf
+        return ids, geometry, depth
+
+    def _segmentation_pass(self, with_depth: bool):
         self._require_open()
         self._set_segmentation(True)
-        mujoco.mjr_render(self._rect, self._scene, self._mjr_context)
-        mujoco.mjr_readPixels(self._seg, None, self._rect, self._mjr_context)
+        context = self._context(labels=True)
+        mujoco.mjr_render(self._rect, self._scene, context)
+        mujoco.mjr_readPixels(self._seg, self._depth if with_depth else None, self._rect, context)
         self._set_segmentation(False)
         seg = np.flipud(self._seg)
+        depth = self._metric_depth(np.flipud(self._depth)) if with_depth else None
         # OR of the channels: 15x faster than seg.any(axis=-1) on an (H, W, 3) view
-        return self._decode(seg), (seg[..., 0] | seg[..., 1] | seg[..., 2]) != 0
+        return self._decode(seg), (seg[..., 0] | seg[..., 1] | seg[..., 2]) != 0, depth
 
     def render_alone(self, data: mujoco.MjData, instance_ids,
                      window: tuple[int, int, int, int] | None = None) -> np.ndarray:
@@ -247,11 +296,12 @@ class FrameRenderer:
             gl_camera.frustum_bottom *= scale
             gl_camera.frustum_width *= self.padded_width / self.width
         self._set_segmentation(True)
-        mujoco.mjr_render(self._padded_rect, self._scene, self._mjr_context)
+        context = self._context(labels=True)
+        mujoco.mjr_render(self._padded_rect, self._scene, context)
         # GL rows count from the bottom.
         read_rect = mujoco.MjrRect(x0, self.padded_height - y1, x1 - x0, y1 - y0)
         seg = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
-        mujoco.mjr_readPixels(seg, None, read_rect, self._mjr_context)
+        mujoco.mjr_readPixels(seg, None, read_rect, context)
         self._set_segmentation(False)
         return self._decode(np.flipud(seg))
 

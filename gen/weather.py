@@ -89,8 +89,7 @@ class WeatherRig:
         model.light_specular[self._sun] = lighting.sun_specular
         model.light_castshadow[self._sun] = lighting.sun_castshadow
         model.light_diffuse[self._skylight] = lighting.skylight_diffuse
-        ambient = lighting.headlight_ambient
-        model.vis.headlight.ambient = [ambient, ambient, ambient + 0.02]
+        model.vis.headlight.ambient = lighting.headlight_ambient
         model.vis.headlight.diffuse = [lighting.headlight_diffuse] * 3
         materials = self._materials
         for name, factor in (("asphalt", lighting.road_factor),

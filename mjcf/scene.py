@@ -101,7 +101,7 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     spec.visual.map.shadowclip = 0.8
     base = weather_at(layout.sky, 0.0)
     lighting = scene_lighting(base)
-    spec.visual.headlight.ambient = [lighting.headlight_ambient] * 2 + [lighting.headlight_ambient + 0.02]
+    spec.visual.headlight.ambient = list(lighting.headlight_ambient)
     spec.visual.headlight.diffuse = [lighting.headlight_diffuse] * 3
     spec.visual.headlight.specular = [0.0, 0.0, 0.0]
 

@@ -37,7 +37,7 @@ class SceneLighting:
     sun_specular: float
     sun_castshadow: bool
     skylight_diffuse: float
-    headlight_ambient: float
+    headlight_ambient: tuple[float, float, float]  # a faint blue cast: diffuse skylight
     headlight_diffuse: float
     road_factor: float  # multiplies the asphalt material's colour
     pavement_factor: float  # sidewalks and curbs
@@ -59,7 +59,7 @@ def scene_lighting(weather: Weather) -> SceneLighting:
         sun_specular=weather.sun * SUN_SPECULAR,
         sun_castshadow=weather.sun > 0.02,
         skylight_diffuse=SKYLIGHT_DIFFUSE_CLOUD * cover,
-        headlight_ambient=ambient,
+        headlight_ambient=(ambient, ambient, ambient + 0.02),
         headlight_diffuse=HEADLIGHT_DIFFUSE,
         road_factor=1.0 - ROAD_WET_DARKENING * wet,
         pavement_factor=1.0 - PAVEMENT_WET_DARKENING * wet,

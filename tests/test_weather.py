@@ -323,3 +323,24 @@ def test_rgb_is_antialiased_and_segmentation_stays_exact():
     # edges: multisampling blends colours along silhouettes, so more distinct colours appear
     distinct = {s: len(np.unique(results[s][0].reshape(-1, 3), axis=0)) for s in (0, 4)}
     assert distinct[4] > distinct[0] * 1.05
+
+
+def test_format_v1_shards_are_still_read(tmp_path, clear_physical):
+    """A v1 shard (no /weather, no sky attributes) reads through the dataset reader."""
+    import shutil
+
+    from rainbench import ShardDataset
+
+    _, shard = clear_physical
+    old = tmp_path / "v1" / shard.name
+    old.parent.mkdir()
+    shutil.copy(shard, old)
+    with h5py.File(old, "a") as f:
+        del f["weather"]
+        del f.attrs["sky"], f.attrs["weather_follows_rate"]
+        f.attrs["format_version"] = 1
+    dataset = ShardDataset(old.parent)
+    image, target = dataset[len(dataset) - 1]
+    fresh_image, fresh_target = ShardDataset(shard.parent)[len(dataset) - 1]
+    assert np.array_equal(np.asarray(image), np.asarray(fresh_image))
+    assert np.array_equal(np.asarray(target["boxes"]), np.asarray(fresh_target["boxes"]))
