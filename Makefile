@@ -8,6 +8,8 @@ STAMP := $(VENV)/.installed
 OUT ?= data
 SEED ?=
 SKY ?=
+LAYOUT ?=
+TIME ?=
 WEATHER ?=
 FRAMES ?= 200
 WIDTH ?= 800
@@ -28,8 +30,10 @@ TRAIN_OUT ?=
 MODELS ?=
 PAPER_OUT ?= results/paper
 
-# Neither SEED nor SKY: the paper's clip (seed 0, cloudy); SEED alone: that seed's own weather.
-SCENE_FLAGS = $(if $(SEED),--seed $(SEED),) $(if $(SKY),--sky $(SKY),)
+# None of SEED, SKY, LAYOUT, TIME: the paper's clip (seed 0, cloudy street by day); otherwise
+# the seed decides whatever is not given.
+SCENE_FLAGS = $(if $(SEED),--seed $(SEED),) $(if $(SKY),--sky $(SKY),) \
+	$(if $(LAYOUT),--layout $(LAYOUT),) $(if $(TIME),--time $(TIME),)
 
 .PHONY: venv dataset scene verify eval train paper test test-slow bench clean
 

@@ -112,7 +112,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
                            frames_per_shard=args.frames_per_shard, width=args.width,
                            height=args.height, rates=rates, rain_model=args.rain_model,
                            rain_seed=args.rain_seed, store=args.store, fps=args.fps, sky=sky,
-                           weather_follows_rate=args.weather_follows_rate)
+                           weather_follows_rate=args.weather_follows_rate, hfov_deg=args.hfov,
+                           **_layout_and_time(args))
     shards = config.scenes * -(-config.frames // config.frames_per_shard)  # len(config.tasks())
     workers = args.workers or min(os.cpu_count() or 1, shards)
     if args.threads is not None:
@@ -149,7 +150,25 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_stats(args: argparse.Namespace) -> int:
+    import json
+
+    from rainbench.gen.stats import dataset_stats, render_stats
+
+    stats = dataset_stats(args.data)
+    print(json.dumps(stats, indent=1) if args.json else render_stats(stats).rstrip("\n"))
+    return 0
+
+
 def cmd_scene(args: argparse.Namespace) -> int:
+    if args.list:
+        from rainbench.mjcf.layout import LAYOUTS
+
+        for name, description in LAYOUTS.items():
+            print(f"{name:<13} {description}")
+        return 0
+    if args.out is None:
+        raise CliError("scene: expected --out DIR (or --list)")
     out = _writable_dir(Path(args.out), "OUT")
     from rainbench.gen.generate import GenerateConfig
     from rainbench.mjcf import layout as L
@@ -159,7 +178,8 @@ def cmd_scene(args: argparse.Namespace) -> int:
 
     seed, sky = _seed_and_sky(args)
     config = GenerateConfig(seed=seed, frames=args.frames, width=args.width,
-                            height=args.height, fps=args.fps, sky=sky)
+                            height=args.height, fps=args.fps, sky=sky, hfov_deg=args.hfov,
+                            **_layout_and_time(args))
     layout = L.sample_layout(config.seed, config.scenario_config(),
                              np.random.default_rng(config.seed))
     path = export_scene(build_spec(layout, config.width, config.height, config.hfov_deg), out)
@@ -241,7 +261,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                        imgsz=args.imgsz, batch=args.batch, conf=args.conf, iou=args.iou,
                        max_det=args.max_det, report_conf=args.report_conf, n_boot=args.n_boot,
                        class_map=args.class_map, device=args.device, force=args.force,
-                       progress=not args.quiet, trust_pickle=args.trust_pickle or None)
+                       progress=not args.quiet, trust_pickle=args.trust_pickle or None, classes=args.classes)
     print(outputs.paths["report.md"])
     return 0
 
@@ -268,24 +288,61 @@ def cmd_paper(args: argparse.Namespace) -> int:
 
     models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
     seed, sky = _seed_and_sky(args)
-    config = PaperConfig(seed=seed, sky=sky, scenes=args.scenes, frames=args.frames, width=args.width,
+    config = PaperConfig(seed=seed, sky=sky, **_layout_and_time(args), scenes=args.scenes, frames=args.frames, width=args.width,
                          height=args.height, rates=rates, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
-                         n_boot=args.n_boot, device=args.device)
+                         n_boot=args.n_boot, device=args.device, classes=args.classes)
     print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
                     force=args.force, progress=not args.quiet))
     return 0
 
 
 PAPER_SKY = "cloudy"  # the seed paper's CARLA clip was cloudy
+PAPER_LAYOUT = "street"  # ... a straight drive (the street layout)
+PAPER_TIME_OF_DAY = "day"
 
 
 def _seed_and_sky(args: argparse.Namespace) -> tuple[int, str | None]:
-    """(seed, sky): given neither --seed nor --sky, the paper's default clip (seed 0, cloudy);
-    otherwise --sky, or the seed's own base weather when --sky is not given."""
-    if args.seed is None and args.sky is None:
+    """(seed, sky): given none of --seed, --sky, --layout, --time, the paper's default clip
+    (seed 0, cloudy); otherwise --sky, or the seed's own base weather when --sky is not given."""
+    if _is_paper_clip(args):
         return 0, PAPER_SKY
     return (0 if args.seed is None else args.seed), args.sky
+
+
+def _is_paper_clip(args: argparse.Namespace) -> bool:
+    return (args.seed is None and args.sky is None and getattr(args, "layout", None) is None
+            and getattr(args, "time", None) is None)
+
+
+def _layout_and_time(args: argparse.Namespace) -> dict:
+    """``layout`` and ``time_of_day`` of --layout and --time (the paper's clip: the street by
+    day); None where the seed decides."""
+    if _is_paper_clip(args):
+        return {"layout": PAPER_LAYOUT, "time_of_day": PAPER_TIME_OF_DAY}
+    return {"layout": args.layout, "time_of_day": args.time}
+
+
+def _layout_name(text: str) -> str:
+    from rainbench.mjcf.layout import LAYOUTS  # plain data: no mujoco import
+
+    if text not in LAYOUTS:
+        raise argparse.ArgumentTypeError(f"LAYOUT: expected one of {', '.join(LAYOUTS)}, "
+                                         f"got {_shown(text)}")
+    return text
+
+
+def _add_layout_args(parser: argparse.ArgumentParser, hfov: bool = True) -> None:
+    parser.add_argument("--layout", type=_layout_name, default=None,
+                        help="road scene: street, intersection, curved, highway, residential "
+                             "(default: the seed decides; `rainbench scene --list`)")
+    parser.add_argument("--time", choices=("day", "dusk", "night"), default=None,
+                        help="time of day (default: the seed decides; the paper's clip: day)")
+    if not hfov:
+        return
+    parser.add_argument("--hfov", type=_number("HFOV", 10, 170), default=90.0,
+                        help="horizontal field of view of the ego camera in degrees, [10, 170] "
+                             "(default 90, the paper's)")
 
 
 def _add_scene_args(parser: argparse.ArgumentParser) -> None:
@@ -316,6 +373,7 @@ def build_parser() -> argparse.ArgumentParser:
     generate = sub.add_parser("generate", help="render scenes with rain into HDF5 shards and a manifest")
     generate.add_argument("--out", default="data", help="output directory (default: data)")
     _add_scene_args(generate)
+    _add_layout_args(generate)
     generate.add_argument("--rates", default="0",
                           help="rain rates in mm/h: 0:100:10, 0,25,50 or 50 (default: 0)")
     generate.add_argument("--rain-model", default="jeon2022")
@@ -349,9 +407,16 @@ def build_parser() -> argparse.ArgumentParser:
     verify = sub.add_parser("verify", help="re-hash a dataset against its manifest")
     verify.add_argument("out", help="dataset directory (with manifest.json)")
     verify.set_defaults(run=cmd_verify)
+    stats = sub.add_parser("stats", help="objects, instances, box sizes, visibility per class of a dataset")
+    stats.add_argument("data", help="dataset directory, or one shard")
+    stats.add_argument("--json", action="store_true", help="JSON instead of tables (keys: docs/datasets.md)")
+    stats.set_defaults(run=cmd_stats)
     scene = sub.add_parser("scene", help="write the composed scene as a standalone MJCF file")
-    scene.add_argument("--out", required=True, help="directory for scene.xml and its textures")
+    scene.add_argument("--out", default=None, help="directory for scene.xml and its textures")
+    scene.add_argument("--list", action="store_true",
+                       help="print the layouts (name and description, one a line) and exit")
     _add_scene_args(scene)
+    _add_layout_args(scene)
     scene.set_defaults(run=cmd_scene)
     preview = sub.add_parser("preview", help="PNG montage of one frame across all rain rates")
     preview.add_argument("shard", help="a shard, or a dataset directory (its first shard)")
@@ -395,6 +460,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--class-map", default=None,
                           help="model class name -> rainbench id, e.g. car=2,pedestrian=0 "
                                "(needed unless the model is COCO-80)")
+    evaluate.add_argument("--classes", default=None,
+                          help="classes to score, names or ids, e.g. person,car,bus,truck (default: the "
+                               "paper's person,bicycle,car,motorcycle; also bus, truck)")
     evaluate.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
     evaluate.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
     evaluate.add_argument("--trust-pickle", action="store_true",
@@ -413,6 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
     training.set_defaults(run=cmd_train)
     paper = sub.add_parser("paper", help="the seed paper's experiment: generate, evaluate, report beside the paper")
     _add_scene_args(paper)
+    _add_layout_args(paper, hfov=False)
     paper.add_argument("--scenes", type=_positive_int("SCENES", 100_000), default=1)
     paper.add_argument("--rates", default="0:100:10", help="RATES spec (default 0:100:10, the paper's)")
     paper.add_argument("--rain-models", default="jeon2022,physical",
@@ -430,6 +499,8 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
     paper.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=1,
                        help="generation processes")
+    paper.add_argument("--classes", default=None,
+                       help="classes to report, names or ids (default: the paper's four; e.g. add bus,truck)")
     paper.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
     paper.add_argument("--quiet", action="store_true", help="no progress bars")
     paper.set_defaults(run=cmd_paper)

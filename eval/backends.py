@@ -31,12 +31,15 @@ letterboxed, unless the cfg says ``letter_box=1`` (how Darknet itself runs them)
 for ONNX and Darknet: confidence floor, per-class NMS (torchvision), at most ``max_det`` boxes,
 letterbox undone, boxes clipped to the image.
 
-Class mapping: rainbench class ids are COCO-80 indices 0 person, 1 bicycle, 2 car, 3 motorcycle.
-A model whose names[0..3] are those COCO names maps ids 0..3 directly and drops its other
-classes (ONNX files without names metadata and Darknet files with 80 classes count as COCO-80);
-any other model needs a class map ``"car=2,pedestrian=0"`` (model class name = rainbench class
-id; models without names use their class indices as names, ``"0=2"``); model classes left out
-of the map are dropped.
+Class mapping: rainbench class ids are COCO-80 indices 0 person, 1 bicycle, 2 car, 3 motorcycle,
+5 bus, 7 truck (:mod:`rainbench.mjcf.classes`). A model whose names[0..3] are those COCO names
+maps each rainbench class it names at its COCO index directly (a COCO-80 model: all six; the
+shipped four-class models: 0..3) and drops its other classes (ONNX files without names metadata
+and Darknet files with 80 classes count as COCO-80); any other model needs a class map
+``"car=2,pedestrian=0"`` (model class name = rainbench class id; models without names use their
+class indices as names, ``"0=2"``); model classes left out of the map are dropped. Of the classes
+a model can predict (:func:`model_classes`) only the evaluated ones (``classes``, by default the
+paper's four) are kept, before NMS and ``max_det``.
 """
 
 from __future__ import annotations
@@ -54,7 +57,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .metrics import CLASS_IDS, CLASS_NAMES
+from .metrics import CLASS_IDS, CLASS_NAMES, LABELLED_CLASSES, class_list
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Shipped weights, selectable by name (docs/models.md): ``<name>.pt`` (the ultralytics
@@ -246,7 +249,8 @@ def _store_exact_halves(proto: Any) -> Any:
 
 
 def parse_class_map(spec: str) -> dict[str, int]:
-    """``"car=2,pedestrian=0"`` -> ``{"car": 2, "pedestrian": 0}`` (ids must be rainbench ids 0..3)."""
+    """``"car=2,pedestrian=0"`` -> ``{"car": 2, "pedestrian": 0}`` (ids must be rainbench class
+    ids: 0..3, 5 bus, 7 truck)."""
     mapping: dict[str, int] = {}
     for item in str(spec).split(","):
         item = item.strip()
@@ -258,9 +262,9 @@ def parse_class_map(spec: str) -> dict[str, int]:
             class_id = int(value)
         except ValueError:
             class_id = None
-        if not sep or not name or class_id not in CLASS_IDS:
-            raise BackendError(f"--class-map: expected NAME=ID pairs with ID in 0..3 "
-                               f"({', '.join(f'{i} {n}' for i, n in enumerate(CLASS_NAMES))}), got {spec!r}")
+        if not sep or not name or class_id not in LABELLED_CLASSES:
+            raise BackendError(f"--class-map: expected NAME=ID pairs with ID a rainbench class id "
+                               f"({class_list(LABELLED_CLASSES)}), got {spec!r}")
         if name in mapping:
             raise BackendError(f"--class-map: class name {name!r} is given twice in {spec!r}")
         mapping[name] = class_id
@@ -269,8 +273,15 @@ def parse_class_map(spec: str) -> dict[str, int]:
     return mapping
 
 
-def class_lookup(names: dict[int, str] | list[str], class_map: str | None, source: str) -> np.ndarray:
-    """Table model class index -> rainbench class id (-1: dropped) for a model's ``names``."""
+def class_lookup(names: dict[int, str] | list[str], class_map: str | None, source: str,
+                 classes: Sequence[int] = CLASS_IDS) -> np.ndarray:
+    """Table model class index -> rainbench class id (-1: dropped) for a model's ``names``.
+
+    ``classes``: the rainbench ids to keep (default the paper's four); a model class mapped to
+    any other id is dropped too. ``classes=LABELLED_CLASSES`` gives everything the model can
+    predict. Returns an (nc,) int64 array.
+    """
+    wanted = np.asarray(list(classes), dtype=np.int64)
     if isinstance(names, dict):
         size = max(names) + 1 if names else 0
         by_index = {int(k): str(v) for k, v in names.items()}
@@ -287,18 +298,38 @@ def class_lookup(names: dict[int, str] | list[str], class_map: str | None, sourc
             raise BackendError(f"--class-map: {source} has no class named {unknown[0]!r} (its classes: {shown})")
         for name, class_id in mapping.items():
             table[index_of[name]] = class_id
+        table[~np.isin(table, wanted)] = -1
         return table
     if all(by_index.get(i) == CLASS_NAMES[i] for i in CLASS_IDS):
-        table[: len(CLASS_IDS)] = CLASS_IDS
+        for class_id in wanted.tolist():
+            if class_id < size and by_index.get(class_id) == CLASS_NAMES[class_id]:
+                table[class_id] = class_id
         return table
     shown = ", ".join(f"{i}={by_index.get(i)!r}" for i in range(min(size, 4)))
     raise BackendError(f"{source}: its class names ({shown}, ...) are not COCO-80; pass --class-map "
-                       "NAME=ID,... mapping its class names to 0 person, 1 bicycle, 2 car, 3 motorcycle")
+                       f"NAME=ID,... mapping its class names to rainbench ids ({class_list(LABELLED_CLASSES)})")
+
+
+def model_classes(detector: Any) -> tuple[int, ...] | None:
+    """The rainbench class ids a loaded detector can predict (whatever it was asked to keep), in
+    ascending order; None while unknown (an ONNX file without names metadata and with a dynamic
+    output shape learns its class count at its first batch)."""
+    full = getattr(detector, "full_lookup", None)
+    if full is None:
+        return None
+    return tuple(sorted({int(c) for c in np.asarray(full).tolist() if c >= 0}))
+
+
+def _lookups(names, class_map: str | None, source: str, classes: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(everything the model can predict, the part kept for ``classes``): two :func:`class_lookup`
+    tables."""
+    return (class_lookup(names, class_map, source, LABELLED_CLASSES),
+            class_lookup(names, class_map, source, classes))
 
 
 def index_names(nc: int) -> list[str]:
-    """Class names of a model that carries none: COCO-80 (our four names first) when it has 80
-    classes, else its class indices as text (``"0"``, ``"1"``, ...)."""
+    """Class names of a model that carries none: COCO-80 (our eight COCO names first, the rest
+    ``coco8`` ...) when it has 80 classes, else its class indices as text (``"0"``, ``"1"``, ...)."""
     if nc == 80:
         return list(CLASS_NAMES) + [f"coco{i}" for i in range(len(CLASS_NAMES), 80)]
     return [str(i) for i in range(nc)]
@@ -336,8 +367,9 @@ class UltralyticsDetector:
 
     name: str
     model: Any
-    lookup: np.ndarray
+    lookup: np.ndarray  # model class -> rainbench id of the evaluated classes (-1 dropped)
     device: str | None = None
+    full_lookup: np.ndarray | None = None  # model class -> any rainbench id (:func:`model_classes`)
 
     def predict(self, images, *, imgsz: int, conf: float, iou: float, max_det: int):
         # ultralytics expects BGR numpy arrays; it letterboxes and maps boxes back itself.
@@ -459,14 +491,17 @@ class OnnxDetector:
     input_shape: tuple[int | None, int | None]  # fixed (h, w), or None where dynamic
     fixed_batch: int | None
     layout: str | None = None  # "v8" or "v5"; decided from the output shape (:meth:`configure`)
-    lookup: np.ndarray | None = None  # model class -> rainbench id (-1 dropped)
+    lookup: np.ndarray | None = None  # model class -> rainbench id of the evaluated classes (-1 dropped)
+    classes: tuple[int, ...] = CLASS_IDS  # the evaluated rainbench ids
+    full_lookup: np.ndarray | None = None  # model class -> any rainbench id (:func:`model_classes`)
 
     def configure(self, output_shape: list) -> None:
         """Decide the output layout and class table from an output shape (B, A, C)."""
         nc = len(self.names) if self.names is not None else None
         self.layout, nc = output_layout(output_shape, nc, Path(f"{self.name}.onnx"))
         names = self.names if self.names is not None else index_names(nc)
-        self.lookup = class_lookup(names, self.class_map, f"--weights {self.name}.onnx")
+        self.full_lookup, self.lookup = _lookups(names, self.class_map, f"--weights {self.name}.onnx",
+                                                 self.classes)
 
     def _shape(self, height: int, width: int, imgsz: int) -> tuple[int, int]:
         fixed_h, fixed_w = self.input_shape
@@ -538,7 +573,8 @@ def output_layout(dims: list, nc: int | None, path: Path) -> tuple[str, int]:
     return layout, nc
 
 
-def _load_onnx(path: Path, class_map: str | None, device: str | None) -> OnnxDetector:
+def _load_onnx(path: Path, class_map: str | None, device: str | None,
+               classes: Sequence[int] = CLASS_IDS) -> OnnxDetector:
     try:
         import onnxruntime
     except ImportError:
@@ -563,9 +599,9 @@ def _load_onnx(path: Path, class_map: str | None, device: str | None) -> OnnxDet
     names = _onnx_names(session)
     detector = OnnxDetector(name=path.stem, session=session, names=names, class_map=class_map,
                             input_shape=(_fixed_dim(input_dims[2]), _fixed_dim(input_dims[3])),
-                            fixed_batch=_fixed_dim(input_dims[0]))
+                            fixed_batch=_fixed_dim(input_dims[0]), classes=tuple(classes))
     if names is not None:  # a bad --class-map fails now, not at the first batch
-        detector.lookup = class_lookup(names, class_map, f"--weights {path}")
+        detector.full_lookup, detector.lookup = _lookups(names, class_map, f"--weights {path}", classes)
     if _fixed_dim(output_dims[1]) and _fixed_dim(output_dims[2]):
         detector.configure(output_dims)
     elif names is None and class_map is not None:
@@ -630,9 +666,10 @@ class DarknetDetector:
 
     name: str
     net: Any
-    lookup: np.ndarray
+    lookup: np.ndarray  # model class -> rainbench id of the evaluated classes (-1 dropped)
     input_size: tuple[int, int]  # (h, w) from the cfg's [net] section
     letterboxed: bool
+    full_lookup: np.ndarray | None = None  # model class -> any rainbench id (:func:`model_classes`)
 
     def predict(self, images, *, imgsz: int, conf: float, iou: float, max_det: int):
         import cv2
@@ -672,7 +709,7 @@ def decode_darknet(rows: np.ndarray, input_size: tuple[int, int]) -> tuple[np.nd
     return boxes, rows[:, 5:]
 
 
-def _load_darknet(path: Path, class_map: str | None) -> DarknetDetector:
+def _load_darknet(path: Path, class_map: str | None, kept: Sequence[int] = CLASS_IDS) -> DarknetDetector:
     import cv2
 
     cfg = path.with_suffix(".cfg")
@@ -700,10 +737,10 @@ def _load_darknet(path: Path, class_map: str | None) -> DarknetDetector:
         reason = " ".join(str(error).split())[-200:]
         raise BackendError(f"--weights: {path} does not load with {cfg.name} ({reason})") from None
     nc = classes.pop()
-    lookup = class_lookup(index_names(nc), class_map, f"--weights {path}")
+    full_lookup, lookup = _lookups(index_names(nc), class_map, f"--weights {path}", kept)
     input_size = (int(net_section.get("height", 416)), int(net_section.get("width", 416)))
     return DarknetDetector(name=path.stem, net=net, lookup=lookup, input_size=input_size,
-                           letterboxed=net_section.get("letter_box", "0") == "1")
+                           letterboxed=net_section.get("letter_box", "0") == "1", full_lookup=full_lookup)
 
 
 TRUST_PICKLE_ENV = "RAINBENCH_TRUST_PICKLE"
@@ -752,8 +789,13 @@ def _load_yolo_safely(ultralytics: Any, path: Path) -> Any:
 
 
 def load_detector(weights: str | Path, *, class_map: str | None = None,
-                  device: str | None = None, trust_pickle: bool | None = None) -> Detector:
+                  device: str | None = None, trust_pickle: bool | None = None,
+                  classes: Sequence[int] = CLASS_IDS) -> Detector:
     """Load a detector from a weights spec (:func:`resolve_weights`); ``.name`` is the model name.
+
+    ``classes``: the rainbench class ids it keeps (default the paper's four); the others it can
+    predict (:func:`model_classes`) are dropped before NMS and ``max_det``. A class it cannot
+    predict is not an error here (see :func:`check_model_classes`).
 
     A ``.pt`` is read with ultralytics' safe loading; one that needs Python's full unpickler is
     refused unless ``trust_pickle`` (None: the ``RAINBENCH_TRUST_PICKLE=1`` environment
@@ -770,9 +812,9 @@ def load_detector(weights: str | Path, *, class_map: str | None = None,
         parse_class_map(class_map)
     suffix = path.suffix.lower()
     if suffix == ".onnx":
-        return _load_onnx(path, class_map, device)
+        return _load_onnx(path, class_map, device, classes)
     if suffix == ".weights":
-        return _load_darknet(path, class_map)
+        return _load_darknet(path, class_map, classes)
     if suffix != ".pt":
         raise BackendError(f"--weights: {path}: unsupported format {path.suffix or '(none)'!r}; expected "
                            "an ultralytics .pt, an .onnx export, Darknet .cfg/.weights, or a shipped model "
@@ -800,5 +842,19 @@ def load_detector(weights: str | Path, *, class_map: str | None = None,
     if getattr(model, "task", None) != "detect":
         raise BackendError(f"--weights: {path} is a {getattr(model, 'task', 'unknown')!r} model; "
                            "expected a detection model")
-    lookup = class_lookup(model.names, class_map, f"--weights {path}")
-    return UltralyticsDetector(name=name, model=model, lookup=lookup, device=device)
+    full_lookup, lookup = _lookups(model.names, class_map, f"--weights {path}", classes)
+    return UltralyticsDetector(name=name, model=model, lookup=lookup, device=device, full_lookup=full_lookup)
+
+
+def check_model_classes(detector: Any, model: str, classes: Sequence[int]) -> None:
+    """Refuse a model that cannot predict one of ``classes`` (rainbench ids): a one-line
+    :class:`BackendError` naming the model and the class. Does nothing while the detector's
+    classes are unknown (:func:`model_classes` is None)."""
+    available = model_classes(detector)
+    if available is None:
+        return
+    for class_id in classes:
+        if class_id not in available:
+            shown = ", ".join(CLASS_NAMES[c] for c in available) or "none of the rainbench classes"
+            raise BackendError(f"--classes: model {model!r} cannot predict {CLASS_NAMES[class_id]!r} "
+                               f"(class {class_id}); it predicts {shown}")

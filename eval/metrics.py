@@ -5,8 +5,10 @@ state); writing and plotting live in ``rainbench.eval.report``.
 
 Conventions (fixed by the project):
 
-- Class ids are COCO-80 indices: 0 person, 1 bicycle, 2 car, 3 motorcycle (``CLASS_NAMES[i]`` is
-  the name of class id ``i``). COCO category ids are the same numbers, *including 0*:
+- Class ids are COCO-80 indices: 0 person, 1 bicycle, 2 car, 3 motorcycle, 5 bus, 7 truck
+  (``CLASS_NAMES[i]`` is the name of class id ``i``, :mod:`rainbench.mjcf.classes`; 4 airplane and
+  6 train are never labelled). The paper's four classes 0..3 are evaluated by default
+  (``CLASS_IDS``). COCO category ids are the same numbers, *including 0*:
   pycocotools handles category id 0 (it indexes categories by value and never tests them for
   truth), which the tests pin against a direct ``loadRes``/``COCOeval`` run.
 - Dataset boxes are float32 ``x1, y1, x2, y2`` in pixel-edge coordinates (a box covering pixel
@@ -39,11 +41,55 @@ import numpy as np
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval, Params
 
-CLASS_NAMES: tuple[str, ...] = ("person", "bicycle", "car", "motorcycle")
-"""Class names; ``CLASS_NAMES[class_id]`` (COCO-80 indices 0..3)."""
+from rainbench.mjcf.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES
 
-CLASS_IDS: tuple[int, ...] = (0, 1, 2, 3)
-"""Class ids evaluated by default."""
+PAPER_CLASS_NAMES: tuple[str, ...] = tuple(CLASS_NAMES[i] for i in PAPER_CLASSES)
+"""Names of the paper's four classes, ids 0..3 (the default categories of :func:`coco_ground_truth`)."""
+
+CLASS_IDS: tuple[int, ...] = PAPER_CLASSES
+"""Class ids evaluated by default: the seed paper's four (0 person, 1 bicycle, 2 car,
+3 motorcycle). ``CLASS_NAMES`` (ids 0..7, COCO-80 names) and ``LABELLED_CLASSES`` (the ids that
+occur in labels: also 5 bus and 7 truck) come from :mod:`rainbench.mjcf.classes`."""
+
+
+def class_list(class_ids: Sequence[int]) -> str:
+    """``"person (0), car (2), bus (5)"``: class ids with their names, for messages."""
+    return ", ".join(f"{CLASS_NAMES[class_id]} ({class_id})" for class_id in class_ids)
+
+
+def parse_classes(spec: str | Sequence[int | str]) -> tuple[int, ...]:
+    """Class ids of a ``--classes`` value, unique and in class-id order.
+
+    Args:
+        spec: Comma-separated names or ids (``"person,car,bus,truck"``, ``"0,2,5,7"``, mixed, any
+            case), or a sequence of names / ids. Allowed: the labelled classes
+            (``LABELLED_CLASSES``: person 0, bicycle 1, car 2, motorcycle 3, bus 5, truck 7).
+
+    Returns:
+        (K,) tuple of class ids, K >= 1, ascending.
+
+    Raises a one-line ValueError naming an unknown entry and the allowed names.
+    """
+    items = spec.split(",") if isinstance(spec, str) else list(spec)
+    allowed = f"expected names or ids of {class_list(LABELLED_CLASSES)}"
+    ids: set[int] = set()
+    for item in items:
+        if isinstance(item, str):
+            text = item.strip().lower()
+            if not text:
+                continue
+            class_id = int(text) if text.isdigit() else (CLASS_NAMES.index(text) if text in CLASS_NAMES else -1)
+        elif isinstance(item, (int, np.integer)) and not isinstance(item, (bool, np.bool_)):
+            class_id = int(item)
+        else:
+            class_id = -1
+        if class_id not in LABELLED_CLASSES:
+            raise ValueError(f"--classes: unknown class {item!r}; {allowed}")
+        ids.add(class_id)
+    if not ids:
+        raise ValueError(f"--classes: expected at least one class, got {spec!r}; {allowed}")
+    return tuple(sorted(ids))
+
 
 IOU_THRESHOLDS: np.ndarray = Params(iouType="bbox").iouThrs.copy()
 """(10,) float64 COCO IoU thresholds 0.50:0.05:0.95, exactly as pycocotools builds them."""
@@ -219,7 +265,9 @@ def _check_known_class_ids(class_ids: np.ndarray, known: Sequence[int], what: st
         raise ValueError(f"{what}: unknown class id(s) {unknown}, expected ids in {tuple(known)}")
 
 
-def coco_ground_truth(images: Sequence[tuple], class_names: Sequence[str] = CLASS_NAMES) -> dict[str, list[dict]]:
+def coco_ground_truth(
+    images: Sequence[tuple], class_names: Sequence[str] = PAPER_CLASS_NAMES
+) -> dict[str, list[dict]]:
     """Build a COCO ground-truth dict from per-image arrays.
 
     Args:
@@ -229,7 +277,9 @@ def coco_ground_truth(images: Sequence[tuple], class_names: Sequence[str] = CLAS
             ``boxes`` (M, 4) float array (float32 in the dataset), x1, y1, x2, y2 pixel-edge
             coordinates with ``x2 >= x1`` and ``y2 >= y1``; ``class_ids`` (M,) int array of ids
             into ``class_names``; ``ignore`` (M,) bool array, optional.
-        class_names: Category names; category id ``i`` is ``class_names[i]``.
+        class_names: Category names; category id ``i`` is ``class_names[i]``. The default is
+            the paper's four classes (ids 0..3); pass ``CLASS_NAMES`` for ids 0..7 (bus 5,
+            truck 7), as the evaluation pipeline does.
 
     Returns:
         A COCO dict ``{"images", "annotations", "categories"}``. Annotation ids run from 1,

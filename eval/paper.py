@@ -1,7 +1,7 @@
 """``rainbench paper`` / ``make paper``: the seed paper's experiment on rainbench data, end to end.
 
 Defaults equal the paper's: one clip of 200 frames of 800x600 (seed 0), rates 0..100 mm/h in
-steps of 10, the four classes. For each rain model (``jeon2022``, the paper's calibrated law, and
+steps of 10, the four classes (``PaperConfig.classes`` adds bus and truck: ``--classes``). For each rain model (``jeon2022``, the paper's calibrated law, and
 ``physical``) a dataset is generated (or finished: it resumes), every model is evaluated with
 ``run_eval`` into ``OUT/<rain model>/``, and ``OUT/report.md`` sets our Tables I, III and IV beside
 the paper's, with the analyses beyond it (half-AP rates, the two rain models side by side, AP by
@@ -22,7 +22,7 @@ import numpy as np
 from rainbench.gen.dataset import DatasetConfig, open_in_turn, run_dataset
 from rainbench.gen.shard import open_shard, read_frame_labels
 
-from .metrics import CLASS_NAMES, ap_by_size, ap_by_visibility, half_value_rate
+from .metrics import CLASS_IDS, CLASS_NAMES, ap_by_size, ap_by_visibility, half_value_rate, parse_classes
 from .pipeline import EvalError, dataset_images, ground_truth, load_predictions_file, predictions_path, run_eval
 from .report import render_paper_md
 
@@ -36,6 +36,8 @@ class PaperConfig:
 
     seed: int = 0
     sky: str | None = "cloudy"  # the paper's clip was cloudy; None: each seed's own weather
+    layout: str | None = "street"  # the paper's straight drive; None: each seed's own layout
+    time_of_day: str | None = "day"  # None: each seed's own
     scenes: int = 1
     frames: int = 200
     width: int = 800
@@ -48,8 +50,14 @@ class PaperConfig:
     n_boot: int = 1000
     device: str | None = None
     breakdown_rates: tuple[float, ...] = (0.0, 50.0, 100.0)
+    classes: str | tuple[int | str, ...] | None = None  # None: the paper's four; else as run_eval's
 
     def __post_init__(self) -> None:
+        if self.classes is not None:
+            try:
+                parse_classes(self.classes)
+            except ValueError as error:
+                raise EvalError(str(error)) from None
         if not self.weights:
             raise EvalError("MODELS/WEIGHTS: expected at least one model to evaluate")
         unknown = sorted(set(self.rain_models) - set(RAIN_MODELS))
@@ -89,22 +97,25 @@ def default_models(cuda: bool) -> tuple[str, ...]:
     return tuple(name for name in wanted if name in shipped_models()) or ("rainbench-yolo11n",)
 
 
-def table_one(data_dir: Path) -> dict[str, tuple[int, int]]:
-    """``{class: (objects, instances)}``: distinct actors per scene and labelled boxes, per class."""
-    objects: dict[str, set] = {name: set() for name in CLASS_NAMES}
-    instances = dict.fromkeys(CLASS_NAMES, 0)
-    for _, shard, frame, handle in open_in_turn(dataset_images(data_dir)):
-        labels = read_frame_labels(handle, frame)
-        for class_id, instance_id in zip(labels["class_id"].tolist(), labels["instance_id"].tolist()):
-            name = CLASS_NAMES[class_id]
-            objects[name].add((shard.name.split("_")[0], instance_id))  # ids are per scene
-            instances[name] += 1
-    return {name: (len(objects[name]), instances[name]) for name in CLASS_NAMES}
+def table_one(data_dir: Path, classes: Sequence[int] = CLASS_IDS) -> dict[str, tuple[int, int]]:
+    """``{class: (objects, instances)}`` of the class ids ``classes`` (default the paper's four), in
+    that order: distinct (scene seed, instance id) and labelled boxes over all frames
+    (:func:`rainbench.gen.stats.dataset_stats`)."""
+    from rainbench.gen.stats import dataset_stats
+
+    try:
+        stats = dataset_stats(data_dir)
+    except ValueError as error:
+        raise EvalError(str(error)) from None
+    found = {entry["class_id"]: (entry["objects"], entry["instances"]) for entry in stats["classes"]}
+    return {CLASS_NAMES[c]: found.get(c, (0, 0)) for c in classes}
 
 
-def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[float]) -> dict:
-    """``{"visible fraction" | "box size": {rate: {bin: {class name: BreakdownAP}}}}`` of one model,
-    from the cached predictions of :func:`run_eval` in ``results_dir``."""
+def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[float],
+               classes: Sequence[int] = CLASS_IDS) -> dict:
+    """``{"visible fraction" | "box size": {rate: {bin: {class name: BreakdownAP}}}}`` of one model
+    and the class ids ``classes``, from the cached predictions of :func:`run_eval` in
+    ``results_dir``."""
     images = dataset_images(data_dir)
     gt = ground_truth(images)
     visible = np.concatenate([np.asarray(read_frame_labels(handle, frame)["visible_fraction"], np.float64)
@@ -114,9 +125,11 @@ def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[fl
     image_ids = {image_id for image_id, _, _ in images}
     result: dict[str, dict] = {"visible fraction": {}, "box size": {}}
     for rate in rates:
-        detections = load_predictions_file(predictions_path(results_dir / "predictions", model, rate), image_ids)
-        by_visibility = ap_by_visibility(gt, detections, visible, bins=VISIBILITY_BINS, unmatched="ignore")
-        by_size = ap_by_size(gt, detections)
+        detections = load_predictions_file(predictions_path(results_dir / "predictions", model, rate), image_ids,
+                                           classes)
+        by_visibility = ap_by_visibility(gt, detections, visible, bins=VISIBILITY_BINS, unmatched="ignore",
+                                         class_ids=classes)
+        by_size = ap_by_size(gt, detections, class_ids=classes)
         for what, table in (("visible fraction", by_visibility), ("box size", by_size)):
             result[what][float(rate)] = {label: {CLASS_NAMES[c]: entry for c, entry in per_class.items()}
                                          for label, per_class in table.items()}
@@ -127,10 +140,16 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
               force: bool = False, progress: bool = True) -> Path:
     """Generate, evaluate and report; returns ``OUT/report.md``. Datasets go to
     ``data_root/<rain model>/`` and are reused (resumed) by later runs with the same config."""
-    from .backends import model_imgsz, preload_torch
+    from .backends import check_model_classes, load_detector, model_imgsz, preload_torch, resolve_weights
 
     preload_torch()  # before generating: triton after Mesa rendering crashes
     out_dir, data_root = Path(out_dir), Path(data_root)
+    class_ids = CLASS_IDS if config.classes is None else parse_classes(config.classes)
+    if config.classes is not None:  # a model that cannot predict a requested class fails before generating
+        for spec in config.weights:
+            detector = load_detector(spec, device=config.device, classes=class_ids)
+            check_model_classes(detector, resolve_weights(spec, config.device)[1], class_ids)
+            del detector
     records_by_rain: dict[str, list] = {}
     timings: dict[str, float] = {}
     skies = set()
@@ -138,7 +157,8 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
         data_dir = data_root / name
         dataset = DatasetConfig(seed=config.seed, scenes=config.scenes, frames=config.frames,
                                 width=config.width, height=config.height, rates=config.rates,
-                                rain_model=rain_model, sky=config.sky, weather_follows_rate=follows)
+                                rain_model=rain_model, sky=config.sky, weather_follows_rate=follows,
+                                layout=config.layout, time_of_day=config.time_of_day)
         start = time.perf_counter()
         run_dataset(dataset, data_dir, workers=workers)
         timings[f"generate {name}"] = time.perf_counter() - start
@@ -148,26 +168,29 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
         start = time.perf_counter()
         outputs = run_eval(data_dir, out_dir / name, weights=list(config.weights), imgsz=config.imgsz,
                            batch=config.batch, n_boot=config.n_boot, device=config.device, force=force,
-                           progress=progress)
+                           progress=progress, classes=config.classes)
         timings[f"evaluate {name}"] = time.perf_counter() - start
         records_by_rain[name] = outputs.records
     models = list(dict.fromkeys(record["model"] for record in records_by_rain[config.rain_models[0]]))
     half_rates = {}
     for rain_model, records in records_by_rain.items():
         for model in models:
-            for class_name in CLASS_NAMES:
+            for class_name in (CLASS_NAMES[c] for c in class_ids):
                 values = {float(r["rate"]): float(r["ap50"]) for r in records
                           if r["model"] == model and r["class"] == class_name}
                 half_rates[(rain_model, model, class_name)] = half_value_rate(values) if values else math.nan
     paper_rain = "jeon2022" if "jeon2022" in config.rain_models else config.rain_models[0]
     breakdown_rates = [r for r in config.breakdown_rates if r in config.rates]
-    tables = breakdowns(data_root / paper_rain, out_dir / paper_rain, models[0], breakdown_rates)
-    counts = table_one(data_root / paper_rain)
+    tables = breakdowns(data_root / paper_rain, out_dir / paper_rain, models[0], breakdown_rates, class_ids)
+    counts = table_one(data_root / paper_rain, class_ids)
+    paper_clip = (config.sky, config.seed, config.layout, config.time_of_day) == ("cloudy", 0, "street", "day")
     setup = [
         f"Data: {config.scenes} scene(s) from seed {config.seed}, {config.frames} frames of "
         f"{config.width}x{config.height} each, rates {', '.join(f'{r:g}' for r in config.rates)} mm/h, "
-        f"rain models {', '.join(config.rain_models)}. Base weather: {', '.join(sorted(skies))} "
-        f"({'the paper clip' if config.sky == 'cloudy' and config.seed == 0 else 'as chosen'}). "
+        f"rain models {', '.join(config.rain_models)}. Classes: {', '.join(CLASS_NAMES[c] for c in class_ids)}. "
+        f"Road layout: {config.layout or 'each seed its own'}; time of day: "
+        f"{config.time_of_day or 'each seed its own'}. Base weather: {', '.join(sorted(skies))} "
+        f"({'the paper clip' if paper_clip else 'as chosen'}). "
         "Weather following the rate (sky, light, wet road, puddles, spray, exposure, noise): "
         + ", ".join(f"{name} {'yes' if follows else 'no'}" for name, _, follows in conditions(config.rain_models))
         + ". Models: "

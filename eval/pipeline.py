@@ -30,7 +30,8 @@ from rainbench.gen.dataset import (DatasetError, image_index, list_shards, open_
 from rainbench.gen.export import rate_token
 from rainbench.gen.shard import open_shard, read_frame_labels, read_rgb
 
-from .metrics import CLASS_IDS, CLASS_NAMES, bootstrap_ci, coco_ground_truth, evaluate, metric_records
+from .metrics import (CLASS_IDS, CLASS_NAMES, LABELLED_CLASSES, bootstrap_ci, class_list, coco_ground_truth,
+                      evaluate, metric_records, parse_classes)
 from .report import PAPER_TABLES, plot_detection_strip, plot_metric_vs_rate, render_report_md, write_metrics
 
 SHARD_GLOB = "scene*_f*.h5"
@@ -92,14 +93,18 @@ def dataset_rates(data_dir: str | Path) -> list[float]:
 
 
 def ground_truth(images: Sequence[tuple[int, Path, int]]) -> dict[str, list[dict]]:
-    """COCO ground-truth dict of ``images`` (from :func:`dataset_images`); valid at every rate."""
+    """COCO ground-truth dict of ``images`` (from :func:`dataset_images`); valid at every rate.
+
+    Categories are every class id 0..7 (``CLASS_NAMES``), whatever the shards' ``class_names``
+    (older shards list the first four; the ids mean the same), so bus (5) and truck (7) boxes
+    are ground truth too; which classes are scored is the evaluator's ``class_ids``."""
     entries = []
     for image_id, _, frame, handle in open_in_turn(images):
         labels = read_frame_labels(handle, frame)
         entries.append((image_id, int(handle.attrs["width"]), int(handle.attrs["height"]),
                         np.asarray(labels["bbox"], np.float32).reshape(-1, 4),
                         np.asarray(labels["class_id"]).astype(np.int64)))
-    return coco_ground_truth(entries)
+    return coco_ground_truth(entries, CLASS_NAMES)
 
 
 def _read_rgb(images: Sequence[tuple[int, Path, int]], rate_index: int, batch: int):
@@ -125,11 +130,16 @@ def predictions_path(root: str | Path, model: str, rate: float) -> Path:
     return Path(root) / model / f"rate_{rate_token(rate)}.json"
 
 
-def check_detections(records: Any, image_ids: set[int], where: str) -> list[dict]:
-    """Check COCO results records; errors name ``where`` (the file). Returns clean records."""
+def check_detections(records: Any, image_ids: set[int], where: str,
+                     classes: Sequence[int] = CLASS_IDS) -> list[dict]:
+    """Check COCO results records; errors name ``where`` (the file). Returns the clean records of
+    the evaluated ``classes`` (rainbench ids, default the paper's four): a record of another
+    rainbench class (``LABELLED_CLASSES``, e.g. a bus while evaluating the paper's classes) is
+    checked and left out; any other ``category_id`` is an error."""
     if not isinstance(records, list):
         raise EvalError(f"{where}: expected a JSON list of COCO results records, got {type(records).__name__}")
-    known = set(CLASS_IDS)
+    known = set(LABELLED_CLASSES)
+    kept = {int(c) for c in classes}
     clean = []
     for position, record in enumerate(records):
         try:
@@ -139,8 +149,8 @@ def check_detections(records: Any, image_ids: set[int], where: str) -> list[dict
             raise EvalError(f"{where}: record {position}: expected image_id, category_id, bbox [x, y, w, h] "
                             f"and score ({type(error).__name__}: {error})") from None
         if isinstance(category_id, bool) or not isinstance(category_id, int) or category_id not in known:
-            raise EvalError(f"{where}: record {position}: category_id {category_id!r} is not a class id in "
-                            f"{min(known)}..{max(known)}")
+            raise EvalError(f"{where}: record {position}: category_id {category_id!r} is not a rainbench "
+                            f"class id ({class_list(LABELLED_CLASSES)})")
         if isinstance(image_id, bool) or not isinstance(image_id, int) or image_id not in image_ids:
             raise EvalError(f"{where}: record {position}: image_id {image_id!r} is not an image of the dataset "
                             f"(ids 1..{len(image_ids)})")
@@ -149,12 +159,15 @@ def check_detections(records: Any, image_ids: set[int], where: str) -> list[dict
                             "with w, h >= 0")
         if not 0.0 <= score <= 1.0:
             raise EvalError(f"{where}: record {position}: score {score} is not in [0, 1]")
+        if category_id not in kept:
+            continue
         clean.append({"image_id": image_id, "category_id": category_id, "bbox": bbox, "score": score})
     return clean
 
 
-def load_predictions_file(path: str | Path, image_ids: set[int]) -> list[dict]:
-    """Read and check one COCO results file (errors name the file)."""
+def load_predictions_file(path: str | Path, image_ids: set[int], classes: Sequence[int] = CLASS_IDS) -> list[dict]:
+    """Read and check one COCO results file (errors name the file); the records of the evaluated
+    ``classes`` (:func:`check_detections`)."""
     path = Path(path)
     if not path.is_file():
         raise EvalError(f"predictions: {path} is missing")
@@ -167,7 +180,7 @@ def load_predictions_file(path: str | Path, image_ids: set[int]) -> list[dict]:
                         "deeply to read)") from None
     except OSError as error:
         raise EvalError(f"predictions: {path} cannot be read ({error.strerror})") from None
-    return check_detections(records, image_ids, str(path))
+    return check_detections(records, image_ids, str(path), classes)
 
 
 def _write_json(path: Path, data: Any) -> None:
@@ -204,22 +217,28 @@ class EvalOutputs:
     """(model, rate) pairs whose detections were computed by a backend in this run (not cached)."""
 
 
-def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map) -> dict[str, Any]:
+def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map, classes) -> dict[str, Any]:
     stat = weights.stat()
     return {"weights": str(weights.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
-            "imgsz": imgsz, "conf": conf, "iou": iou, "max_det": max_det, "class_map": class_map}
+            "imgsz": imgsz, "conf": conf, "iou": iou, "max_det": max_det, "class_map": class_map,
+            "classes": list(classes)}
 
 
-def _infer(detector, images, rate_index: int, *, batch, imgsz, conf, iou, max_det, bar) -> list[dict]:
+def _infer(detector, images, rate_index: int, *, batch, imgsz, conf, iou, max_det, bar,
+           classes: Sequence[int]) -> list[dict]:
+    """COCO results records of ``detector`` on ``images`` at one rate, of the rainbench ids
+    ``classes`` only."""
     from .metrics import coco_detections
 
     records: list[dict] = []
     for image_ids, arrays in _read_rgb(images, rate_index, batch):
         outputs = detector.predict(arrays, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det)
         for image_id, (boxes, scores, class_ids) in zip(image_ids, outputs, strict=True):
-            records += coco_detections(image_id, np.asarray(boxes, np.float64).reshape(-1, 4),
-                                       np.clip(np.asarray(scores, np.float64), 0.0, 1.0),
-                                       np.asarray(class_ids, np.int64))
+            class_ids = np.asarray(class_ids, np.int64).reshape(-1)
+            keep = np.isin(class_ids, np.asarray(classes, np.int64))
+            records += coco_detections(image_id, np.asarray(boxes, np.float64).reshape(-1, 4)[keep],
+                                       np.clip(np.asarray(scores, np.float64).reshape(-1), 0.0, 1.0)[keep],
+                                       class_ids[keep])
         bar.update(len(image_ids))
     return records
 
@@ -228,7 +247,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
              weights: Sequence[str | Path] = (), imgsz: int | None = None, batch: int = 32, conf: float = 0.001,
              iou: float = 0.7, max_det: int = 300, report_conf: float = 0.25, n_boot: int = 1000,
              class_map: str | None = None, device: str | None = None, force: bool = False,
-             progress: bool = True, trust_pickle: bool | None = None) -> EvalOutputs:
+             progress: bool = True, trust_pickle: bool | None = None,
+             classes: str | Sequence[int | str] | None = None) -> EvalOutputs:
     """Evaluate every model at every rain rate of a dataset and write the outputs under ``out_dir``.
 
     Detections come either from ``predictions_dir`` (``<model>/rate_<rate_token>.json`` COCO
@@ -241,6 +261,12 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     (:func:`rainbench.eval.backends.model_imgsz`: a shipped model's card, else 640).
     ``trust_pickle``: load ``.pt`` files that ultralytics' safe loading refuses with Python's
     full unpickler (see :func:`rainbench.eval.backends.load_detector`).
+
+    ``classes``: the classes to score, names or ids (``"person,car,bus,truck"``, ``[2, 5, 7]``;
+    :func:`rainbench.eval.metrics.parse_classes`); None scores the paper's four (0..3). Only
+    they appear in the records, tables and plots, and detectors keep only them. Given
+    explicitly, every model must be able to predict every one of them (a model that cannot:
+    one-line error naming the model and the class).
 
     Outputs: ``metrics.json``, ``metrics.csv``, ``images.json``, ``report.md``,
     ``ap50_vs_rate.png``, ``f1_vs_rate.png``, ``detections_strip.png``.
@@ -255,6 +281,10 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     for name, value in (("--conf", conf), ("--iou", iou), ("--report-conf", report_conf)):
         if not 0.0 <= float(value) <= 1.0:
             raise EvalError(f"{name}: expected a value in [0, 1], got {value}")
+    try:
+        class_ids = CLASS_IDS if classes is None else parse_classes(classes)
+    except ValueError as error:
+        raise EvalError(str(error)) from None
     images, rates_array = _scan(data_dir)
     rates = [float(r) for r in rates_array]
     image_ids = {image_id for image_id, _, _ in images}
@@ -268,7 +298,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
         for model in models:
             for rate in rates:
                 detections[(model, rate)] = load_predictions_file(
-                    predictions_path(predictions_dir, model, rate), image_ids)
+                    predictions_path(predictions_dir, model, rate), image_ids, class_ids)
     else:
         from . import backends
 
@@ -282,10 +312,13 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
         if duplicates:
             raise EvalError(f"--weights: several weights files are named {duplicates[0]!r}; model names "
                             "(file stems) must be unique")
+        # First load (and check) every detector that has rates to infer, then infer: a model that
+        # cannot predict a requested class fails the run before any inference.
+        plans = []
         for spec, path, model in zip(specs, weights, models, strict=True):
             model_imgsz = backends.model_imgsz(spec) if imgsz is None else imgsz
             settings = _cache_settings(path, imgsz=model_imgsz, conf=conf, iou=iou, max_det=max_det,
-                                       class_map=class_map)
+                                       class_map=class_map, classes=class_ids)
             cache_root = out_dir / "predictions"
             meta_path = cache_root / model / "settings.json"
             try:
@@ -294,20 +327,28 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
                 cached_settings = None
             reuse = not force and cached_settings == settings
             detector = None
+            if not all(reuse and predictions_path(cache_root, model, rate).is_file() for rate in rates):
+                extra = {} if trust_pickle is None else {"trust_pickle": trust_pickle}
+                if classes is not None:
+                    extra["classes"] = class_ids
+                detector = backends.load_detector(spec, class_map=class_map, device=device, **extra)
+                if classes is not None:
+                    backends.check_model_classes(detector, model, class_ids)
+                if not reuse:  # settings changed or --force: older rate files are stale
+                    meta_path.unlink(missing_ok=True)
+            plans.append((model, model_imgsz, settings, cache_root, meta_path, reuse, detector))
+        for model, model_imgsz, settings, cache_root, meta_path, reuse, detector in plans:
             for rate_index, rate in enumerate(rates):
                 cache = predictions_path(cache_root, model, rate)
                 if reuse and cache.is_file():
-                    detections[(model, rate)] = load_predictions_file(cache, image_ids)
+                    detections[(model, rate)] = load_predictions_file(cache, image_ids, class_ids)
                     continue
-                if detector is None:
-                    trust = {} if trust_pickle is None else {"trust_pickle": trust_pickle}
-                    detector = backends.load_detector(spec, class_map=class_map, device=device, **trust)
-                    if not reuse:  # settings changed or --force: older rate files are stale
-                        meta_path.unlink(missing_ok=True)
                 with tqdm(total=len(images), unit="img", desc=f"{model} {rate_token(rate)} mm/h",
                           disable=not progress, dynamic_ncols=True) as bar:
                     records = _infer(detector, images, rate_index, batch=batch, imgsz=model_imgsz, conf=conf,
-                                     iou=iou, max_det=max_det, bar=bar)
+                                     iou=iou, max_det=max_det, bar=bar, classes=class_ids)
+                if classes is not None:  # an ONNX file without names learns its classes at its first batch
+                    backends.check_model_classes(detector, model, class_ids)
                 _write_json(cache, records)
                 detections[(model, rate)] = records
                 inference_runs += 1
@@ -321,10 +362,11 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
         for model in models:
             for rate in rates:
                 dets = detections[(model, rate)]
-                results[(model, rate)] = evaluate(gt, dets, conf=report_conf)
+                results[(model, rate)] = evaluate(gt, dets, class_ids=class_ids, conf=report_conf)
                 rng = np.random.default_rng(BOOTSTRAP_SEED)
-                ci50[(model, rate)] = bootstrap_ci(gt, dets, n_boot, rng=rng, metric="ap50")
-                ci5095[(model, rate)] = bootstrap_ci(gt, dets, n_boot, rng=rng, metric="ap50_95")
+                ci50[(model, rate)] = bootstrap_ci(gt, dets, n_boot, rng=rng, metric="ap50", class_ids=class_ids)
+                ci5095[(model, rate)] = bootstrap_ci(gt, dets, n_boot, rng=rng, metric="ap50_95",
+                                                     class_ids=class_ids)
                 bar.update(1)
     clean_rate = 0.0 if 0.0 in rates else rates[0]
     records = metric_records(results, [ci50, ci5095], clean_rate=clean_rate)
@@ -342,10 +384,12 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     paths["ap50_vs_rate.png"] = plot_metric_vs_rate(records, "ap50", out_dir / "ap50_vs_rate.png")
     paths["f1_vs_rate.png"] = plot_metric_vs_rate(records, "f1", out_dir / "f1_vs_rate.png")
 
-    # The frame with the most labels (the first such), across rates, with the first model's boxes.
+    # The frame with the most labels of the scored classes (the first such), across rates, with
+    # the first model's boxes (of the scored classes only).
     counts: dict[int, int] = {}
     for annotation in gt["annotations"]:
-        counts[annotation["image_id"]] = counts.get(annotation["image_id"], 0) + 1
+        if annotation["category_id"] in class_ids:
+            counts[annotation["image_id"]] = counts.get(annotation["image_id"], 0) + 1
     strip_id = max(sorted(image_ids), key=lambda i: counts.get(i, 0))
     _, strip_shard, strip_frame = images[strip_id - 1]
     with open_shard(strip_shard) as handle:

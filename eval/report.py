@@ -59,7 +59,8 @@ repeats the Normal values, with one discrepancy: YOLOv4 car F1 is 0.628 there, 0
 """
 
 TABLE_CLASS_ORDER: tuple[str, ...] = ("car", "person", "bicycle", "motorcycle")
-"""Column order of the paper's Tables III and IV."""
+"""Column order of the paper's Tables III and IV (other classes, e.g. bus and truck, follow in
+class-id order)."""
 
 PAPER_COLORS: dict[str, str] = {"yolov7x": "tab:red", "yolov5x": "tab:green", "yolov4": "tab:blue"}
 """Line colours of the paper's Figs. 8-11 (YOLOv7x red, YOLOv5x green, YOLOv4 blue)."""
@@ -212,7 +213,8 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
 
 
 def _index(records: Sequence[Mapping[str, Any]]) -> tuple[list[str], list[float], list[str], dict]:
-    """Models (first appearance), rates (ascending), classes (paper order first), {(m, r, c): record}."""
+    """Models (first appearance), rates (ascending), classes (paper order first, then the others
+    in class-id order), {(m, r, c): record}."""
     models: list[str] = []
     classes_seen: list[str] = []
     by_key = {}
@@ -224,9 +226,9 @@ def _index(records: Sequence[Mapping[str, Any]]) -> tuple[list[str], list[float]
             classes_seen.append(class_name)
         by_key[(model, float(record["rate"]), class_name)] = record
     rates = sorted({float(record["rate"]) for record in records})
-    classes = [c for c in TABLE_CLASS_ORDER if c in classes_seen] + [
-        c for c in classes_seen if c not in TABLE_CLASS_ORDER
-    ]
+    others = [c for c in classes_seen if c not in TABLE_CLASS_ORDER]
+    others.sort(key=lambda c: CLASS_NAMES.index(c) if c in CLASS_NAMES else len(CLASS_NAMES))
+    classes = [c for c in TABLE_CLASS_ORDER if c in classes_seen] + others
     return models, rates, classes, by_key
 
 
@@ -250,12 +252,15 @@ def _degradation_table(
     paper: Mapping[str, Any] | None,
     paper_models: Mapping[str, str] | None,
 ) -> list[str]:
-    """Table III / IV layout: rows model x {Normal, heavy rate, % drop}, columns classes."""
+    """Table III / IV layout: rows model x {Normal, heavy rate, % drop}, columns classes (with a
+    paper column beside each class the paper reports)."""
     paper_metric = (paper or {}).get(metric)
+    paper_classes = {name for by_rate in (paper_metric or {}).values() for values in by_rate.values()
+                     for name in values}
     header = ["Model", "Condition"]
     for class_name in classes:
         header.append(class_name.capitalize())
-        if paper_metric is not None:
+        if class_name in paper_classes:
             header.append(f"{class_name.capitalize()} (paper)")
     rows = []
     for model in models:
@@ -273,7 +278,7 @@ def _degradation_table(
                     )
                 else:
                     row.append(_fmt(by_key.get((model, rate, class_name), {}).get(metric)))
-                if paper_metric is not None:
+                if class_name in paper_classes:
                     published_clean = paper_rates.get(clean_rate, {}).get(class_name)
                     if rate is None:
                         published_heavy = paper_rates.get(heavy_rate, {}).get(class_name)
@@ -308,7 +313,8 @@ def render_report_md(
     """Render records as a markdown report in the paper's layout.
 
     Sections: Table III (AP@0.5) and Table IV (F1 at the YOLO best-F1 confidence) with rows
-    model x {Normal, heavy rate, % drop} and columns car / person / bicycle / motorcycle; the
+    model x {Normal, heavy rate, % drop} and columns the records' classes (car / person / bicycle
+    / motorcycle in the paper's order, then e.g. bus / truck; a paper column beside the paper's); the
     full rate-by-rate tables of AP@0.5, AP@0.5:0.95 and F1; the 95 % bootstrap intervals of
     AP@0.5 (when the records carry them); mPC / rPC (Michaelis et al. 2019); ground-truth counts.
 
@@ -348,7 +354,7 @@ def render_report_md(
     lines += _degradation_table("ap50", models, classes, by_key, clean_rate, heavy, paper, paper_models)
     lines += ["", f"## Table IV. F1 degradation, Normal vs {heavy_label}", ""]
     lines += _degradation_table("f1", models, classes, by_key, clean_rate, heavy, paper, paper_models)
-    if paper is not None:
+    if paper is not None and set(classes) & set(TABLE_CLASS_ORDER):
         lines += ["", "Paper columns: the seed paper's published values (Tables III and IV), for reference."]
     for metric, label in (("ap50", "AP@0.5"), ("ap50_95", "AP@0.5:0.95"), ("f1", "F1")):
         lines += ["", f"## {label} by rainfall rate", ""]
@@ -421,7 +427,7 @@ def _weather_share(records_by_rain: Mapping[str, Sequence[Mapping[str, Any]]]) -
     clean, heavy = min(rates), max(rates)
     rows = []
     for model in models:
-        for position, class_name in enumerate(c for c in TABLE_CLASS_ORDER if c in classes):
+        for position, class_name in enumerate(classes):
             def ap(table, rate):
                 return table.get((model, rate, class_name), {}).get("ap50")
 
@@ -456,11 +462,14 @@ def render_paper_md(
     paper_rain_model: str = "jeon2022",
 ) -> str:
     """The ``make paper`` report: our Tables I, III and IV beside the seed paper's, plots of both
-    rain models, and the analyses beyond the paper.
+    rain models, and the analyses beyond the paper. Every table shows the classes of the records
+    (the evaluated ones: by default the paper's four; bus and truck when asked for), in the
+    paper's order, then the others in class-id order; the paper's columns read n/a for classes it
+    did not have.
 
     Args:
         setup_lines: Markdown lines describing the run (data, models, hardware, times).
-        table_one: ``{class: (objects, instances)}`` of our dataset.
+        table_one: ``{class: (objects, instances)}`` of our dataset (a missing class counts 0).
         records_by_rain: ``{rain model: metric records}`` (:func:`metric_records`), each with the
             plots ``<rain model>/ap50_vs_rate.png`` and ``f1_vs_rate.png`` beside the report.
         half_rates: ``{(rain model, model, class): rate}`` where AP@0.5 falls to half its clean
@@ -472,15 +481,16 @@ def render_paper_md(
     """
     lines = ["# rainbench: the seed paper's experiment on rainbench data", ""]
     lines += list(setup_lines) + [""]
+    classes = _index(next(iter(records_by_rain.values())))[2] if records_by_rain else list(TABLE_CLASS_ORDER)
     lines += ["## Table I. Objects and instances per class", ""]
     rows = []
-    for class_name in TABLE_CLASS_ORDER:
+    for class_name in classes:
         ours = table_one.get(class_name, (0, 0))
-        paper = PAPER_TABLE_I[class_name]
-        rows.append([class_name, str(ours[0]), str(ours[1]), str(paper[0]), str(paper[1])])
+        paper = [str(v) for v in PAPER_TABLE_I[class_name]] if class_name in PAPER_TABLE_I else ["n/a", "n/a"]
+        rows.append([class_name, str(ours[0]), str(ours[1]), *paper])
     lines += _table(["Class", "Objects", "Instances", "Objects (paper)", "Instances (paper)"], rows)
     for rain_model, records in records_by_rain.items():
-        models, rates, classes, by_key = _index(records)
+        models, rates, rain_classes, by_key = _index(records)
         heavy, clean = max(rates), min(rates)
         label = ("the paper's calibrated drop law" if rain_model == paper_rain_model
                  else "physically based rain over the unchanged base weather"
@@ -500,7 +510,7 @@ def render_paper_md(
         for metric, table, metric_label in (("ap50", "III", "AP@0.5"), ("f1", "IV", "F1")):
             lines += ["", f"## Table {table}. {metric_label}, Normal vs {_rate_label(heavy, clean)}: "
                       f"{rain_model} ({label})", ""]
-            lines += _degradation_table(metric, rows_models, classes, by_key, clean, heavy, None, None)
+            lines += _degradation_table(metric, rows_models, rain_classes, by_key, clean, heavy, None, None)
         if rain_model == paper_rain_model:
             lines += ["", "Rows marked (paper): the seed paper's published Tables III and IV (COCO-pretrained "
                       "YOLOv4, YOLOv5x, YOLOv7x on its CARLA Town04 clip), for reference."]
@@ -520,7 +530,7 @@ def render_paper_md(
     models = _index(next(iter(records_by_rain.values())))[0]
     rows = []
     for model in models:
-        for position, class_name in enumerate(TABLE_CLASS_ORDER):
+        for position, class_name in enumerate(classes):
             rows.append([model if position == 0 else "", class_name]
                         + [_fmt_rate(half_rates.get((rain, model, class_name), math.nan)) for rain in rain_models])
     lines += _table(["Model", "Class"] + rain_models, rows)
@@ -530,7 +540,7 @@ def render_paper_md(
         rates = indexed[rain_models[0]][1]
         rows = []
         for model in models:
-            for position, class_name in enumerate(TABLE_CLASS_ORDER):
+            for position, class_name in enumerate(classes):
                 row = [model if position == 0 else "", class_name]
                 for rate in rates:
                     row.append(" / ".join(_fmt(indexed[rain][3].get((model, rate, class_name), {}).get("ap50"))
@@ -542,7 +552,7 @@ def render_paper_md(
         rates = sorted(by_rate)
         bins = list(next(iter(by_rate.values())))
         rows = []
-        for class_name in TABLE_CLASS_ORDER:
+        for class_name in classes:
             for position, bin_label in enumerate(bins):
                 row = [class_name if position == 0 else "", bin_label]
                 for rate in rates:
@@ -623,8 +633,12 @@ def plot_metric_vs_rate(
     return out_png
 
 
-_BOX_COLORS_BGR: tuple[tuple[int, int, int], ...] = ((60, 60, 230), (230, 160, 40), (60, 200, 60), (200, 60, 200))
-"""Box colours (BGR) per class id 0..3; other ids cycle."""
+_BOX_COLORS_BGR: tuple[tuple[int, int, int], ...] = (
+    (60, 60, 230), (230, 160, 40), (60, 200, 60), (200, 60, 200),
+    (128, 128, 128), (0, 200, 255), (128, 128, 128), (200, 200, 0),
+)
+"""Box colours (BGR) per class id 0..7 (bus 5 orange, truck 7 teal; 4 and 6 are never
+labelled); other ids cycle."""
 
 
 def plot_detection_strip(

@@ -41,11 +41,17 @@ from pathlib import Path
 from typing import Any
 
 from rainbench.gen.dataset import DatasetConfig, run_dataset
-from rainbench.mjcf.layout import CLASS_NAMES, ScenarioConfig
+from rainbench.mjcf.classes import CLASS_NAMES, PAPER_CLASSES
+from rainbench.mjcf.layout import ScenarioConfig
 
 from .backends import DEFAULT_IMGSZ
 from .tiles import TileConfig, TileError, export_tiles
 
+TRAIN_CLASSES: tuple[int, ...] = PAPER_CLASSES
+"""Class ids a recipe trains (the paper's four, as the shipped models): labels of other classes
+(bus 5, truck 7) are left out of the exported training labels, so the model has 4 classes."""
+TRAIN_CLASS_NAMES: tuple[str, ...] = tuple(CLASS_NAMES[: max(TRAIN_CLASSES) + 1])
+"""The model's ``names`` (dense ids 0..3, COCO names)."""
 TRAIN_SEED_START = 1_000_000
 """Seeds of training and validation scenes are >= this; evaluation seeds are below it."""
 RECIPES_DIR = Path(__file__).resolve().parent / "recipes"
@@ -214,13 +220,14 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
         done_marker = yolo / split / ".exported"
         if before != manifest.read_bytes() or not done_marker.is_file():
             done_marker.unlink(missing_ok=True)
-            export_yolo(data_dir, yolo / split, rates=[0.0], image_format="png", overwrite=True)
+            export_yolo(data_dir, yolo / split, rates=[0.0], image_format="png", overwrite=True,
+                        classes=TRAIN_CLASSES)
             done_marker.write_text(manifest.read_text())
     return _dataset_yaml(out / "dataset.yaml", yolo, "train/rate_0/images", "val/rate_0/images")
 
 
 def _dataset_yaml(path: Path, root: Path, train_images: str, val_images: str) -> Path:
-    names = "\n".join(f"  {i}: {n}" for i, n in enumerate(CLASS_NAMES))
+    names = "\n".join(f"  {i}: {n}" for i, n in enumerate(TRAIN_CLASS_NAMES))
     path.write_text(f"path: {root.resolve()}\ntrain: {train_images}\nval: {val_images}\nnames:\n{names}\n")
     return path
 
@@ -242,7 +249,7 @@ def prepare_tiles(out: str | Path, config: TileConfig) -> Path:
         if done_marker.is_file() and done_marker.read_text() == stamp:
             continue
         done_marker.unlink(missing_ok=True)
-        export_tiles(source, root / split, config, grid=split == "val", num_classes=len(CLASS_NAMES))
+        export_tiles(source, root / split, config, grid=split == "val", num_classes=len(TRAIN_CLASS_NAMES))
         done_marker.write_text(stamp)
     return _dataset_yaml(out / f"{config.token()}.yaml", root, "train/images", "val/images")
 

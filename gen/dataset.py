@@ -52,6 +52,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from rainbench import __version__
+from rainbench.mjcf.classes import CLASS_NAMES, LABELLED_CLASSES
 from rainbench.mjcf.layout import ScenarioConfig
 
 from . import labels as lb
@@ -98,6 +99,8 @@ class DatasetConfig:
     label_filter: lb.LabelFilter = field(default_factory=lb.LabelFilter)
     scenario: ScenarioConfig | None = None  # None: the paper's actor mix over frames / fps seconds
     sky: str | None = None  # base weather of every scene; None: each seed decides
+    layout: str | None = None  # road layout of every scene; None: each seed decides
+    time_of_day: str | None = None  # day, dusk or night for every scene; None: each seed decides
     weather_follows_rate: bool | None = None  # None: on for physical, off for jeon2022
 
     def __post_init__(self) -> None:
@@ -136,6 +139,7 @@ class DatasetConfig:
                     rain_model=self.rain_model, rain_seed=self.rain_seed,
                     rain_options=dict(self.rain_options), store=tuple(self.store),
                     label_filter=self.label_filter, scenario=self.scenario, sky=self.sky,
+                    layout=self.layout, time_of_day=self.time_of_day,
                     weather_follows_rate=self.weather_follows_rate))
         return tasks
 
@@ -297,9 +301,11 @@ def check_labels(handle, path: str | Path | None = None) -> None:
     Checks ``/rgb`` against ``/rates`` and the ``width``/``height`` attributes, that
     ``/labels/offsets`` starts at 0, never decreases and ends at the label count, that every
     label array has one row per label, boxes finite with ``0 <= x1 < x2 <= W`` and
-    ``0 <= y1 < y2 <= H``, amodal boxes finite and ordered, class ids naming a class of
-    ``class_names``, instance ids >= 0, visible fractions and truncations in [0, 1], and finite
-    per-box rain statistics.
+    ``0 <= y1 < y2 <= H``, amodal boxes finite and ordered, ``class_names`` the first names of
+    :data:`rainbench.mjcf.classes.CLASS_NAMES` (older shards list 4, newer 8: the ids mean the
+    same), class ids naming a class of ``class_names`` that rainbench labels (not 4 airplane or
+    6 train), instance ids >= 0, visible fractions and truncations in [0, 1], and finite per-box
+    rain statistics.
     """
     path = path if path is not None else handle.filename
     try:
@@ -320,6 +326,9 @@ def check_labels(handle, path: str | Path | None = None) -> None:
                                f"{width}, 3) with R = {rates[0] if rates else '?'} rates")
     if not isinstance(class_names, list):
         raise ShardFormatError(f"{path}: class_names is not a JSON list")
+    if not class_names or class_names != list(CLASS_NAMES[:len(class_names)]):
+        raise ShardFormatError(f"{path}: class_names {str(class_names)[:120]} are not the rainbench "
+                               f"classes (the first names of {list(CLASS_NAMES)})")
     if rgb.dtype != np.uint8:
         raise ShardFormatError(f"{path}: /rgb holds {rgb.dtype}, not uint8")
     with np.errstate(invalid="ignore"):
@@ -381,6 +390,10 @@ def check_labels(handle, path: str | Path | None = None) -> None:
             raise ShardFormatError(f"{path}: /labels/class_id holds {class_id.dtype}, not integers")
         refuse(np.flatnonzero((class_id < 0) | (class_id >= len(class_names))),
                f"has a class_id outside 0..{len(class_names) - 1}")
+        unlabelled = np.flatnonzero(~np.isin(class_id, LABELLED_CLASSES))
+        if unlabelled.size:
+            refuse(unlabelled, f"has class_id {int(class_id[unlabelled[0]])} "
+                               f"({CLASS_NAMES[int(class_id[unlabelled[0]])]}), which rainbench never labels")
         refuse(np.flatnonzero(arrays["instance_id"] < 0), "has a negative instance_id")
         for key in ("visible_fraction", "truncation"):
             values = arrays[key].astype(np.float64)

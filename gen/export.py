@@ -13,6 +13,14 @@ Layout of ``out_dir`` (``<token>`` is :func:`rate_token` of the rate, e.g. ``0``
 
 Boxes in shards are float32 ``x1, y1, x2, y2`` in pixel-edge coordinates (docs/format.md).
 
+Class ids stay COCO-80 ids in both exports (:mod:`rainbench.mjcf.classes`: 0 person, 1 bicycle,
+2 car, 3 motorcycle, 5 bus, 7 truck). The classes an export declares are those its labels need
+(:func:`export_classes`): the paper's four when every label is one of them, else all six
+labelled classes. YOLO ``data.yaml`` ``names`` is the dict ``{id: name}`` over the dense ids
+0..3 or 0..7 (``nc`` 4 or 8; ultralytics needs dense ids, so 4 airplane and 6 train are named
+though never labelled), and COCO ``categories`` list exactly the declared classes with their
+COCO ids (so 4 and 6 are left out).
+
 An export is written into a hidden staging folder ``out_dir/.export-tmp-<pid>/`` and its
 folders and files are renamed into place only when everything is written, so a failed or
 interrupted export leaves nothing under a final name (a killed one leaves its staging folder,
@@ -30,6 +38,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from rainbench.mjcf.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES
 
 from .dataset import DatasetError, image_index, list_shards, open_checked, open_in_turn
 from .shard import read_frame_labels, read_rgb
@@ -91,17 +101,27 @@ def dataset_rates(shards: Sequence[Path], rates: Sequence[float] | None = None) 
     return selected
 
 
-def _class_names(shards: Sequence[Path]) -> list[str]:
-    names = None
-    for path in shards:
-        with open_checked(path) as handle:
-            current = json.loads(handle.attrs["class_names"])
-        if names is None:
-            names = current
-        elif current != names:
-            raise ExportError(f"{path}: class_names {current} differ from the first shard's "
-                              f"{names}")
-    return names
+def export_classes(class_ids: Sequence[int]) -> tuple[int, ...]:
+    """The class ids an export declares for labels with the ids ``class_ids``: the paper's four
+    (``PAPER_CLASSES``) when every id is one of them, else every labelled class
+    (``LABELLED_CLASSES``, adding 5 bus and 7 truck)."""
+    return PAPER_CLASSES if set(int(c) for c in class_ids) <= set(PAPER_CLASSES) else LABELLED_CLASSES
+
+
+def yolo_names(class_ids: Sequence[int]) -> list[str]:
+    """YOLO ``names`` for labels with the ids ``class_ids``: ``CLASS_NAMES`` over the dense ids
+    0..max of :func:`export_classes` (ultralytics needs ids 0..nc-1)."""
+    return list(CLASS_NAMES[:max(export_classes(class_ids)) + 1])
+
+
+def _check_classes(classes: Sequence[int] | None) -> np.ndarray | None:
+    if classes is None:
+        return None
+    ids = [int(c) for c in classes]
+    unknown = [c for c in ids if c not in LABELLED_CLASSES]
+    if not ids or unknown:
+        raise ExportError(f"classes: expected rainbench class ids among {list(LABELLED_CLASSES)}, got {list(classes)}")
+    return np.asarray(sorted(set(ids)), np.int64)
 
 
 _STAGE_PREFIX = ".export-tmp-"
@@ -173,13 +193,13 @@ def _write_image(path: Path, rgb: np.ndarray) -> None:
         raise OSError(f"{path}: could not write the image")
 
 
-def _walk(shards: Sequence[Path], rates: Sequence[float]):
+def _walk(shards: Sequence[Path], rates: Sequence[float], classes: np.ndarray | None = None):
     """Yield ``(image_id, shard_path, frame, rgb_by_rate, labels, (height, width))``.
 
     ``rgb_by_rate``: list of (H, W, 3) uint8 RGB images, one per rate of ``rates`` (in that
     order); ``labels``: :func:`read_frame_labels` of the frame (``bbox`` (M, 4) xyxy
     pixel-edge float32, ``class_id`` (M,) int32, ...; ``rain_coverage`` and ``contrast_loss``
-    (R, M) sliced to the rates of ``rates``).
+    (R, M) sliced to the rates of ``rates``), only the labels of ``classes`` when given.
     """
     current, positions = None, None
     for image_id, path, frame, handle in open_in_turn(image_index(shards)):
@@ -191,6 +211,10 @@ def _walk(shards: Sequence[Path], rates: Sequence[float]):
         for key in ("rain_coverage", "contrast_loss"):
             if key in labels:
                 labels[key] = labels[key][positions]
+        if classes is not None:
+            keep = np.isin(labels["class_id"], classes)
+            labels = {key: value[:, keep] if key in ("rain_coverage", "contrast_loss") else value[keep]
+                      for key, value in labels.items()}
         rgb = [read_rgb(handle, position, frame) for position in positions]
         size = (int(handle.attrs["height"]), int(handle.attrs["width"]))
         yield image_id, path, frame, rgb, labels, size
@@ -216,37 +240,46 @@ def _data_yaml(folder: Path, names: Sequence[str], image_dir: str = "images") ->
 
 
 def export_yolo(data, out_dir, *, rates: Sequence[float] | None = None,
-                image_format: str = "png", overwrite: bool = False) -> list[Path]:
+                image_format: str = "png", overwrite: bool = False,
+                classes: Sequence[int] | None = None) -> list[Path]:
     """Export the dataset ``data`` (a dataset directory, a shard, or a list of shards) as one
     ultralytics YOLO folder per rain rate; returns the ``data.yaml`` paths (in rate order).
 
     ``out_dir/rate_<token>/``: ``images/<id:06d>.<image_format>`` (RGB of the shard, lossless
     for png), ``labels/<id:06d>.txt`` (one ``class cx cy w h`` line per box: the shard's xyxy
     pixel-edge ``bbox`` normalised by the image size, 6 decimals; an empty file for no boxes),
-    ``data.yaml`` (``path`` absolute, ``train``/``val`` = ``images``, ``names`` by class id):
+    ``data.yaml`` (``path`` absolute, ``train``/``val`` = ``images``, ``nc``, ``names`` the
+    dict ``{class id: name}`` of :func:`yolo_names`: 0..3 for the paper's classes, 0..7 when bus
+    or truck labels are exported, COCO ids kept):
     ``YOLO("yolo11n.pt").train(data=".../rate_0/data.yaml")`` trains on it directly.
+
+    ``classes``: export only the labels of these class ids (e.g. ``PAPER_CLASSES`` for a
+    four-class model); None exports every label.
 
     ``rates=None`` exports every rate of the dataset; a rate not in the dataset raises
     :class:`ExportError`. A non-empty ``out_dir`` raises unless ``overwrite`` (then the
     ``rate_<token>/`` folders of the exported rates are replaced; other files are left alone).
     """
     _check_image_format(image_format)
+    keep = _check_classes(classes)
     shards = list_shards(data)
     selected = dataset_rates(shards, rates)
-    names = _class_names(shards)
     out_dir = Path(out_dir)
     folder_names = [f"rate_{rate_token(rate)}" for rate in selected]
+    seen: set[int] = set()
     with _staged(out_dir, overwrite, folder_names) as stage:
         folders = [stage / name for name in folder_names]
         for folder in folders:
             (folder / "images").mkdir(parents=True, exist_ok=True)
             (folder / "labels").mkdir(parents=True, exist_ok=True)
-        for image_id, _path, _frame, rgb_by_rate, labels, (height, width) in _walk(shards,
-                                                                                   selected):
+        for image_id, _path, _frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected,
+                                                                                   keep):
+            seen.update(labels["class_id"].tolist())
             text = _yolo_lines(labels["bbox"], labels["class_id"], width, height)
             for folder, rgb in zip(folders, rgb_by_rate):
                 _write_image(folder / "images" / f"{image_id:06d}.{image_format}", rgb)
                 (folder / "labels" / f"{image_id:06d}.txt").write_text(text)
+        names = yolo_names(seen)
         for name, folder in zip(folder_names, folders):
             (folder / "data.yaml").write_text(_data_yaml(out_dir / name, names))
     return [out_dir / name / "data.yaml" for name in folder_names]
@@ -276,7 +309,8 @@ def read_yolo_labels(txt_path, width: int, height: int) -> tuple[np.ndarray, np.
 
 
 def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: bool = True,
-                image_format: str = "png", overwrite: bool = False) -> list[Path]:
+                image_format: str = "png", overwrite: bool = False,
+                classes: Sequence[int] | None = None) -> list[Path]:
     """Export the dataset ``data`` as one COCO detection JSON per rain rate; returns the JSON
     paths ``out_dir/rate_<token>.json`` (in rate order).
 
@@ -287,17 +321,19 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
       (COCO-80 index, 0 = person), ``bbox`` ``[x, y, w, h]`` from the shard's xyxy pixel-edge
       box, ``area`` = w * h, ``iscrowd`` 0, plus ``visible_fraction``, ``truncation``,
       ``instance_id`` and, at this rate, ``rain_coverage`` and ``contrast_loss``;
-    - ``categories``: ``{"id": i, "name": class_names[i], "supercategory": "object"}``.
+    - ``categories``: ``{"id": i, "name": CLASS_NAMES[i], "supercategory": "object"}`` for the
+      COCO ids ``i`` of :func:`export_classes` (0..3, or 0..3, 5 and 7 when bus or truck labels
+      are exported).
 
     ``images=True`` also writes the images at the ``file_name`` paths (the same files as
     :func:`export_yolo`, so both exports can share one ``out_dir`` with ``overwrite=True``).
     Rate selection and ``overwrite`` as in :func:`export_yolo` (replaced: ``rate_<token>.json``
-    and, with ``images``, ``rate_<token>/images/``).
+    and, with ``images``, ``rate_<token>/images/``); ``classes`` as in :func:`export_yolo`.
     """
     _check_image_format(image_format)
+    keep = _check_classes(classes)
     shards = list_shards(data)
     selected = dataset_rates(shards, rates)
-    names = _class_names(shards)
     out_dir = Path(out_dir)
     tokens = [rate_token(rate) for rate in selected]
     # images first, the JSON files (which name the images) last
@@ -310,7 +346,7 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
         root = Path(data) if not isinstance(data, (list, tuple)) and Path(data).is_dir() else None
         image_records, annotation_records = [], []  # rate-independent parts; file_name added later
         per_rate_extra: list[list[tuple[float, float]]] = []  # (rain_coverage, contrast_loss)
-        for image_id, path, frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected):
+        for image_id, path, frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected, keep):
             try:
                 shard = path.relative_to(root).as_posix() if root is not None else path.name
             except ValueError:
@@ -337,8 +373,9 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
                 })
                 per_rate_extra.append([(float(coverage[r, row]), float(contrast[r, row]))
                                        for r in range(len(selected))])
-        categories = [{"id": i, "name": name, "supercategory": "object"}
-                      for i, name in enumerate(names)]
+        seen = {record["category_id"] for record in annotation_records}
+        categories = [{"id": i, "name": CLASS_NAMES[i], "supercategory": "object"}
+                      for i in export_classes(seen)]
         for position, (rate, token) in enumerate(zip(selected, tokens)):
             payload = {
                 "info": {"description": "rainbench export", "rate_mm_h": rate},

@@ -23,7 +23,7 @@ import numpy as np
 from rainbench import __version__
 from rainbench.mjcf import layout as L
 from rainbench.mjcf.scene import build_spec, geom_instance_table
-from rainbench.rain.weather import Weather, check_sky, weather_at
+from rainbench.rain.weather import Weather, check_sky, check_time_of_day, weather_at
 
 from . import labels as lb
 from . import sim
@@ -54,6 +54,8 @@ class GenerateConfig:
     label_filter: lb.LabelFilter = field(default_factory=lb.LabelFilter)
     scenario: L.ScenarioConfig | None = None  # None: the paper's mix over frames / fps seconds
     sky: str | None = None  # base weather (clear, cloudy, overcast); None: the seed decides
+    layout: str | None = None  # road layout (mjcf.layout.LAYOUTS); None: the seed decides
+    time_of_day: str | None = None  # day, dusk, night; None: the seed decides
     # Whether sky, light, wet road, spray and camera follow the rain rate; None: the rain
     # model's default (on for physical, off for jeon2022: the seed paper's method).
     weather_follows_rate: bool | None = None
@@ -81,6 +83,10 @@ class GenerateConfig:
             raise ValueError(f"rates: expected ascending distinct values >= 0, got {self.rates}")
         if self.sky is not None:
             check_sky(self.sky)
+        if self.layout is not None:
+            L.check_layout(self.layout)
+        if self.time_of_day is not None:
+            check_time_of_day(self.time_of_day)
         if self.weather_follows_rate not in (None, True, False):
             raise ValueError(f"weather_follows_rate: expected True, False or None, got "
                              f"{self.weather_follows_rate!r}")
@@ -101,9 +107,9 @@ class GenerateConfig:
     def scenario_config(self) -> L.ScenarioConfig:
         scenario = self.scenario if self.scenario is not None else L.ScenarioConfig(
             duration_s=self.duration_s)
-        if self.sky is not None:
-            scenario = dataclasses.replace(scenario, sky=self.sky)
-        return scenario
+        chosen = {name: getattr(self, name) for name in ("sky", "layout", "time_of_day")
+                  if getattr(self, name) is not None}
+        return dataclasses.replace(scenario, **chosen) if chosen else scenario
 
     def to_dict(self) -> dict:
         config = dataclasses.asdict(self)
@@ -120,7 +126,7 @@ class SceneSetup:
 
     @property
     def base_weather(self) -> Weather:
-        return weather_at(self.layout.sky, 0.0)
+        return weather_at(self.layout.sky, 0.0, time_of_day=self.layout.time_of_day)
 
 
 def build_scene(config: GenerateConfig) -> SceneSetup:
@@ -213,20 +219,26 @@ def render_clip(config: GenerateConfig, setup: SceneSetup | None = None, weather
 def sweep_weathers(config: GenerateConfig, setup: SceneSetup) -> list[Weather]:
     """The weather of each rate of ``config`` (the base weather at every rate when the weather
     does not follow the rate)."""
-    return [weather_at(setup.layout.sky, rate, config.follows_rate) for rate in config.rates]
+    return [weather_at(setup.layout.sky, rate, config.follows_rate,
+                       time_of_day=setup.layout.time_of_day) for rate in config.rates]
 
 
 def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int,
                     pool: ThreadPoolExecutor | None, weathers: list[Weather],
-                    layout: L.Layout):
+                    layout: L.Layout, base_weather: Weather):
     """(R, H, W, 3) images and per-rate statistics of one frame.
 
-    Without weather following the rate, one rain sweep over the clean frame shares the
-    rate-independent work. With it, each rate starts from its own weather's render, gets tyre
-    spray, rain drawn in its light (exposure time, airlight) and the camera's response (exposure
-    level, sensor noise). The per-rate statistics run in ``pool`` threads (OpenCV and numpy
-    release the GIL), or in this thread when ``pool`` is None.
+    The clean image is the render of the base weather through its camera: after dark the
+    auto-exposure's gain adds sensor noise to it (by day the render itself). Without weather
+    following the rate, one rain sweep over the clean image shares the rate-independent work.
+    With it, each rate starts from its own weather's render, gets tyre spray, rain drawn in its
+    light (exposure time, airlight) and the camera's response (exposure level, sensor noise).
+    The per-rate statistics run in ``pool`` threads (OpenCV and numpy release the GIL), or in
+    this thread when ``pool`` is None.
     """
+    from rainbench.rain import weather as wx  # noqa: PLC0415
+    from rainbench.rain._seeding import STREAM_NOISE, child_generator  # noqa: PLC0415
+
     rates = config.rates
     num_rates, num_boxes = len(rates), len(frame.labels)
     images = np.empty((num_rates,) + frame.rgb.shape, np.uint8)
@@ -235,14 +247,19 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     psnr = np.full(num_rates, np.inf, np.float32)
     coverage = np.zeros((num_rates, num_boxes), np.float32)
     contrast = np.zeros((num_rates, num_boxes), np.float32)
+    seeds = np.random.SeedSequence([config.rain_seed, config.seed, global_frame])
+    clean = frame.rgb
+    if base_weather.gain > 1.0:  # the same noise field as the rainy rows' (one per frame)
+        noise = wx.noise_field(child_generator(seeds, STREAM_NOISE), *clean.shape[:2])
+        clean = wx.camera_response(clean, base_weather, noise)
+        frame = dataclasses.replace(frame, rgb=clean)
     rainy_rows = [r for r, rate in enumerate(rates) if rate > 0]
-    images[[r for r, rate in enumerate(rates) if rate == 0]] = frame.rgb
+    images[[r for r, rate in enumerate(rates) if rate == 0]] = clean
     if not rainy_rows:
         return images, drop_count, ssim, psnr, coverage, contrast
     from rainbench import rain  # noqa: PLC0415 -- only needed when it rains
 
     rain_config = rain.RainConfig(model=config.rain_model, **config.rain_options)
-    seeds = np.random.SeedSequence([config.rain_seed, config.seed, global_frame])
     # lens water persists over the clip: seeded by the clip, placed by the frame's time
     clock = rain.LensClock(np.random.SeedSequence([config.rain_seed, config.seed]), global_frame,
                            config.fps)
@@ -349,6 +366,7 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     path = out_dir / shard_name(config.seed, config.frame_offset)
     attrs = {
         "sky": setup.layout.sky, "weather_follows_rate": config.follows_rate,
+        "layout": setup.layout.name, "time_of_day": setup.layout.time_of_day,
         "scene_seed": config.seed, "rain_seed": config.rain_seed,
         "frame_offset": config.frame_offset, "fps": config.fps,
         "class_names": json.dumps(list(L.CLASS_NAMES)), "rain_model": config.rain_model,
@@ -360,7 +378,8 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
 
     def finish(index: int, frame: FrameResult, K: np.ndarray) -> None:
         images, drops, ssim, psnr, coverage, contrast = _rain_for_frame(
-            config, frame, K, config.frame_offset + index, stats_pool, weathers, setup.layout)
+            config, frame, K, config.frame_offset + index, stats_pool, weathers, setup.layout,
+            setup.base_weather)
         writer.write_frame(index, images, frame.labels, frame.T_world_cam, depth=frame.depth,
                            instance=frame.instance, drop_count=drops, ssim=ssim, psnr=psnr,
                            rain_coverage=coverage, contrast_loss=contrast)

@@ -9,7 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-BOX_COLOURS = ((230, 60, 60), (60, 200, 60), (60, 120, 240), (240, 200, 40))  # RGB per class
+# RGB per COCO class id 0..7: person, bicycle, car, motorcycle, (airplane), bus, (train), truck
+BOX_COLOURS = ((230, 60, 60), (60, 200, 60), (60, 120, 240), (240, 200, 40), (128, 128, 128),
+               (240, 130, 30), (128, 128, 128), (170, 80, 220))
 
 
 def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
@@ -36,7 +38,8 @@ def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
                 if not np.all(np.isfinite(box)):
                     raise ValueError(f"boxes: expected finite x1, y1, x2, y2, got {list(box)}")
                 x1, y1, x2, y2 = (np.asarray(box) * scale).round().astype(int)
-                cv2.rectangle(tile, (x1, y1), (x2 - 1, y2 - 1), BOX_COLOURS[int(class_id) % 4], 1)
+                colour = BOX_COLOURS[int(class_id) % len(BOX_COLOURS)]
+                cv2.rectangle(tile, (x1, y1), (x2 - 1, y2 - 1), colour, 1)
         label = f"{rate:g} mm/h"
         for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
             cv2.putText(tile, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, thickness,

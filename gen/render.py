@@ -172,6 +172,8 @@ class FrameRenderer:
         passes)."""
         self._require_open()
         self._set_weather(self.base_weather)
+        if self._rig is not None:
+            self._rig.select_lights(data, self.camera_id)
         mujoco.mjv_updateScene(self.model, data, self._option, None, self._camera,
                                mujoco.mjtCatBit.mjCAT_ALL, self._scene)
 
@@ -196,7 +198,7 @@ class FrameRenderer:
         self._rig.set_mirror(True)
         option.geomgroup[PUDDLE_GROUP] = 0  # the mirror shows the world, not the puddles' film
         try:
-            mirror = self._render_rgb(data, option)
+            mirror = self._render_rgb(data, option, self._rig.mirror_geom(data, self.camera_id))
         finally:
             self._rig.set_mirror(False)
         rotation = camera_pose(self.model, data, self.model.camera(self.camera_id).name)[:3, :3]
@@ -209,9 +211,21 @@ class FrameRenderer:
         blended += weight[..., None] * (mirror.astype(np.float32) - blended)
         return np.rint(blended).astype(np.uint8)
 
-    def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption) -> np.ndarray:
+    def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption,
+                    mirror_geom: int = -1) -> np.ndarray:
+        """RGB of ``data`` in the weather set; ``mirror_geom`` >= 0: the only geom drawn as a
+        mirror (MuJoCo mirrors the first reflective geom of the scene, which need not be the road
+        under the camera)."""
+        self._rig.select_lights(data, self.camera_id)
         mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
                                mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+        if mirror_geom >= 0:
+            geom_type = mujoco.mjtObj.mjOBJ_GEOM
+            for index in range(self._scene.ngeom):
+                geom = self._scene.geoms[index]
+                if geom.reflectance > 0 and not (geom.objtype == geom_type
+                                                 and geom.objid == mirror_geom):
+                    geom.reflectance = 0.0
         context = self._context(labels=False)
         mujoco.mjr_render(self._rect, self._scene, context)
         mujoco.mjr_readPixels(self._rgb, None, self._rect, context)

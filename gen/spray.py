@@ -36,8 +36,9 @@ def spray_particles(layout: L.Layout, t: float, rng: np.random.Generator) -> tup
         travelled = unit.speed * (t - unit.start_time)
         if travelled <= 0 or travelled >= unit.max_distance:
             continue
-        centre = L.unit_position(unit, t)
-        heading = np.array([math.cos(unit.heading), math.sin(unit.heading)])
+        x, y, yaw = L.unit_pose(unit, t)
+        centre = np.array([x, y])
+        heading = np.array([math.cos(yaw), math.sin(yaw)])
         side = np.array([-heading[1], heading[0]])
         length, width = unit.footprint
         plume = PLUME_LENGTH_S * unit.speed

@@ -5,6 +5,10 @@ model (lights, materials, puddle sizes, sky texels) without rebuilding it.
 (``light_*``, ``vis.headlight``, ``mat_rgba``, ``mat_reflectance``, ``geom_size``/``geom_rgba``
 of the puddles) plus the sky texture, which it re-uploads to the GL context when the sky changes.
 Actors, poses and the camera are never touched, so labels of the clean geometry hold at every rate.
+
+At dusk and night (scenes with the lights of :mod:`rainbench.mjcf.lights`) it also writes the
+street light and headlight levels, and :meth:`WeatherRig.select_lights` switches on, before each
+render, the lights that matter most to the camera: OpenGL lights only the first 8 active lights.
 """
 
 from __future__ import annotations
@@ -12,10 +16,14 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from rainbench.mjcf import lights as tod
 from rainbench.mjcf.weather import scene_lighting
 from rainbench.rain.weather import Weather, sky_colours, sky_key
 
 _SKY_ELEVATION_CACHE: dict[int, np.ndarray] = {}
+MIRROR_AHEAD_M = 15.0
+"""Where the wet road's mirror matters most: Fresnel's weight grows with distance, the road's
+image shrinks; the road geom under this point ahead of the camera is the one mirrored."""
 
 
 def skybox_sin_elevation(size: int) -> np.ndarray:
@@ -40,6 +48,16 @@ def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names) -> dict[str, int]:
     """Ids of the named objects that ``model`` has (a custom scene may lack some)."""
     found = {name: mujoco.mj_name2id(model, kind, name) for name in names}
     return {name: index for name, index in found.items() if index >= 0}
+
+
+def scene_time_of_day(model: mujoco.MjModel) -> str:
+    """The time of day a scene was built for: its custom text ``rainbench/time_of_day``
+    (:func:`rainbench.mjcf.lights.add_time_of_day_lights`), ``day`` when it has none."""
+    index = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, tod.TIME_OF_DAY_TEXT)
+    if index < 0:
+        return "day"
+    start = int(model.text_adr[index])
+    return bytes(model.text_data[start:start + int(model.text_size[index]) - 1]).decode()
 
 
 def render_key(weather: Weather) -> tuple:
@@ -76,6 +94,81 @@ class WeatherRig:
         self._sky_texels: dict[tuple, np.ndarray] = {}
         self.cloud_deck = self.puddles_visible = False
         self.road_reflectance = 0.0
+        self.time_of_day = scene_time_of_day(model)
+        names = [model.light(i).name for i in range(model.nlight)]
+        self._ego_beams = np.array([i for i, n in enumerate(names) if n in tod.EGO_BEAM_NAMES],
+                                   np.int64)
+        self._lamps = np.array([i for i, n in enumerate(names)
+                                if n.startswith(tod.LIGHT_PREFIX + "lamp")], np.int64)
+        self._vehicle_beams = np.array([i for i, n in enumerate(names)
+                                        if n.startswith(tod.LIGHT_PREFIX) and n.endswith("_beam")
+                                        and i not in self._ego_beams], np.int64)
+        self._candidates = np.concatenate([self._lamps, self._vehicle_beams])
+        asphalt = self._materials.get("asphalt", -2)
+        self._mirror_candidates = np.flatnonzero(model.geom_matid == asphalt)
+        self.light_budget = 0  # candidate lights OpenGL can still light (set by apply)
+
+    def select_lights(self, data: mujoco.MjData, camera_id: int) -> None:
+        """Switch on the street lights and vehicle beams that matter most to camera
+        ``camera_id`` in the state ``data`` (call before each ``mjv_updateScene``), at most
+        :attr:`light_budget` of them; the others are switched off.
+
+        A street light's pool is a disc of :data:`~rainbench.mjcf.lights.POOL_RADIUS_M` under its
+        lamp; a vehicle beam's is centred :data:`~rainbench.mjcf.lights.VEHICLE_BEAM_REACH_M`
+        ahead of it. Pools with some part in front of the camera are ranked by how far their edge
+        is from the road the camera sees best (:data:`~rainbench.mjcf.lights.FOCUS_AHEAD_M`
+        ahead); ties go to the lower light id. Deterministic: the same state lights the same
+        lamps.
+        """
+        if not self._candidates.size:
+            return
+        camera = data.cam_xpos[camera_id][:2]
+        forward = -data.cam_xmat[camera_id].reshape(3, 3)[:2, 2]
+        forward = forward / max(float(np.linalg.norm(forward)), 1e-9)
+        position = data.light_xpos[self._candidates][:, :2].copy()
+        direction = data.light_xdir[self._candidates][:, :2]
+        radius = np.full(len(self._candidates), tod.POOL_RADIUS_M)
+        beams = np.arange(len(self._candidates)) >= len(self._lamps)
+        position[beams] += tod.VEHICLE_BEAM_REACH_M * direction[beams] / np.maximum(
+            np.linalg.norm(direction[beams], axis=1, keepdims=True), 1e-9)
+        radius[beams] = tod.VEHICLE_BEAM_REACH_M
+        offset = position - camera
+        ahead = offset @ forward > -radius  # some of the pool is in front of the camera
+        focus = camera + tod.FOCUS_AHEAD_M * forward
+        edge = np.maximum(np.linalg.norm(position - focus, axis=1) - radius, 0.0)
+        order = np.lexsort((np.arange(len(edge)), edge, ~ahead))
+        chosen = order[:self.light_budget]
+        chosen = chosen[ahead[chosen]]
+        active = np.zeros(len(self._candidates), np.uint8)
+        active[chosen] = 1
+        self.model.light_active[self._candidates] = active
+
+    def mirror_geom(self, data: mujoco.MjData, camera_id: int) -> int:
+        """The road geom (material ``asphalt``) to draw as the mirror for camera ``camera_id``:
+        the one under the point :data:`MIRROR_AHEAD_M` ahead of the camera, else the one under
+        the camera, else the nearest; -1 when the scene has none.
+
+        MuJoCo mirrors only the first reflective geom of a scene; a road built of several boxes
+        or planes (straights, arcs, gaps at crosswalks) must choose the one the camera sees.
+        """
+        if not self._mirror_candidates.size:
+            return -1
+        if self._mirror_candidates.size == 1:
+            return int(self._mirror_candidates[0])
+        ids = self._mirror_candidates
+        camera = data.cam_xpos[camera_id]
+        forward = -data.cam_xmat[camera_id].reshape(3, 3)[:, 2].copy()
+        forward[2] = 0.0
+        forward /= max(float(np.linalg.norm(forward)), 1e-9)
+        half = self.model.geom_size[ids, :2]
+        rotation = data.geom_xmat[ids].reshape(-1, 3, 3)
+        for point in (camera + MIRROR_AHEAD_M * forward, camera):
+            local = np.einsum("gji,gj->gi", rotation, point - data.geom_xpos[ids])[:, :2]
+            inside = np.all(np.abs(local) <= half, axis=1)
+            if inside.any():
+                return int(ids[np.flatnonzero(inside)[0]])
+        distance = np.linalg.norm(data.geom_xpos[ids, :2] - camera[:2], axis=1)
+        return int(ids[int(np.argmin(distance))])
 
     def set_mirror(self, on: bool) -> None:
         """Full mirror reflectance on the road (``on``), or none."""
@@ -84,6 +177,9 @@ class WeatherRig:
 
     def apply(self, weather: Weather, context: mujoco.MjrContext | None) -> None:
         """Write ``weather`` into the model; upload the sky to ``context`` if it changed."""
+        if weather.time_of_day != self.time_of_day:
+            raise ValueError(f"weather: expected time_of_day {self.time_of_day!r} (the scene's "
+                             f"lights), got {weather.time_of_day!r}")
         model, lighting = self.model, scene_lighting(weather)
         model.light_diffuse[self._sun] = lighting.sun_diffuse
         model.light_specular[self._sun] = lighting.sun_specular
@@ -91,6 +187,16 @@ class WeatherRig:
         model.light_diffuse[self._skylight] = lighting.skylight_diffuse
         model.vis.headlight.ambient = lighting.headlight_ambient
         model.vis.headlight.diffuse = [lighting.headlight_diffuse] * 3
+        if self.time_of_day != "day":  # by day the model's lights are left exactly as built
+            model.light_active[self._sun] = lighting.sun_active
+            model.light_active[self._skylight] = lighting.skylight_active
+            model.light_diffuse[self._ego_beams] = np.multiply(lighting.beam_diffuse, tod.BEAM_GAIN)
+            model.light_diffuse[self._vehicle_beams] = np.multiply(lighting.beam_diffuse,
+                                                                   tod.BEAM_GAIN)
+            model.light_diffuse[self._lamps] = np.multiply(lighting.lamp_diffuse, tod.LAMP_GAIN)
+            used = (int(bool(model.vis.headlight.active)) + int(lighting.sun_active)
+                    + int(lighting.skylight_active) + len(self._ego_beams))
+            self.light_budget = max(tod.GL_MAX_LIGHTS - used, 0)
         materials = self._materials
         for name, factor in (("asphalt", lighting.road_factor),
                              ("concrete", lighting.pavement_factor),

@@ -16,7 +16,7 @@ import numpy as np
 from rainbench.rain.weather import sky_colours, weather_at
 
 from . import layout as L
-from . import parts, textures
+from . import lights, parts, textures, vehicles
 from .weather import scene_lighting
 
 GEOM = mujoco.mjtGeom
@@ -45,9 +45,11 @@ def horizontal_to_vertical_fov(hfov_deg: float, width: int, height: int) -> floa
     return math.degrees(2 * math.atan(math.tan(math.radians(hfov_deg) / 2) * height / width))
 
 
-def _camera_quat() -> list[float]:
-    """MuJoCo camera looking along +x of its body (camera x = -y world, y = +z world)."""
-    xaxis, yaxis = np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, 1.0])
+def _camera_quat(pitch: float = 0.0) -> list[float]:
+    """MuJoCo camera looking along +x of its body, tilted up by ``pitch`` radians (camera x =
+    -y of the body, camera y = up)."""
+    xaxis = np.array([0.0, -1.0, 0.0])
+    yaxis = np.array([-math.sin(pitch), 0.0, math.cos(pitch)])
     zaxis = np.cross(xaxis, yaxis)
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, np.column_stack([xaxis, yaxis, zaxis]).ravel())
@@ -99,7 +101,7 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     spec.visual.map.znear = 0.001  # 0.1 m
     spec.visual.map.zfar = 10.0  # 1000 m
     spec.visual.map.shadowclip = 0.8
-    base = weather_at(layout.sky, 0.0)
+    base = weather_at(layout.sky, 0.0, time_of_day=layout.time_of_day)
     lighting = scene_lighting(base)
     spec.visual.headlight.ambient = list(lighting.headlight_ambient)
     spec.visual.headlight.diffuse = [lighting.headlight_diffuse] * 3
@@ -125,48 +127,19 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
         _add_texture_material(spec, f"facade{index}", textures.facade(tex_rng, wall), 1 / 12.8)
 
     world = spec.worldbody
-    x_min, x_max = layout.road_x_range
-    x_mid, x_half = (x_min + x_max) / 2, (x_max - x_min) / 2
-    _static_box(world, "scenery/ground", [x_half + 200, 200, 0.05], [x_mid, 0, -0.07],
+    x0, y0, x1, y1 = layout.extent
+    x_mid, y_mid = (x0 + x1) / 2, (y0 + y1) / 2
+    x_half, y_half = (x1 - x0) / 2, (y1 - y0) / 2
+    _static_box(world, "scenery/ground", [x_half + 200, y_half + 200, 0.05], [x_mid, y_mid, -0.07],
                 material="grass")
-    _static_box(world, "scenery/road", [x_half, L.ROAD_HALF_WIDTH, 0.05], [x_mid, 0, -0.05],
-                material="asphalt")
-    for side in (-1, 1):
-        tag = "lr"[side > 0]
-        y_mid = side * (L.ROAD_HALF_WIDTH + L.SIDEWALK_OUTER) / 2
-        _static_box(world, f"scenery/sidewalk_{tag}",
-                    [x_half, L.SIDEWALK_WIDTH / 2, L.CURB_HEIGHT / 2],
-                    [x_mid, y_mid, L.CURB_HEIGHT / 2], material="concrete")
-        _static_box(world, f"scenery/curb_{tag}", [x_half, 0.1, L.CURB_HEIGHT / 2 + 0.005],
-                    [x_mid, side * (L.ROAD_HALF_WIDTH + 0.1), L.CURB_HEIGHT / 2],
-                    rgba=(0.62, 0.62, 0.60, 1))
-        # Solid edge lines between the outer lanes and the bicycle lanes.
-        _static_box(world, f"scenery/edge_line_{tag}", [x_half, 0.075, STATIC_SURFACE_Z],
-                    [x_mid, side * (L.NUM_LANES * L.LANE_WIDTH / 2), 0],
-                    rgba=(0.92, 0.92, 0.90, 1))
-    # Double yellow centre line.
-    for offset in (-0.12, 0.12):
-        _static_box(world, f"scenery/centre_line_{offset:+.2f}", [x_half, 0.06, STATIC_SURFACE_Z],
-                    [x_mid, offset, 0], rgba=(0.95, 0.75, 0.10, 1))
-    # Dashed lines between same-direction lanes: 3 m dashes every 9 m.
-    dash_x = np.arange(math.floor(x_min / 9) * 9, x_max, 9.0)
-    for side in (-1, 1):
-        for x in dash_x:
-            if abs(x - layout.crosswalk_x) < 4.0:
-                continue
-            _static_box(world, f"scenery/dash_{'lr'[side > 0]}_{x:.0f}",
-                        [1.5, 0.075, STATIC_SURFACE_Z], [x, side * L.LANE_WIDTH, 0],
-                        rgba=(0.92, 0.92, 0.90, 1))
-    # Zebra crosswalk.
-    stripe_ys = np.arange(-L.ROAD_HALF_WIDTH + 0.5, L.ROAD_HALF_WIDTH - 0.2, 1.0)
-    for y in stripe_ys:
-        _static_box(world, f"scenery/zebra_{y:+.1f}", [1.5, 0.25, STATIC_SURFACE_Z * 1.5],
-                    [layout.crosswalk_x, y, 0], rgba=(0.93, 0.93, 0.91, 1))
+    for prop in layout.props:
+        _add_prop(world, prop)
     # The rain-cloud deck: an emissive ceiling that stands for the sky in rainy renders, so that
     # the wet road mirrors the sky (MuJoCo's mirror pass does not draw the skybox).
     spec.add_material(name="cloud_deck", rgba=[0.5, 0.5, 0.5, 1.0], emission=1.0, specular=0.0)
     world.add_geom(name="scenery/cloud_deck", type=GEOM.mjGEOM_BOX,
-                   size=[x_half + 2000.0, 2000.0, 1.0], pos=[x_mid, 0.0, CLOUD_DECK_HEIGHT_M],
+                   size=[x_half + 2000.0, y_half + 2000.0, 1.0],
+                   pos=[x_mid, y_mid, CLOUD_DECK_HEIGHT_M],
                    material="cloud_deck", group=CLOUD_DECK_GROUP, contype=0, conaffinity=0)
     for index, (x, y, half_length, half_width, yaw) in enumerate(layout.puddles):
         # full-size puddles; the renderer scales them with the weather's puddle fraction
@@ -174,45 +147,25 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
                        size=[half_length, half_width, 0.001], pos=[x, y, STATIC_SURFACE_Z * 2],
                        quat=parts.unit_yaw_quat(yaw).tolist(), material="puddle",
                        group=PUDDLE_GROUP, contype=0, conaffinity=0)
-    for index, building in enumerate(layout.buildings):
-        facade = L.FACADES.index(building.facade)
-        sx, sy, sz = building.size
-        _static_box(world, f"scenery/building{index}", [sx / 2, sy / 2, sz / 2],
-                    [building.centre[0], building.centre[1], sz / 2], material=f"facade{facade}")
-    trunk, foliage = (0.35, 0.25, 0.16, 1), (0.18, 0.38, 0.15, 1)
-    for index, (x, side) in enumerate(layout.tree_xs):
-        y = side * L.TREE_Y
-        world.add_geom(name=f"scenery/tree{index}_trunk", type=GEOM.mjGEOM_CYLINDER,
-                       size=[0.15, 1.6, 0], pos=[x, y, 1.6], rgba=list(trunk),
-                       contype=0, conaffinity=0)
-        world.add_geom(name=f"scenery/tree{index}_crown", type=GEOM.mjGEOM_ELLIPSOID,
-                       size=[1.9, 1.9, 2.3], pos=[x, y, 4.9], rgba=list(foliage),
-                       contype=0, conaffinity=0)
-        world.add_geom(name=f"scenery/tree{index}_crown_top", type=GEOM.mjGEOM_SPHERE,
-                       size=[1.3, 0, 0], pos=[x + 0.3, y, 6.6],
-                       rgba=[0.22, 0.44, 0.18, 1], contype=0, conaffinity=0)
-    for index, (x, side) in enumerate(layout.pole_xs):
-        y = side * L.POLE_Y
-        world.add_geom(name=f"scenery/pole{index}", type=GEOM.mjGEOM_CYLINDER,
-                       size=[0.08, 4.0, 0], pos=[x, y, 4.0], rgba=list(parts.METAL),
-                       contype=0, conaffinity=0)
-        world.add_geom(name=f"scenery/pole{index}_arm", type=GEOM.mjGEOM_CAPSULE,
-                       size=[0.05, 0, 0], fromto=[x, y, 7.8, x, y - side * 1.8, 8.0],
-                       rgba=list(parts.METAL), contype=0, conaffinity=0)
-        _static_box(world, f"scenery/pole{index}_lamp", [0.3, 0.15, 0.06],
-                    [x, y - side * 1.9, 7.95], rgba=(0.9, 0.9, 0.8, 1))
 
-    # Ego: a mocap body carrying the camera and the sun (so the shadow map follows the view).
+    # Ego: a mocap body carrying the camera. The sun and the skylight ride on their own mocap
+    # body "sun_rig" that follows the ego's position but not its yaw, so that the shadow map
+    # covers the view while the light keeps its world direction when the ego turns.
     ego = world.add_body(name="ego", mocap=True, pos=[layout.ego.start_xy[0],
-                                                      layout.ego.start_xy[1], 0.0])
-    ego.add_camera(name=EGO_CAMERA, pos=[0.6, 0.0, layout.camera_height], quat=_camera_quat(),
+                                                      layout.ego.start_xy[1], 0.0],
+                         quat=parts.unit_yaw_quat(layout.ego.heading).tolist())
+    ego.add_camera(name=EGO_CAMERA, pos=[0.6, 0.0, layout.camera_height],
+                   quat=_camera_quat(math.radians(layout.camera_pitch_deg)),
                    fovy=horizontal_to_vertical_fov(hfov_deg, width, height))
+    rig = world.add_body(name="sun_rig", mocap=True, pos=[layout.ego.start_xy[0],
+                                                          layout.ego.start_xy[1], 0.0])
     sun = np.asarray(layout.sun_direction)
-    ego.add_light(name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
-                  pos=(np.array([35.0, 0.0, 0.0]) - 60.0 * sun).tolist(), dir=sun.tolist(),
+    ahead = 35.0 * np.array([math.cos(layout.ego.heading), math.sin(layout.ego.heading), 0.0])
+    rig.add_light(name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+                  pos=(ahead - 60.0 * sun).tolist(), dir=sun.tolist(),
                   castshadow=lighting.sun_castshadow, diffuse=list(lighting.sun_diffuse),
                   specular=[lighting.sun_specular] * 3, ambient=[0.0, 0.0, 0.0])
-    ego.add_light(name="skylight", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+    rig.add_light(name="skylight", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
                   pos=[0.0, 0.0, 60.0], dir=[0.0, 0.0, -1.0], castshadow=False,
                   diffuse=[lighting.skylight_diffuse] * 3, specular=[0.0, 0.0, 0.0],
                   ambient=[0.0, 0.0, 0.0])
@@ -226,21 +179,63 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
                 continue
             prefix = ACTOR_PREFIX.format(actor.instance_id)
             if actor.role == "car":
-                parts.add_car(body, prefix, unit.style, unit.colours["paint"])
+                _add_vehicle(spec, body, prefix, unit, layout.seed, actor.instance_id)
             elif actor.role == "pedestrian":
-                parts.add_person(body, prefix, unit.colours)
+                parts.add_person(body, prefix, unit.colours, build=unit.build,
+                                 umbrella=unit.colours.get("umbrella"))
             elif actor.role == "bicycle":
-                saddle = parts.add_bicycle(body, prefix, unit.colours["frame"])
+                parts.add_bicycle(body, prefix, unit.colours["frame"], unit.style or "city")
             elif actor.role == "motorcycle":
-                saddle = parts.add_motorcycle(body, prefix, unit.colours["frame"])
+                parts.add_motorcycle(body, prefix, unit.colours["frame"],
+                                     unit.style or "standard")
             elif actor.role == "rider":
-                helmet = unit.colours["helmet"]
-                back = -0.20 if unit.kind == "bicycle" else -0.30
-                parts.add_person(body, prefix, unit.colours, pos=(back, 0.0, saddle - 0.93),
-                                 helmet=helmet)
+                parts.add_rider(body, prefix, unit.colours, ride_style(unit), build=unit.build,
+                                helmet=unit.colours["helmet"])
             else:
                 raise ValueError(f"actor role: unknown {actor.role!r}")
+    # dusk and night: beams on the ego and the vehicles, spot lights under the street lamps
+    lights.add_time_of_day_lights(
+        spec, layout.time_of_day, sky=layout.sky, street_lamps=lights.lamp_heads(spec),
+        vehicle_bodies=[unit.name for unit in layout.units if unit.kind in ("car", "motorcycle")])
     return spec
+
+
+_PROP_SHAPES = {"box": GEOM.mjGEOM_BOX, "cylinder": GEOM.mjGEOM_CYLINDER,
+                "ellipsoid": GEOM.mjGEOM_ELLIPSOID, "sphere": GEOM.mjGEOM_SPHERE}
+
+
+
+def _add_prop(world, prop: L.Prop) -> None:
+    """One static scenery geom ``scenery/{prop.name}``."""
+    if prop.shape not in _PROP_SHAPES:
+        raise ValueError(f"prop {prop.name}: expected a shape in {', '.join(_PROP_SHAPES)}, "
+                         f"got {prop.shape!r}")
+    kwargs = {"material": prop.material} if prop.material else {"rgba": list(prop.rgba)}
+    world.add_geom(name=f"scenery/{prop.name}", type=_PROP_SHAPES[prop.shape],
+                   size=list(prop.size), pos=list(prop.pos), quat=list(prop.quat),
+                   contype=0, conaffinity=0, **kwargs)
+
+
+def ride_style(unit: L.Unit) -> str:
+    """The bicycle or motorcycle style of a ridden ``unit`` (the first style when unset)."""
+    if unit.style:
+        return unit.style
+    return parts.BICYCLE_STYLES[0] if unit.kind == "bicycle" else parts.MOTORCYCLE_STYLES[0]
+
+
+def _add_vehicle(spec: mujoco.MjSpec, body, prefix: str, unit: L.Unit, seed: int,
+                 instance_id: int) -> None:
+    """The mesh vehicle of ``unit`` (style, size, paint) under ``body``, geoms named
+    ``{prefix}...`` (:func:`rainbench.mjcf.vehicles.add_vehicle`). Its proportions (roofline,
+    windows, wheels) are drawn from a generator of (``seed``, ``instance_id``), its size is the
+    layout's ``unit.size`` (the planning size), or the style's planning size when unset."""
+    if unit.style not in L.VEHICLE_DIMENSIONS:
+        raise ValueError(f"vehicle style: expected one of {', '.join(L.VEHICLE_STYLES)}, "
+                         f"got {unit.style!r}")
+    size = tuple(unit.size) if unit.size else L.VEHICLE_DIMENSIONS[unit.style]
+    shape = vehicles.sample_vehicle(unit.style, np.random.default_rng([seed, 11, instance_id]),
+                                    size=size)
+    vehicles.add_vehicle(spec, body, prefix, shape, unit.colours["paint"])
 
 
 def weather_sky_endpoints(weather) -> tuple[list[float], list[float]]:

@@ -4,14 +4,18 @@
 base weather's values into the spec (so an exported ``scene.xml`` shows the base weather), and
 ``rainbench.gen.weather.WeatherRig`` writes any weather's values into a compiled model between
 renders. Every field below is a MuJoCo model field that the renderer reads at each render.
+
+At dusk and night (docs/rain.md, "Time of day") the daylight lights dim and change colour, and the
+lights of :mod:`rainbench.mjcf.lights` (street lights, headlights) get their levels from here.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from rainbench.rain.weather import (GRASS_WET_DARKENING, PAVEMENT_WET_DARKENING,
-                                    ROAD_WET_DARKENING, Weather, airlight_rgb)
+from rainbench.rain.weather import (GRASS_WET_DARKENING, NIGHT_SKY_LUX, PAVEMENT_WET_DARKENING,
+                                    ROAD_WET_DARKENING, STRAY_LIGHT_LUX, Weather, airlight_rgb,
+                                    display_light)
 
 # The clear-sky sun (light "sun", directional, casts shadows) and the camera's headlight.
 SUN_DIFFUSE = (0.75, 0.72, 0.66)
@@ -27,6 +31,26 @@ PUDDLE_ALPHA = 0.55
 """A puddle is a dark transparent film over the road in the plain render (standing water hides
 the asphalt's grain and looks dark where it does not mirror); the mirror render leaves it out,
 so puddles are dark near the camera and mirror the world at grazing angles."""
+
+
+# -- dusk and night ---------------------------------------------------------------------------
+DUSK_SUN_RGB = (1.0, 0.56, 0.26)
+"""The low sun's colour: through ~14 air masses blue is scattered away (~2000-2500 K)."""
+DUSK_SUN_STRENGTH = 1.25
+"""Direct sun at dusk relative to the sky light, in display terms: the low sun still gives a
+sun-facing wall several times the sky's light; the horizontal road gets sin(4 deg) of it."""
+DUSK_SKY_RGB = (0.72, 0.80, 1.0)
+"""Ambient and sky light at dusk: the sky is the light source and it is blue (the blue hour)."""
+STREET_LIGHT_RGB = (1.0, 0.80, 0.58)
+"""Warm-white street lights (~3000 K LED, the usual urban retrofit; sodium lamps were oranger)."""
+HEADLAMP_RGB = (1.0, 0.94, 0.84)
+"""Headlights: white with a trace of yellow (halogen ~3200 K to LED ~5500 K)."""
+STREET_LIGHT_PEAK_LUX = 30.0
+"""Illuminance under a street light: twice the street's mean (uniformity U0 = min/mean >= 0.4)."""
+HEADLAMP_PEAK_LUX = 200.0
+"""Low beam on a surface facing the car 10 m ahead on the beam's axis: 20 000 cd / (10 m)^2 (a
+halogen low beam's hot spot just below the cut-off; UN ECE R112 asks at least 12 000 cd at
+point 75R)."""
 
 
 @dataclass(frozen=True)
@@ -47,20 +71,56 @@ class SceneLighting:
     puddle_rgba: tuple[float, float, float, float]
     cloud_deck: bool  # draw the emissive rain-cloud deck (sunless rain)
     cloud_deck_rgba: tuple[float, float, float, float]
+    # dusk and night: lights "sun" and "skylight" are switched off at night (no sun; the city's
+    # ambient stands for the sky), which frees OpenGL light slots for street and head lights
+    sun_active: bool = True
+    skylight_active: bool = True
+    lamp_diffuse: tuple[float, float, float] = (0.0, 0.0, 0.0)  # street light at its peak
+    beam_diffuse: tuple[float, float, float] = (0.0, 0.0, 0.0)  # head light at its peak
+
+
+def _scaled(colour, factor: float) -> tuple[float, float, float]:
+    return tuple(float(c) * factor for c in colour)
 
 
 def scene_lighting(weather: Weather) -> SceneLighting:
-    """The model values of ``weather`` (laws in docs/rain.md, "Weather that follows the rate")."""
+    """The model values of ``weather`` (laws in docs/rain.md, "Weather that follows the rate" and
+    "Time of day"). By day exactly the daytime values; the lamp and beam levels are 0."""
     cover, wet = weather.cloud_cover, weather.wetness
     ambient = HEADLIGHT_AMBIENT_CLEAR + (HEADLIGHT_AMBIENT_CLOUD - HEADLIGHT_AMBIENT_CLEAR) * cover
     deck = airlight_rgb(weather) / 255.0  # a uniform deck in the airlight's colour
+    sun_diffuse = tuple(weather.sun * c for c in SUN_DIFFUSE)
+    sun_specular = weather.sun * SUN_SPECULAR
+    skylight = SKYLIGHT_DIFFUSE_CLOUD * cover
+    ambient_rgb = (ambient, ambient, ambient + 0.02)
+    headlight_diffuse = HEADLIGHT_DIFFUSE
+    lamp = beam = (0.0, 0.0, 0.0)
+    if weather.time_of_day != "day":
+        lamp = _scaled(STREET_LIGHT_RGB, display_light(weather, STREET_LIGHT_PEAK_LUX))
+        beam = _scaled(HEADLAMP_RGB, display_light(weather, HEADLAMP_PEAK_LUX))
+    if weather.time_of_day == "dusk":
+        # daylight dims to the dusk level (after auto-exposure) and turns blue; the sun is low
+        # and orange (its direction is set once in the scene: rainbench.mjcf.lights)
+        level = weather.light_level
+        sun_diffuse = _scaled(DUSK_SUN_RGB, weather.sun * level * DUSK_SUN_STRENGTH
+                              * SUN_DIFFUSE[0])
+        sun_specular = weather.sun * SUN_SPECULAR * level
+        skylight = skylight * level
+        ambient_rgb = _scaled(DUSK_SKY_RGB, ambient * level)
+        headlight_diffuse = HEADLIGHT_DIFFUSE * level
+    elif weather.time_of_day == "night":
+        # no sun and no sky light: the ambient is the city's (sky glow and stray street light)
+        sun_diffuse, sun_specular, skylight, headlight_diffuse = (0.0, 0.0, 0.0), 0.0, 0.0, 0.0
+        glow = display_light(weather, NIGHT_SKY_LUX[weather.sky] + STRAY_LIGHT_LUX)
+        ambient_rgb = _scaled(STREET_LIGHT_RGB, glow)
+    night = weather.time_of_day == "night"
     return SceneLighting(
-        sun_diffuse=tuple(weather.sun * c for c in SUN_DIFFUSE),
-        sun_specular=weather.sun * SUN_SPECULAR,
+        sun_diffuse=sun_diffuse,
+        sun_specular=sun_specular,
         sun_castshadow=weather.sun > 0.02,
-        skylight_diffuse=SKYLIGHT_DIFFUSE_CLOUD * cover,
-        headlight_ambient=(ambient, ambient, ambient + 0.02),
-        headlight_diffuse=HEADLIGHT_DIFFUSE,
+        skylight_diffuse=skylight,
+        headlight_ambient=ambient_rgb,
+        headlight_diffuse=headlight_diffuse,
         road_factor=1.0 - ROAD_WET_DARKENING * wet,
         pavement_factor=1.0 - PAVEMENT_WET_DARKENING * wet,
         grass_factor=1.0 - GRASS_WET_DARKENING * wet,
@@ -69,5 +129,6 @@ def scene_lighting(weather: Weather) -> SceneLighting:
         puddle_rgba=PUDDLE_RGB + (PUDDLE_ALPHA if weather.puddle_fraction > 0 else 0.0,),
         cloud_deck=weather.rain_mm_h > 0 and weather.sun <= 0.02,
         # emission 1 plus the headlight's ambient light the deck also receives
-        cloud_deck_rgba=tuple(float(c) for c in deck / (1.0 + ambient)) + (1.0,),
+        cloud_deck_rgba=tuple(float(c) for c in deck / (1.0 + ambient_rgb[0])) + (1.0,),
+        sun_active=not night, skylight_active=not night, lamp_diffuse=lamp, beam_diffuse=beam,
     )

@@ -11,7 +11,12 @@ applied here:
 * :func:`spray_opacity` -- tyre spray behind moving vehicles, splatted with depth occlusion;
 * :func:`camera_response` -- auto-exposure residual and Poissonian-Gaussian sensor noise.
 
-Rate 0 of the base weather is the identity everywhere: the clean render is stored unchanged.
+Every weather has a time of day (:data:`TIMES_OF_DAY`): dusk and night lower the daylight, add
+street lights, and the auto-exposure recovers part of the loss up to its limits (docs/rain.md,
+"Time of day"); :func:`display_light` turns a light level in lux into the renderer's light units.
+
+Rate 0 of the base weather is the identity by day: the clean render is stored unchanged. At dusk
+and night the base weather's own gain is above the daytime one, so its sensor noise is not zero.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ import numpy as np
 
 SKIES = ("clear", "cloudy", "overcast")
 """Base weathers a scene may have; the seed paper's CARLA clip was ``cloudy``."""
+TIMES_OF_DAY = ("day", "dusk", "night")
+"""Times of day a scene may have; every law below is the daytime one unless it says otherwise."""
 
 # -- base weathers --------------------------------------------------------------------------
 # Illuminance on the road (lux), typical values (rain-physics.md section 5): direct sun plus sky
@@ -39,6 +46,22 @@ CLEAR_SKY_ZENITH = (0.42, 0.62, 0.90)
 CLEAR_SKY_HORIZON = (0.88, 0.90, 0.95)
 CLOUD_TINT = (0.97, 0.98, 1.0)  # a faint cool cast: overcast daylight is ~6500-7000 K
 DISPLAY_GAMMA = 2.2  # camera tone curve applied to the CIE sky luminance
+# Dusk sky (display values at the dusk exposure): a deep blue zenith over a warm band low down
+# (clear), a dimmer blue-grey cloud deck warming towards the horizon (cloud).
+DUSK_CLEAR_ZENITH = (0.24, 0.33, 0.58)
+DUSK_CLEAR_HORIZON = (0.96, 0.62, 0.40)
+DUSK_BAND_EXPONENT = 0.45  # the warm band hugs the horizon
+DUSK_CLOUD_LEVEL = 0.62  # the dusk deck is darker than the noon deck, after auto-exposure
+DUSK_CLOUD_HORIZON_TINT = (1.0, 0.84, 0.70)
+DUSK_CLOUD_ZENITH_TINT = (0.78, 0.83, 1.0)
+# Night sky: near black, a brown-grey city glow at the horizon (clear) or over the whole deck,
+# brightest low (cloud: clouds reflect the city's light; Kyba et al. 2011).
+NIGHT_CLEAR_ZENITH = (0.010, 0.012, 0.022)
+NIGHT_GLOW_HORIZON = (0.13, 0.10, 0.075)
+NIGHT_GLOW_SIN_ELEVATION = 0.12  # the glow fades over the lowest ~7 degrees
+NIGHT_CLOUD = (0.075, 0.064, 0.056)
+NIGHT_CLOUD_HORIZON_GAIN = 0.6
+NIGHT_CLOUD_GLOW_SIN_ELEVATION = 0.25
 
 # -- laws of the rate -------------------------------------------------------------------------
 RAIN_LUX_AT_1_MM_H = 10_000.0
@@ -67,6 +90,47 @@ degrees (0.69)."""
 WATER_INDEX = 1.333
 FRESNEL_REFERENCE_DEG = 80.0
 
+# -- time of day ------------------------------------------------------------------------------
+DUSK_DAYLIGHT_LUX = {"clear": 700.0, "cloudy": 300.0, "overcast": 150.0}
+"""Daylight (sun + sky) on the road at dusk, the sun a few degrees above the horizon: 400 lux at
+sunset under a clear sky (Wikipedia, "Lux"), more while the sun is still up, less under cloud
+(the low sun's direct share is small, so cloud takes less away than at noon). Under rain the
+daytime rain law scales it: dusk light = this x (daytime light at the rate / daytime base)."""
+DUSK_SUN_ELEVATION_DEG = 4.0
+"""The dusk sun is near the horizon: 4 degrees up (long shadows; light through 14 air masses is
+orange)."""
+NIGHT_SKY_LUX = {"clear": 0.05, "cloudy": 0.1, "overcast": 0.2}
+"""Sky light on the road at night, no moon: the urban sky glow. A clear city sky gives a few
+hundredths of a lux; clouds reflect the city's light back down and brighten it several times
+(Kyba et al. 2011, PLoS ONE 6(3) e17307). Starlight alone is ~0.001 lux."""
+STREET_LIGHT_LUX = 15.0
+"""Mean illuminance of a lit urban street (EN 13201-2 class C3 / P1: 15 lux, overall uniformity
+>= 0.4), on at dusk and at night. What the camera's auto-exposure meters after dark."""
+STRAY_LIGHT_LUX = 0.5
+"""Light that street lights, shop windows and other cars spill everywhere (inter-reflections,
+the lamps the renderer does not draw as light sources): the floor of the night ambient."""
+DISPLAY_LIGHT_GAMMA = 2.2
+"""Tone curve of :func:`display_light`: the camera maps relative luminance to display values
+with exponent 1/2.2, so a 10x dimmer patch is 0.35x, not 0.1x, as bright in the image."""
+
+
+def check_time_of_day(time_of_day: object) -> str:
+    if time_of_day not in TIMES_OF_DAY:
+        raise ValueError(f"time_of_day: expected one of {', '.join(TIMES_OF_DAY)}, got "
+                         f"{time_of_day!r}")
+    return str(time_of_day)
+
+
+def _light_sources(sky: str, time_of_day: str, daytime_lux: float) -> tuple[float, float]:
+    """(daylight lux, street light lux) at ``time_of_day`` when the daytime light would be
+    ``daytime_lux`` (the daytime rain law of ``sky``)."""
+    if time_of_day == "day":
+        return daytime_lux, 0.0
+    if time_of_day == "dusk":
+        return daytime_lux * DUSK_DAYLIGHT_LUX[sky] / BASE_ILLUMINANCE_LUX[sky], STREET_LIGHT_LUX
+    return NIGHT_SKY_LUX[sky], STREET_LIGHT_LUX
+
+
 # -- camera -----------------------------------------------------------------------------------
 AE_REFERENCE_LUX = 50_000.0
 AE_REFERENCE_EXPOSURE_S = 1.0 / 1000.0
@@ -76,6 +140,12 @@ AE_RESIDUAL = 0.10
 level follows (E / E_base) ** 0.10, so a 100x darker scene is a 0.63x image, not a 0.01x one.
 The total exposure (time x gain) is X = 1/1000 s x (50 000 lux / E) ** 0.9: exposure time first
 (up to 1/60 s, the motion-blur limit), then analogue gain."""
+MAX_GAIN = 32.0
+"""The most analogue gain the camera has (30 dB, a typical automotive sensor's analogue range);
+beyond it the image darkens with the light. Never reached by day (at most 16x, at 100 mm/h)."""
+LOW_LIGHT_MAX_EXPOSURE_S = 1.0 / 30.0
+"""At dusk and night the camera trades motion blur for signal: its exposure time may grow to the
+frame time of a 30 frame/s stream (by day it stops at :data:`MAX_EXPOSURE_S`)."""
 NOISE_SIGNAL_DN = 0.02
 NOISE_FLOOR_DN2 = 0.06
 CHROMA_NOISE_SHARE = 0.15
@@ -102,8 +172,17 @@ class Weather:
         road_reflectance: mirror reflectance of the road surface.
         spray: 0 .. 1 density of tyre spray.
         exposure_s: camera exposure time in seconds.
-        gain: analogue gain (1 = base).
-        image_level: mean image level relative to the base weather after auto-exposure (<= 1).
+        gain: analogue gain relative to the sky's daytime base weather (1 by day at rate 0; above
+            1 at dusk and night): drives the sensor noise.
+        image_level: mean image level relative to the base weather (same sky and time of day)
+            after auto-exposure (<= 1), applied to the render by :func:`camera_response`.
+        time_of_day: one of :data:`TIMES_OF_DAY`.
+        daylight_lux: the sun and sky's part of ``illuminance_lux`` (the city sky glow at night).
+        street_light_lux: the street lights' part of ``illuminance_lux`` (0 by day).
+        light_level: image level of the base weather (same sky and time of day) relative to the
+            sky's daytime base, built into the render's lights and sky (1 by day).
+        noise_dn: standard deviation in 8-bit units of the sensor noise :func:`camera_response`
+            adds where its output is mid-grey (118), at this weather's gain.
     """
 
     sky: str
@@ -118,15 +197,24 @@ class Weather:
     exposure_s: float
     gain: float
     image_level: float
+    time_of_day: str = "day"
+    daylight_lux: float = 0.0
+    street_light_lux: float = 0.0
+    light_level: float = 1.0
+    noise_dn: float = 0.0
 
     def as_record(self) -> dict[str, float]:
         """Numeric fields by name (what the shard stores per rate)."""
         record = dataclasses.asdict(self)
-        del record["sky"]
+        del record["sky"], record["time_of_day"]
         return record
 
 
-RECORD_FIELDS = tuple(f.name for f in dataclasses.fields(Weather) if f.name != "sky")
+RECORD_FIELDS = tuple(f.name for f in dataclasses.fields(Weather)
+                      if f.name not in ("sky", "time_of_day"))
+MID_GREY_DN = 118.0
+"""An 18 % grey card through the display tone curve, in 8-bit units: where :attr:`Weather.noise_dn`
+is measured."""
 
 
 def check_sky(sky: object) -> str:
@@ -139,69 +227,132 @@ def _ramp(rate: float, onset: float, full: float) -> float:
     return min(max((rate - onset) / (full - onset), 0.0), 1.0)
 
 
-def _exposure(illuminance_lux: float) -> tuple[float, float]:
-    """(exposure time s, gain) the auto-exposure chooses at ``illuminance_lux``."""
+def _exposure(illuminance_lux: float, max_time_s: float = MAX_EXPOSURE_S
+              ) -> tuple[float, float, float]:
+    """(exposure time s, gain, shortfall) the auto-exposure chooses at ``illuminance_lux``.
+
+    The total exposure ``X = 1/1000 s x (50 000 lux / E)^0.9`` is reached with the exposure time
+    first (up to ``max_time_s``), then gain up to :data:`MAX_GAIN`; ``shortfall`` is the part of
+    X reached (1 unless the gain is at its limit).
+    """
     total = AE_REFERENCE_EXPOSURE_S * (AE_REFERENCE_LUX / illuminance_lux) ** (1.0 - AE_RESIDUAL)
-    time_s = min(total, MAX_EXPOSURE_S)
-    return time_s, max(total / time_s, 1.0)
+    time_s = min(total, max_time_s)
+    gain = max(total / time_s, 1.0)
+    if gain <= MAX_GAIN:
+        return time_s, gain, 1.0
+    return time_s, MAX_GAIN, MAX_GAIN / gain
 
 
-def weather_at(sky: str, rate_mm_h: float, follows_rate: bool = True) -> Weather:
-    """The weather of a scene whose base weather is ``sky`` when it rains ``rate_mm_h``.
+def _metered_lux(sky: str, time_of_day: str, rate: float) -> tuple[float, float]:
+    """(daylight lux, street light lux) of ``sky`` at ``time_of_day`` under ``rate`` mm/h."""
+    base_lux = BASE_ILLUMINANCE_LUX[sky]
+    daytime = base_lux if rate == 0 else min(base_lux, RAIN_LUX_AT_1_MM_H / rate)
+    return _light_sources(sky, time_of_day, daytime)
+
+
+def weather_at(sky: str, rate_mm_h: float, follows_rate: bool = True,
+               time_of_day: str = "day") -> Weather:
+    """The weather of a scene whose base weather is ``sky`` at ``time_of_day`` when it rains
+    ``rate_mm_h``.
 
     With ``follows_rate=False`` the base weather is returned whatever the rate (the seed paper's
-    method: rain drawn over an unchanged scene). Every field is monotonic in the rate.
+    method: rain drawn over an unchanged scene). Every field is monotonic in the rate. By day the
+    values are those of the daytime laws alone (docs/rain.md, "Weather that follows the rate");
+    dusk and night change the light and the camera (docs/rain.md, "Time of day").
     """
     sky = check_sky(sky)
+    time_of_day = check_time_of_day(time_of_day)
     rate = float(rate_mm_h) if follows_rate else 0.0
     if not (math.isfinite(rate) and rate >= 0):
         raise ValueError(f"rate_mm_h: expected a finite rate >= 0 mm/h, got {rate_mm_h!r}")
     clearing = math.exp(-rate / CLOUD_RATE_MM_H)
-    base_lux = BASE_ILLUMINANCE_LUX[sky]
-    lux = base_lux if rate == 0 else min(base_lux, RAIN_LUX_AT_1_MM_H / rate)
+    day_base_lux = BASE_ILLUMINANCE_LUX[sky]
+    daylight, street = _metered_lux(sky, time_of_day, rate)
+    lux = daylight + street
+    base_lux = sum(_metered_lux(sky, time_of_day, 0.0))
+    max_time = MAX_EXPOSURE_S if time_of_day == "day" else LOW_LIGHT_MAX_EXPOSURE_S
     # Scene quantities are rounded (cover 1e-6, sun 0.01, wetness 1e-4) so that rates whose scene
     # no longer changes visibly share one render: from 40 mm/h on, only light and camera change.
     wetness = round(1.0 - math.exp(-rate / WETNESS_RATE_MM_H), 4)
     puddles = _ramp(rate, PUDDLE_ONSET_MM_H, PUDDLE_FULL_MM_H)
-    exposure_s, gain = _exposure(lux)
-    _, base_gain = _exposure(base_lux)
+    exposure_s, gain, shortfall = _exposure(lux, max_time)
+    _, _, base_shortfall = _exposure(base_lux, max_time)
+    _, day_gain, _ = _exposure(day_base_lux)
+    # image level = E X / (E0 X0): (E / E0)^0.1 while the gain is below its limit
+    image_level = (lux / base_lux) ** AE_RESIDUAL * (shortfall / base_shortfall)
+    light_level = 1.0 if time_of_day == "day" else (
+        (base_lux / day_base_lux) ** AE_RESIDUAL * base_shortfall)
+    relative_gain = gain / day_gain
+    noise = math.sqrt(NOISE_SIGNAL_DN * (relative_gain - 1.0) * MID_GREY_DN
+                      + NOISE_FLOOR_DN2 * (relative_gain ** 2 - 1.0))
     return Weather(
         sky=sky, rain_mm_h=rate,
         cloud_cover=round(1.0 - (1.0 - BASE_CLOUD_COVER[sky]) * clearing, 6),
-        sun=round(BASE_SUN[sky] * clearing, 2), illuminance_lux=lux, wetness=wetness,
-        puddle_fraction=puddles,
+        sun=0.0 if time_of_day == "night" else round(BASE_SUN[sky] * clearing, 2),
+        illuminance_lux=lux, wetness=wetness, puddle_fraction=puddles,
         road_reflectance=ROAD_FILM_REFLECTANCE * wetness + ROAD_PUDDLE_REFLECTANCE * puddles,
         spray=_ramp(rate, SPRAY_ONSET_MM_H, SPRAY_FULL_MM_H), exposure_s=exposure_s,
-        gain=gain / base_gain, image_level=(lux / base_lux) ** AE_RESIDUAL,
+        gain=relative_gain, image_level=image_level, time_of_day=time_of_day,
+        daylight_lux=daylight, street_light_lux=street, light_level=light_level,
+        noise_dn=noise,
     )
+
+
+def display_light(weather: Weather, lux: float) -> float:
+    """Display level, in the renderer's light units (1 = the light on a horizontal surface in the
+    daytime base weather), of a surface lit by ``lux`` in the base weather of ``weather``'s sky and
+    time of day: ``light_level x (lux / E0)^(1 / 2.2)``, E0 the base weather's metered light.
+
+    The renderer adds lights linearly in display values, so each light source is given its own
+    tone-mapped level (exact for one source, a fair approximation where two overlap).
+    """
+    base_lux = sum(_metered_lux(weather.sky, weather.time_of_day, 0.0))
+    return weather.light_level * (max(float(lux), 0.0) / base_lux) ** (1.0 / DISPLAY_LIGHT_GAMMA)
 
 
 def sky_colours(weather: Weather, sin_elevation: np.ndarray) -> np.ndarray:
     """Sky colour (N, 3) float64 in 0..1 for directions with elevation sine ``sin_elevation``.
 
-    Clear: a blue gradient, zenith to horizon. Cloud: the CIE standard overcast sky (sky type 1),
-    luminance ``L_z (1 + 2 sin e) / 3`` (the horizon a third of the zenith), grey-white, through
-    the camera's 1/2.2 tone curve. The two are blended by ``cloud_cover``. Below the horizon the
-    horizon colour is kept.
+    Day: clear, a blue gradient, zenith to horizon; cloud, the CIE standard overcast sky (sky type
+    1), luminance ``L_z (1 + 2 sin e) / 3`` (the horizon a third of the zenith), grey-white,
+    through the camera's 1/2.2 tone curve. The two are blended by ``cloud_cover``. Dusk: a deep
+    blue zenith over a warm horizon band (clear) and a dimmer blue-grey CIE sky warming towards the
+    horizon (cloud). Night: near black, with the city's brown-grey glow at the horizon (clear) or
+    over the whole cloud deck, brightest low. Below the horizon the horizon colour is kept.
     """
-    sky, cover, closing = sky_key(weather)
+    sky, cover, closing, time_of_day = sky_key(weather)
     s = np.clip(np.asarray(sin_elevation, dtype=np.float64), 0.0, 1.0)[..., None]
+    if time_of_day == "night":
+        clear = (np.asarray(NIGHT_CLEAR_ZENITH)
+                 + np.asarray(NIGHT_GLOW_HORIZON) * np.exp(-s / NIGHT_GLOW_SIN_ELEVATION))
+        cloud = np.asarray(NIGHT_CLOUD) * (1.0 + NIGHT_CLOUD_HORIZON_GAIN
+                                           * np.exp(-s / NIGHT_CLOUD_GLOW_SIN_ELEVATION))
+        return np.clip(clear * (1.0 - cover) + cloud * cover, 0.0, 1.0)
+    white = CLOUD_SKY_WHITE[sky] + (CLOUD_SKY_WHITE["overcast"] - CLOUD_SKY_WHITE[sky]) * closing
+    cie = ((1.0 + 2.0 * s) / 3.0) ** (1.0 / DISPLAY_GAMMA)
+    if time_of_day == "dusk":
+        band = s ** DUSK_BAND_EXPONENT  # 0 at the horizon, 1 at the zenith; warm low down
+        clear = (np.asarray(DUSK_CLEAR_HORIZON)
+                 + (np.asarray(DUSK_CLEAR_ZENITH) - np.asarray(DUSK_CLEAR_HORIZON)) * band)
+        tint = (np.asarray(DUSK_CLOUD_HORIZON_TINT)
+                + (np.asarray(DUSK_CLOUD_ZENITH_TINT) - np.asarray(DUSK_CLOUD_HORIZON_TINT)) * band)
+        cloud = DUSK_CLOUD_LEVEL * white * cie * tint
+        return np.clip(clear * (1.0 - cover) + cloud * cover, 0.0, 1.0)
     zenith, horizon = np.asarray(CLEAR_SKY_ZENITH), np.asarray(CLEAR_SKY_HORIZON)
     # the clear gradient is linear in (1 + sin e) / 2 (what MuJoCo's builtin gradient does)
     weight = (1.0 + s) / 2.0
     clear = horizon + (zenith - horizon) * (2.0 * weight - 1.0)
     # under rain the deck closes into the darker grey of an overcast sky
-    white = CLOUD_SKY_WHITE[sky] + (CLOUD_SKY_WHITE["overcast"] - CLOUD_SKY_WHITE[sky]) * closing
-    cie = ((1.0 + 2.0 * s) / 3.0) ** (1.0 / DISPLAY_GAMMA)
     cloud = white * cie * np.asarray(CLOUD_TINT)
     return np.clip(clear * (1.0 - cover) + cloud * cover, 0.0, 1.0)
 
 
-def sky_key(weather: Weather) -> tuple[str, float, float]:
+def sky_key(weather: Weather) -> tuple[str, float, float, str]:
     """What the sky's colours depend on: (base sky, cloud cover, how far rain has closed the
-    deck), rounded to 1e-6 so that heavy rates, whose sky no longer changes, share one sky."""
+    deck, time of day), rounded to 1e-6 so that heavy rates, whose sky no longer changes, share
+    one sky."""
     closing = 1.0 - math.exp(-weather.rain_mm_h / CLOUD_RATE_MM_H)
-    return weather.sky, weather.cloud_cover, round(closing, 6)
+    return weather.sky, weather.cloud_cover, round(closing, 6), weather.time_of_day
 
 
 @functools.lru_cache(maxsize=256)

@@ -22,8 +22,9 @@ RATES = (0.0, 50.0)
 def dataset(tmp_path_factory):
     """Two shards (frames 0-1 and 2) of one scene at 0 and 50 mm/h, 96 x 72."""
     root = tmp_path_factory.mktemp("data")
+    # the residential street: its parked cars are near enough to label at 96x72
     run_dataset(DatasetConfig(scenes=1, frames=3, frames_per_shard=2, width=96, height=72,
-                              rates=RATES), root)
+                              rates=RATES, layout="residential", time_of_day="day"), root)
     return root
 
 

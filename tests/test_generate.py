@@ -2,6 +2,7 @@
 
 import hashlib
 import json
+import math
 
 import h5py
 import mujoco
@@ -40,7 +41,9 @@ def test_shard_layout_follows_format_v2(small_shard):
         assert f.attrs["sky"] in ("clear", "cloudy", "overcast")
         assert not f.attrs["weather_follows_rate"]  # jeon2022's default: the paper's method
         assert f["weather/rain_mm_h"][()].tolist() == [0.0]
-        assert json.loads(f.attrs["class_names"]) == ["person", "bicycle", "car", "motorcycle"]
+        assert json.loads(f.attrs["class_names"]) == ["person", "bicycle", "car", "motorcycle",
+                                                      "airplane", "bus", "train", "truck"]
+        assert f.attrs["layout"] in L.LAYOUTS and f.attrs["time_of_day"] in ("day", "dusk", "night")
         assert f.attrs["scene_seed"] == 5 and f.attrs["frame_offset"] == 60
         assert json.loads(f.attrs["config"])["width"] == 160
         assert f["rgb"].shape == (1, 6, 120, 160, 3) and f["rgb"].dtype == np.uint8
@@ -68,8 +71,15 @@ def test_ego_moves_forward_and_camera_looks_along_x(small_shard):
         poses = f["camera/T_world_cam"][()]
     steps = np.diff(poses[:, 0, 3])
     assert (steps > 0.5).all()  # 7..10 m/s at 10 frames/s
-    np.testing.assert_allclose(poses[0, :3, 2], [1, 0, 0], atol=1e-9)  # optical axis
-    np.testing.assert_allclose(poses[0, :3, 1], [0, 0, -1], atol=1e-9)  # image y is down
+    # optical axis along x, tilted up by the camera rig's pitch; image y is down
+    layout = L.sample_layout(5, GenerateConfig(seed=5, frame_offset=60, **SMALL).scenario_config(),
+                             np.random.default_rng(5))
+    pitch = math.radians(layout.camera_pitch_deg)
+    if layout.name != "curved":  # the other layouts drive straight along x
+        np.testing.assert_allclose(poses[0, :3, 2], [math.cos(pitch), 0, math.sin(pitch)],
+                                   atol=1e-9)
+        np.testing.assert_allclose(poses[0, :3, 1], [math.sin(pitch), 0, -math.cos(pitch)],
+                                   atol=1e-9)
 
 
 def test_same_seed_same_bytes_other_seed_differs(tmp_path, small_shard):
@@ -84,7 +94,7 @@ def test_same_seed_same_bytes_other_seed_differs(tmp_path, small_shard):
 def test_default_clip_shows_all_four_classes():
     """The paper's 200-frame clip of seed 0; labels only, at 320x240 (boxes at 800x600 are
     2.5x larger, so anything labelled here is labelled there)."""
-    config = GenerateConfig(width=320, height=240)
+    config = GenerateConfig(width=320, height=240, layout="street", time_of_day="day")
     setup = build_scene(config)
     data = mujoco.MjData(setup.model)
     driver = sim.ActorDriver(setup.model, setup.layout)
@@ -98,42 +108,62 @@ def test_default_clip_shows_all_four_classes():
             visible, _ = renderer.render_instances()
             labels = frame_labels(renderer, data, visible, setup.class_of_instance,
                                   config.label_filter)
-            seen += np.bincount(labels.class_id, minlength=4)
+            seen += np.bincount(labels.class_id, minlength=8)[:4]
     assert (seen > 0).all(), f"labels per class (person, bicycle, car, motorcycle): {seen}"
     counts = [sum(a.class_id == c for a in setup.layout.actors) for c in range(4)]
     assert counts == [8 + 3, 2, 6, 1]  # 8 pedestrians + 3 riders (labelled as person, COCO)
 
 
+def _rectangles_overlap(a, b) -> bool:
+    """Whether two convex polygons ((4, 2) corners each) overlap: separating axes."""
+    for corners in (a, b):
+        for edge in (corners[1] - corners[0], corners[3] - corners[0]):
+            axis = np.array([-edge[1], edge[0]])
+            pa, pb = a @ axis, b @ axis
+            if pa.max() <= pb.min() or pb.max() <= pa.min():
+                return False
+    return True
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_actors_never_interpenetrate(seed):
-    """World AABBs of different units' geoms never overlap during the clip (3D, from MuJoCo)."""
+    """Units never overlap during the clip (3D, from MuJoCo's geometry): each unit's geoms
+    bounded in the unit's own frame (units turn only about z), compared as oriented boxes."""
     config = GenerateConfig(seed=seed, width=64, height=48)
     setup = build_scene(config)
     model, data = setup.model, mujoco.MjData(setup.model)
     driver = sim.ActorDriver(model, setup.layout)
     unit_of_geom = np.array([model.body(model.geom_bodyid[g]).rootid[0] for g in range(model.ngeom)])
     actor_geoms = np.flatnonzero(setup.geom_instance >= 0)
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
     previous = 0.0
     for t in np.arange(0.0, 20.0, 0.25):
         sim.advance(model, data, driver, previous, t)
         previous = t
         boxes = {}
         for g in actor_geoms:
-            centre = model.geom_aabb[g, :3]
-            half = model.geom_aabb[g, 3:]
-            rotation = data.geom_xmat[g].reshape(3, 3)
-            world_centre = data.geom_xpos[g] + rotation @ centre
-            world_half = np.abs(rotation) @ half
-            lo, hi = world_centre - world_half, world_centre + world_half
             unit = unit_of_geom[g]
+            rotation = data.geom_xmat[g].reshape(3, 3)
+            corners = data.geom_xpos[g] + (model.geom_aabb[g, :3] + signs * model.geom_aabb[g, 3:]) \
+                @ rotation.T
+            root = data.xmat[unit].reshape(3, 3)
+            local = (corners - data.xpos[unit]) @ root  # in the unit's frame
+            lo, hi = local.min(axis=0), local.max(axis=0)
             if unit in boxes:
                 boxes[unit] = (np.minimum(boxes[unit][0], lo), np.maximum(boxes[unit][1], hi))
             else:
                 boxes[unit] = (lo, hi)
+        footprints = {}
+        for unit, (lo, hi) in boxes.items():
+            root = data.xmat[unit].reshape(3, 3)
+            square = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+            footprints[unit] = (square @ root[:2, :2].T + data.xpos[unit][:2],
+                                lo[2] + data.xpos[unit][2], hi[2] + data.xpos[unit][2])
         units = sorted(boxes)
         for i, a in enumerate(units):
             for b in units[i + 1:]:
-                overlap = np.all(boxes[a][0] < boxes[b][1]) and np.all(boxes[b][0] < boxes[a][1])
+                (poly_a, z0a, z1a), (poly_b, z0b, z1b) = footprints[a], footprints[b]
+                overlap = z0a < z1b and z0b < z1a and _rectangles_overlap(poly_a, poly_b)
                 assert not overlap, f"seed {seed}: units {a} and {b} overlap at t={t}"
 
 

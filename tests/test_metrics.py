@@ -102,7 +102,7 @@ def test_coco_ground_truth_layout():
         ]
     )
     assert [c["id"] for c in gt["categories"]] == [0, 1, 2, 3]
-    assert [c["name"] for c in gt["categories"]] == list(M.CLASS_NAMES)
+    assert [c["name"] for c in gt["categories"]] == list(M.PAPER_CLASS_NAMES)
     assert [img["id"] for img in gt["images"]] == [1, 2]
     first, second = gt["annotations"]
     assert first == {

@@ -114,7 +114,7 @@ def test_tiny_training_run_writes_weights_the_evaluator_loads(tmp_path, capsys):
     assert manifest["complete"] and [s["scene_seed"] for s in manifest["shards"]] == [1000000, 1000001]
     assert manifest["config"]["scenario"]["num_motorcycles"] == 1
     detector = backends.load_detector(weights, device="cpu")
-    assert [detector.model.names[i] for i in range(4)] == list(CLASS_NAMES)
+    assert [detector.model.names[i] for i in range(4)] == list(CLASS_NAMES[:4])
     image = np.zeros((120, 160, 3), np.uint8)
     boxes, scores, ids = detector.predict([image], imgsz=64, conf=0.0, iou=0.7, max_det=10)[0]
     assert boxes.shape[1] == 4 and set(ids.tolist()) <= {0, 1, 2, 3}
@@ -183,13 +183,15 @@ def test_tile_stage_trains_on_tiles_of_the_rescaled_frames(tmp_path, capsys):
     assert train_tiles[0].stat().st_mtime_ns == stamp
 
 
-# Per shipped model: (car, person) AP@0.5 floors on the guard scene, and what it scores there.
+# Per shipped model: (car, person) AP@0.5 floors on the guard scene (seed 7's street by day,
+# with the mesh vehicles and varied people of issue 15), and what it scores there. Both models
+# were trained on the scenes before issue 15 (box cars, one build of people) and lose some AP on
+# the new ones; their retrain is pending (docs/models.md).
 SHIPPED_GUARD = {
-    # nano: car 0.958, person 0.823 (the restart-1 model it replaced, at 640 px through its .pt:
-    # 0.852, 0.528, so it would fail).
-    "rainbench-yolo11n": (0.90, 0.75),
-    # small: car 1.000, person 0.892 (the nano model, 0.958 and 0.823, would fail it).
-    "rainbench-yolo11s": (0.95, 0.85),
+    # nano: car 0.933, person 0.717 (the weak control, 0.409 and 0.079, would fail it).
+    "rainbench-yolo11n": (0.88, 0.65),
+    # small: car 0.937, person 0.807 (the nano model, person 0.717, would fail it).
+    "rainbench-yolo11s": (0.88, 0.75),
 }
 
 
@@ -206,7 +208,8 @@ def test_shipped_weights_load_by_name_and_find_cars(tmp_path, name):
     data = tmp_path / "data"
     # Seed 7: an evaluation seed (< 1000000), never used in training or validation. Every fifth
     # frame of a 20 s clip at 10 fps.
-    generate_shard(GenerateConfig(seed=7, frames=20, fps=1.0, width=800, height=600, rates=(0.0,)), data)
+    generate_shard(GenerateConfig(seed=7, frames=20, fps=1.0, width=800, height=600, rates=(0.0,),
+                                  layout="street", time_of_day="day"), data)
     result = pipeline.run_eval(data, tmp_path / "out", weights=[name], n_boot=1, device="cpu", progress=False)
     # On CPU the shipped name runs its ONNX copy, at the card's letterbox size.
     card = json.loads((backends.WEIGHTS_DIR / f"{name}.json").read_text())

@@ -1,0 +1,324 @@
+"""Road layouts chosen by the seed: geometry, motion, collision planning, rendering, CLI."""
+
+import argparse
+import math
+
+import h5py
+import mujoco
+import numpy as np
+import pytest
+
+from rainbench import cli
+from rainbench.gen import sim
+from rainbench.gen.generate import GenerateConfig, build_scene, generate_shard, render_clip
+from rainbench.mjcf import layout as L
+from rainbench.mjcf.classes import BUS, CAR, PERSON, TRUCK
+from rainbench.mjcf.scene import build_spec, export_scene
+
+SMALL = dict(width=160, height=120)
+
+
+def _layout(name, seed=0, **kwargs):
+    config = L.ScenarioConfig(layout=name, **kwargs)
+    return L.sample_layout(seed, config, np.random.default_rng(seed))
+
+
+def _config(name, seed=0, frames=1, fps=10.0, duration=20.0, **kwargs):
+    return GenerateConfig(seed=seed, frames=frames, fps=fps, **SMALL,
+                          scenario=L.ScenarioConfig(duration_s=duration, layout=name), **kwargs)
+
+
+# -- paths and footprints: tiny cases with known answers ------------------------------------------
+
+def test_path_pose_follows_straights_and_arcs():
+    pieces = ((10.0, 0.0), (10 * math.pi / 2, 1 / 10))  # 10 m straight, then a left quarter circle
+    pose = L.path_pose((0.0, 0.0, 0.0), pieces, np.array([-5.0, 10.0, 10 + 5 * math.pi, 40.0]))
+    np.testing.assert_allclose(pose[0], [-5.0, 0.0, 0.0], atol=1e-9)  # straight back from start
+    np.testing.assert_allclose(pose[1], [10.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(pose[2], [20.0, 10.0, math.pi / 2], atol=1e-9)  # arc's end
+    straight_after = 40.0 - 10 - 5 * math.pi
+    np.testing.assert_allclose(pose[3], [20.0, 10.0 + straight_after, math.pi / 2], atol=1e-9)
+    # the lane 2 m to the left of that path turns on a radius of 8 m and ends 2 m further in
+    inner = L.path_pose((0.0, 2.0, 0.0), L.offset_pieces(pieces, 2.0), [10 + 4 * math.pi])
+    np.testing.assert_allclose(inner[0], [18.0, 10.0, math.pi / 2], atol=1e-9)
+    with pytest.raises(ValueError, match="lies beyond the centre of a curve of radius 10.0 m"):
+        L.offset_pieces(pieces, 12.0)
+
+
+def test_straight_units_move_as_before():
+    unit = L.Unit("u", "car", (3.0, -1.75), math.pi, 5.0, (4.0, 2.0), start_time=1.0,
+                  max_distance=10.0)
+    t = np.array([0.0, 2.0, 10.0])
+    np.testing.assert_allclose(L.unit_position(unit, t), [[3.0, -1.75], [-2.0, -1.75],
+                                                          [-7.0, -1.75]], atol=1e-9)
+    np.testing.assert_allclose(L.unit_pose(unit, t)[:, 2], math.pi)
+
+
+def test_oriented_footprints_collide_only_when_they_overlap():
+    times = np.zeros(1)
+    square = L.Unit("a", "car", (0.0, 0.0), 0.0, 0.0, (2.0, 2.0))
+
+    def diamond(x, y, level=0):  # a 2 x 2 square turned 45 degrees: corners sqrt(2) out
+        return L.Unit("b", "car", (x, y), math.pi / 4, 0.0, (2.0, 2.0), level=level)
+    assert L.units_collide(square, diamond(2.3, 0.0), times, margin=0.0)  # corner at x 0.886
+    assert not L.units_collide(square, diamond(2.5, 0.0), times, margin=0.0)  # corner at 1.086
+    # bounding boxes overlap on the diagonal, the shapes do not (1.2 + 1.2 > sqrt 2)
+    assert not L.units_collide(square, diamond(2.2, 2.2), times, margin=0.0)
+    assert L.units_collide(square, diamond(2.2, 2.2), times, margin=1.0)
+    assert not L.units_collide(square, diamond(0.0, 0.0, level=1), times)  # overpass vs road
+
+
+def test_sat_separates_rotated_rectangles_whose_bounding_boxes_overlap():
+    times = np.zeros(1)
+    a = L.Unit("a", "car", (0.0, 0.0), math.pi / 4, 0.0, (4.0, 0.5))
+    b = L.Unit("b", "car", (1.2, -1.2), math.pi / 4, 0.0, (4.0, 0.5))  # parallel, 1.7 m apart
+    assert not L.units_collide(a, b, times, margin=0.0)
+    c = L.Unit("c", "car", (1.2, -1.2), -math.pi / 4, 0.0, (4.0, 0.5))  # crossing a's middle
+    assert L.units_collide(a, c, times, margin=0.0)
+
+
+@pytest.mark.parametrize("name", list(L.LAYOUTS))
+def test_no_two_footprints_overlap(name):
+    times = np.linspace(0.0, 20.0, 1001)  # 50 Hz, finer than the planner's 25 Hz
+    for seed in (0, 1, 2):
+        layout = _layout(name, seed)
+        units = (layout.ego,) + layout.units
+        for i, a in enumerate(units):
+            for b in units[i + 1:]:
+                assert not L.units_collide(a, b, times, margin=0.0), (name, seed, a.name, b.name)
+
+
+# -- what each layout holds ------------------------------------------------------------------------
+
+def test_each_layout_holds_its_actor_types():
+    for seed in (0, 1, 2):
+        highway = _layout("highway", seed)
+        classes = {a.class_id for a in highway.actors}
+        assert classes & {BUS, TRUCK}
+        assert not any(u.kind == "bicycle" for u in highway.units)
+        road = highway.roads[0]
+        for unit in highway.units:  # nobody walks on the lanes
+            if unit.kind == "pedestrian" and unit.level == 0:
+                assert abs(unit.start_xy[1]) > road.half_width
+        residential = _layout("residential", seed)
+        parked = [u for u in residential.units if u.name.startswith("parked")]
+        assert len(parked) >= 10 and all(u.speed == 0 for u in parked)
+        assert {u.start_xy[1] > 0 for u in parked} == {True, False}  # both sides
+        intersection = _layout("intersection", seed)
+        t = np.linspace(0, 20, 201)
+        yaw_change = [np.ptp(np.unwrap(L.unit_pose(u, t)[:, 2])) for u in intersection.units
+                      if u.kind == "car"]
+        assert max(yaw_change) > math.radians(80)  # a car turns
+        curved = _layout("curved", seed)
+        assert np.ptp(np.unwrap(L.unit_pose(curved.ego, t)[:, 2])) > math.radians(20)
+    bus = next(a for a in _layout("highway", 0).actors if a.class_id in (BUS, TRUCK))
+    style = _layout("highway", 0).units[bus.unit].style
+    assert {"bus": BUS, "truck": TRUCK}[style] == bus.class_id
+    assert all(a.class_id == CAR for lay in (_layout("street", 0),) for a in lay.actors
+               if a.role == "car")
+
+
+def test_people_stand_on_each_layouts_sidewalks_and_decks():
+    curved = _layout("curved", 1)
+    road = curved.roads[0]
+    for s in (0.0, 60.0, 120.0, 200.0):
+        for side in (-1, 1):
+            x, y, _ = L.road_pose(road, s, side * (road.half_width + road.sidewalk / 2))
+            assert L.ground_height(curved, x, y) == L.CURB_HEIGHT
+            x, y, _ = L.road_pose(road, s, side * road.lane_offset(0))
+            assert L.ground_height(curved, x, y) == 0.0
+    highway = _layout("highway", 0)
+    deck = [p for p in highway.props if p.name == "overpass_deck"][0]
+    on_deck = [u for u in highway.units if u.level == 1]
+    assert on_deck and L.ground_height(highway, deck.pos[0], 0.0) > 6.0
+    for unit in on_deck:
+        x, y = L.unit_position(unit, 10.0)
+        assert L.ground_height(highway, x, y) > 6.0
+    street = _layout("street", 0)
+    assert L.ground_height(street, 10.0, L.ROAD_HALF_WIDTH + 1.0) == L.CURB_HEIGHT
+    assert L.ground_height(street, 10.0, 0.0) == 0.0
+
+
+def test_puddles_lie_on_road_surfaces():
+    for name in L.LAYOUTS:
+        layout = _layout(name, 1)
+        assert layout.puddles
+        for x, y, *_ in layout.puddles:
+            inside = False
+            for slab in layout.road_surfaces:
+                dx, dy = x - slab.centre[0], y - slab.centre[1]
+                c, s = math.cos(slab.yaw), math.sin(slab.yaw)
+                if abs(c * dx + s * dy) <= slab.half_length + 1e-6 and \
+                        abs(-s * dx + c * dy) <= slab.half_width + 1e-6:
+                    inside = True
+            assert inside, (name, x, y)
+
+
+# -- seed, overrides, camera rig -------------------------------------------------------------------
+
+def test_seed_decides_the_layout_and_overrides_win():
+    config = L.ScenarioConfig()
+    names = {L.sample_layout(seed, config, np.random.default_rng(seed)).name for seed in range(8)}
+    assert len(names) > 1
+    a = L.sample_layout(5, config, np.random.default_rng(5))
+    assert L.sample_layout(5, config, np.random.default_rng(5)) == a
+    for name in L.LAYOUTS:
+        assert _layout(name, 5).name == name
+    with pytest.raises(ValueError, match="layout: expected one of street, intersection, curved, "
+                                         "highway, residential, got 'moon'"):
+        L.ScenarioConfig(layout="moon")
+    with pytest.raises(ValueError, match="time_of_day: expected one of day, dusk, night"):
+        L.ScenarioConfig(time_of_day="noon")
+
+
+def test_camera_rig_draws_lie_in_their_ranges():
+    rng_layouts = [L.sample_layout(s, L.ScenarioConfig(layout="street", duration_s=4.0),
+                                   np.random.default_rng(s)) for s in range(12)]
+    heights = [lay.camera_height for lay in rng_layouts]
+    pitches = [lay.camera_pitch_deg for lay in rng_layouts]
+    assert all(1.35 <= h <= 1.95 for h in heights) and np.ptp(heights) > 0.2
+    assert all(-4.0 <= p <= 2.0 for p in pitches) and np.ptp(pitches) > 1.0
+    assert {lay.time_of_day for lay in rng_layouts} <= set(L.TIMES_OF_DAY)
+    # the pitch tilts the compiled camera: its optical axis rises by the pitch angle
+    layout = _layout("street", 0, camera_pitch_deg=2.0)
+    model = build_spec(layout, **SMALL).compile()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    axis = -data.cam_xmat[model.camera("ego").id].reshape(3, 3)[:, 2]
+    assert math.degrees(math.asin(axis[2])) == pytest.approx(2.0, abs=1e-6)
+
+
+def test_hfov_flag_changes_the_camera_fovy(tmp_path):
+    fovy = {}
+    for hfov in ("90", "60"):
+        out = tmp_path / hfov
+        assert cli.main(["scene", "--seed", "2", "--hfov", hfov, "--width", "160", "--height",
+                         "120", "--out", str(out)]) == 0
+        model = mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
+        fovy[hfov] = float(model.cam_fovy[model.camera("ego").id])
+    expected = math.degrees(2 * math.atan(math.tan(math.radians(30)) * 120 / 160))
+    assert fovy["60"] == pytest.approx(expected, abs=1e-4) and fovy["90"] > fovy["60"]
+
+
+def test_cli_layout_flag_list_and_the_paper_default(tmp_path, capsys):
+    assert cli.main(["scene", "--list"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [line.split()[0] for line in lines] == list(L.LAYOUTS)
+    assert all(len(line.split()) > 3 for line in lines)
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["scene", "--layout", "moon", "--out", str(tmp_path)])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "LAYOUT: expected one of street, intersection, curved, highway, residential" in err
+    parser = cli.build_parser()
+    paper = parser.parse_args(["generate"])
+    assert cli._seed_and_sky(paper) == (0, "cloudy")
+    assert cli._layout_and_time(paper) == {"layout": "street", "time_of_day": "day"}
+    chosen = parser.parse_args(["generate", "--layout", "highway"])
+    assert cli._seed_and_sky(chosen) == (0, None)
+    assert cli._layout_and_time(chosen) == {"layout": "highway", "time_of_day": None}
+    night = parser.parse_args(["generate", "--time", "night"])
+    assert cli._seed_and_sky(night) == (0, None)
+    assert cli._layout_and_time(night) == {"layout": None, "time_of_day": "night"}
+    assert cli._layout_and_time(parser.parse_args(["generate", "--seed", "4"])) == {
+        "layout": None, "time_of_day": None}
+    scenario = GenerateConfig(**cli._layout_and_time(paper)).scenario_config()
+    assert (scenario.layout, scenario.time_of_day, scenario.duration_s) == ("street", "day", 20.0)
+    layout = L.sample_layout(0, scenario, np.random.default_rng(0))
+    assert (layout.name, layout.time_of_day) == ("street", "day")
+    assert all(u.pieces == () for u in (layout.ego,) + layout.units)  # a straight drive
+
+
+# -- rendering ---------------------------------------------------------------------------------------
+
+def _frame_with_a_near_actor(layout, fps=10.0):
+    """The first frame (at ``fps``) with a unit 4-12 m ahead of the ego, inside the view."""
+    for frame in range(int(layout.config.duration_s * fps)):
+        x, y, yaw = L.unit_pose(layout.ego, frame / fps)
+        for unit in layout.units:
+            dx, dy = L.unit_position(unit, frame / fps) - (x, y)
+            ahead = dx * math.cos(yaw) + dy * math.sin(yaw)
+            across = -dx * math.sin(yaw) + dy * math.cos(yaw)
+            if 4.0 < ahead < 12.0 and abs(across) < 0.7 * ahead and unit.level == 0:
+                return frame
+    raise AssertionError("no actor comes near the ego")
+
+
+@pytest.mark.parametrize("name", list(L.LAYOUTS))
+def test_every_layout_renders_labels_and_exports(name, tmp_path):
+    layout = _layout(name, 1)
+    offset = _frame_with_a_near_actor(layout)
+    config = _config(name, seed=1, frames=1, duration=20.0, frame_offset=offset, clip_frames=200)
+    setup = build_scene(config)
+    assert setup.layout.name == name
+    _, frame, _ = next(render_clip(config, setup))
+    assert frame.rgb.shape == (120, 160, 3) and frame.rgb.std() > 5
+    # every label's box is the tight box of its visible pixels
+    assert len(frame.labels) >= 1
+    for box, instance in zip(frame.labels.bbox, frame.labels.instance_id):
+        rows, cols = np.nonzero(frame.instance == instance)
+        assert box.tolist() == [cols.min(), rows.min(), cols.max() + 1, rows.max() + 1]
+    path = export_scene(build_spec(setup.layout, **SMALL), tmp_path)
+    model = mujoco.MjModel.from_xml_path(str(path))
+    assert model.camera("ego").id >= 0 and model.nmocap == len(setup.layout.units) + 2
+
+
+def test_same_seed_same_bytes_across_layouts():
+    for name in ("curved", "residential"):
+        first = [f.rgb.copy() for _, f, _ in render_clip(_config(name, seed=3, frames=2,
+                                                                 duration=2.0))]
+        again = [f.rgb.copy() for _, f, _ in render_clip(_config(name, seed=3, frames=2,
+                                                                 duration=2.0))]
+        assert all(np.array_equal(a, b) for a, b in zip(first, again))
+
+
+def test_the_ego_camera_turns_with_the_curved_road():
+    config = _config("curved", seed=1, frames=1, duration=20.0)
+    setup = build_scene(config)
+    model, data = setup.model, mujoco.MjData(setup.model)
+    driver = sim.ActorDriver(model, setup.layout)
+    yaws = []
+    for t in (0.0, 10.0, 20.0):
+        sim.advance(model, data, driver, t, t)
+        axis = -data.cam_xmat[model.camera("ego").id].reshape(3, 3)[:, 2]
+        yaw = L.unit_pose(setup.layout.ego, t)[2]
+        np.testing.assert_allclose(axis[:2] / np.linalg.norm(axis[:2]),
+                                   [math.cos(yaw), math.sin(yaw)], atol=1e-6)
+        yaws.append(yaw)
+    assert np.ptp(yaws) > math.radians(10)
+
+
+def test_a_parked_car_hides_part_of_a_person_stepping_out():
+    config = _config("residential", seed=0, frames=40, fps=2.0, duration=20.0)
+    setup = build_scene(config)
+    parked = {a.instance_id for a in setup.layout.actors
+              if setup.layout.units[a.unit].name.startswith("parked")}
+    found = False
+    for _, frame, _ in render_clip(config, setup):
+        labels = frame.labels
+        for k in range(len(labels)):
+            if labels.class_id[k] != PERSON or labels.visible_fraction[k] > 0.9:
+                continue
+            x0, y0, x1, y1 = np.round(labels.bbox_amodal[k]).astype(int)
+            inside = set(np.unique(frame.instance[y0:y1, x0:x1]).tolist())
+            if inside & parked:
+                found = True
+                break
+        if found:
+            break
+    assert found
+
+
+def test_shard_records_layout_and_time_of_day(tmp_path):
+    config = GenerateConfig(seed=4, frames=1, width=48, height=32, scenario=L.ScenarioConfig(
+        duration_s=0.1, layout="highway", time_of_day="dusk"))
+    path = generate_shard(config, tmp_path, threads=1)
+    with h5py.File(path) as handle:
+        assert handle.attrs["layout"] == "highway" and handle.attrs["time_of_day"] == "dusk"
+        assert '"layout": "highway"' in handle.attrs["config"]
+
+
+def test_seed_and_sky_keeps_its_old_contract():
+    assert cli._seed_and_sky(argparse.Namespace(seed=None, sky=None)) == (0, "cloudy")
+    assert cli._seed_and_sky(argparse.Namespace(seed=None, sky=None, layout="curved")) == (0, None)

@@ -1,0 +1,351 @@
+"""Time of day: the laws of dusk and night, the lights after dark, and what they do to a frame."""
+
+import math
+
+import cv2
+import mujoco
+import numpy as np
+import pytest
+
+from rainbench.gen import sim
+from rainbench.gen.render import FrameRenderer, camera_pose
+from rainbench.mjcf import layout as L
+from rainbench.mjcf import lights as tod
+from rainbench.mjcf.scene import build_spec, geom_instance_table
+from rainbench.mjcf.weather import scene_lighting
+from rainbench.rain import weather as wx
+
+SEED, SKY = 0, "cloudy"
+
+
+def _luma(rgb):
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float64)
+
+
+def _layout(time_of_day="day"):
+    config = L.ScenarioConfig(sky=SKY, layout="street", time_of_day=time_of_day)
+    return L.sample_layout(SEED, config, np.random.default_rng(SEED))
+
+
+def _vehicles(layout):
+    return [unit.name for unit in layout.units if unit.kind in ("car", "motorcycle")]
+
+
+def _scene(time_of_day, width, height):
+    """(layout, spec, model) of the seed's street at ``time_of_day`` (build_spec adds the
+    time of day's lights)."""
+    layout = _layout(time_of_day)
+    spec = build_spec(layout, width, height)
+    return layout, spec, spec.compile()
+
+
+def _posed(model, layout, t):
+    data = mujoco.MjData(model)
+    sim.ActorDriver(model, layout).apply(data, t)
+    mujoco.mj_forward(model, data)
+    return data
+
+
+def _render(model, data, time_of_day, width, height):
+    base = wx.weather_at(SKY, 0.0, time_of_day=time_of_day)
+    with FrameRenderer(model, width, height, geom_instance_table(model),
+                       base_weather=base) as renderer:
+        renderer.update(data)
+        return renderer.render_rgb()
+
+
+def _project(renderer, data, points):
+    """(N, 2) int pixel (u, v) and (N,) camera depth of world ``points`` (N, 3)."""
+    pose = camera_pose(renderer.model, data, "ego")
+    cam = (np.asarray(points, dtype=np.float64) - pose[:3, 3]) @ pose[:3, :3]
+    uv = (renderer.K @ cam.T).T
+    return np.floor(uv[:, :2] / uv[:, 2:]).astype(int), cam[:, 2]
+
+
+# -- laws -----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("sky", wx.SKIES)
+def test_dusk_and_night_are_darker_noisier_and_day_is_unchanged(sky):
+    day, dusk, night = (wx.weather_at(sky, 0.0, time_of_day=t) for t in wx.TIMES_OF_DAY)
+    assert day.illuminance_lux > dusk.illuminance_lux > night.illuminance_lux
+    assert 1e2 <= dusk.illuminance_lux <= 1e3 and night.illuminance_lux < 20
+    assert night.daylight_lux < 1 and night.street_light_lux == wx.STREET_LIGHT_LUX
+    assert day.light_level == 1.0 > dusk.light_level > night.light_level > 0.2
+    assert night.gain > dusk.gain > day.gain == 1.0
+    assert night.noise_dn > dusk.noise_dn > day.noise_dn == 0.0
+    assert night.exposure_s == pytest.approx(wx.LOW_LIGHT_MAX_EXPOSURE_S)
+    # the night's gain is at the camera's limit (relative to the day base's own gain)
+    assert night.gain * wx._exposure(wx.BASE_ILLUMINANCE_LUX[sky])[1] == pytest.approx(wx.MAX_GAIN)
+    assert night.sun == 0.0 and night.image_level == 1.0
+    # by day every value is the daytime law's, whatever the default
+    for rate in (0.0, 5.0, 50.0):
+        assert wx.weather_at(sky, rate) == wx.weather_at(sky, rate, time_of_day="day")
+    assert wx.weather_at(sky, 50.0).image_level == (200.0 / wx.BASE_ILLUMINANCE_LUX[sky]) ** 0.1
+    record = night.as_record()
+    assert "time_of_day" not in record and "sky" not in record
+    assert set(record) == set(wx.RECORD_FIELDS)
+    assert all(isinstance(value, float) for value in record.values())
+
+
+@pytest.mark.parametrize("time_of_day", ["dusk", "night"])
+def test_weather_after_dark_is_monotonic_in_the_rate(time_of_day):
+    rates = [0, 0.5, 2, 5, 10, 25, 50, 75, 100]
+    for sky in wx.SKIES:
+        series = [wx.weather_at(sky, rate, time_of_day=time_of_day) for rate in rates]
+        for name in ("cloud_cover", "wetness", "road_reflectance", "gain", "exposure_s",
+                     "noise_dn"):
+            values = [getattr(w, name) for w in series]
+            assert values == sorted(values), name
+        for name in ("sun", "illuminance_lux", "daylight_lux", "image_level"):
+            values = [getattr(w, name) for w in series]
+            assert values == sorted(values, reverse=True), name
+        assert {w.light_level for w in series} == {series[0].light_level}  # the base's
+
+
+def test_rain_at_night_keeps_the_street_lights_and_rain_at_dusk_darkens():
+    night = [wx.weather_at("cloudy", rate, time_of_day="night") for rate in (0.0, 10.0, 100.0)]
+    assert [w.illuminance_lux for w in night] == [night[0].illuminance_lux] * 3
+    assert night[2].wetness > night[1].wetness > 0 and night[2].road_reflectance > 0
+    dusk = [wx.weather_at("cloudy", rate, time_of_day="dusk") for rate in (0.0, 10.0, 100.0)]
+    levels = [w.image_level for w in dusk]
+    assert levels == sorted(levels, reverse=True) and levels[0] == 1.0 > levels[2]
+
+
+def test_night_camera_adds_sensor_noise_to_the_base_image():
+    rng = np.random.default_rng(0)
+    image = np.full((60, 80, 3), 118, np.uint8)
+    noise = wx.noise_field(rng, 60, 80)
+    day, night = wx.weather_at("clear", 0.0), wx.weather_at("clear", 0.0, time_of_day="night")
+    assert np.array_equal(wx.camera_response(image, day, noise), image)
+    residual = wx.camera_response(image, night, noise).astype(np.float64) - image
+    assert abs(residual.mean()) < 1.0
+    assert residual.std() == pytest.approx(night.noise_dn, rel=0.1)
+
+
+def test_night_sky_is_dark_with_a_warm_glow_at_the_horizon():
+    s = np.array([0.0, 1.0])  # horizon, zenith
+    means = {}
+    for time_of_day in wx.TIMES_OF_DAY:
+        for sky in ("clear", "overcast"):
+            colours = wx.sky_colours(wx.weather_at(sky, 0.0, time_of_day=time_of_day), s)
+            means[time_of_day, sky] = colours.mean()
+            if time_of_day == "night":
+                horizon, zenith = colours
+                assert horizon.sum() > zenith.sum() and horizon[0] > horizon[2]  # brown-grey
+                assert colours.max() < 0.2
+            if time_of_day == "dusk" and sky == "clear":
+                horizon, zenith = colours
+                assert horizon[0] > horizon[2] + 0.3 and zenith[2] > zenith[0]  # warm band, blue
+    for sky in ("clear", "overcast"):
+        assert means["day", sky] > means["dusk", sky] > means["night", sky]
+
+
+def test_night_lighting_has_no_sun_and_lit_lamps():
+    day = scene_lighting(wx.weather_at("clear", 0.0))
+    night = scene_lighting(wx.weather_at("clear", 0.0, time_of_day="night"))
+    dusk = scene_lighting(wx.weather_at("clear", 0.0, time_of_day="dusk"))
+    assert day.lamp_diffuse == day.beam_diffuse == (0.0, 0.0, 0.0) and day.sun_active
+    assert not night.sun_active and not night.skylight_active and max(night.sun_diffuse) == 0.0
+    assert min(night.lamp_diffuse) > 0 and min(night.beam_diffuse) > 0
+    assert max(night.headlight_ambient) < 0.3 * min(day.headlight_ambient)
+    assert dusk.sun_active and dusk.sun_diffuse[0] > 2 * dusk.sun_diffuse[2]  # orange low sun
+
+
+def test_bad_time_of_day_is_a_one_line_error():
+    message = r"time_of_day: expected one of day, dusk, night, got 'noon'"
+    with pytest.raises(ValueError, match=message):
+        wx.weather_at("clear", 0.0, time_of_day="noon")
+    with pytest.raises(ValueError, match=message):
+        tod.add_time_of_day_lights(mujoco.MjSpec(), "noon")
+
+
+# -- scenes --------------------------------------------------------------------------------------
+def test_day_adds_nothing_and_renders_byte_identical():
+    width, height = 160, 120
+    layout, plain_spec, plain = _scene("day", width, height)
+    assert not [plain.light(i).name for i in range(plain.nlight)
+                if plain.light(i).name.startswith("tod/")]
+    lit_spec = build_spec(layout, width, height)
+    tod.add_time_of_day_lights(lit_spec, "day", vehicle_bodies=_vehicles(layout),
+                               street_lamps=tod.lamp_heads(lit_spec), sky=SKY)
+    assert lit_spec.to_xml() == plain_spec.to_xml()
+    lit = lit_spec.compile()
+    images = []
+    for model in (plain, lit):
+        data = _posed(model, layout, 8.0)
+        with FrameRenderer(model, width, height, geom_instance_table(model),
+                           base_weather=wx.weather_at(SKY, 0.0)) as renderer:
+            renderer.update(data)
+            images.append((renderer.render_rgb(),
+                           renderer.render_weather(data, wx.weather_at(SKY, 50.0))))
+    assert np.array_equal(images[0][0], images[1][0])
+    assert np.array_equal(images[0][1], images[1][1])
+
+
+def test_night_is_dark_dusk_between_and_the_scene_rejects_a_daytime_weather():
+    width, height = 160, 120
+    luma = {}
+    for time_of_day in wx.TIMES_OF_DAY:  # mean over three frames of the clip
+        layout, _, model = _scene(time_of_day, width, height)
+        data = mujoco.MjData(model)
+        driver = sim.ActorDriver(model, layout)
+        base = wx.weather_at(SKY, 0.0, time_of_day=time_of_day)
+        with FrameRenderer(model, width, height, geom_instance_table(model),
+                           base_weather=base) as renderer:
+            frames = []
+            for t in (4.0, 8.0, 12.0):
+                driver.apply(data, t)
+                mujoco.mj_forward(model, data)
+                renderer.update(data)
+                frames.append(_luma(renderer.render_rgb()).mean())
+        luma[time_of_day] = float(np.mean(frames))
+    assert luma["night"] < 0.35 * luma["day"]
+    assert luma["night"] < luma["dusk"] < luma["day"]
+    with pytest.raises(ValueError, match="weather: expected time_of_day 'night' \\(the scene's "
+                                         "lights\\), got 'day'"):
+        FrameRenderer(model, width, height, geom_instance_table(model),
+                      base_weather=wx.weather_at(SKY, 0.0))
+
+
+@pytest.fixture(scope="module")
+def night_scene():
+    layout, _, model = _scene("night", 320, 240)
+    return layout, model
+
+
+def test_lights_after_dark_fit_the_renderer_and_the_road_is_a_grid(night_scene):
+    layout, model = night_scene
+    names = [model.light(i).name for i in range(model.nlight)]
+    assert set(tod.EGO_BEAM_NAMES) <= set(names)
+    assert sum(n.startswith("tod/lamp") for n in names) == len(
+        [g for g in range(model.ngeom) if tod.STREET_LAMP_NAME.match(model.geom(g).name)]) > 4
+    road = [g for g in range(model.ngeom) if model.geom(g).name.startswith("scenery/")
+            and model.geom_matid[g] == model.material("asphalt").id]
+    assert road and all(model.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE for g in road)
+    data = _posed(model, layout, 8.0)
+    with FrameRenderer(model, 320, 240, geom_instance_table(model),
+                       base_weather=wx.weather_at(SKY, 0.0, time_of_day="night")) as renderer:
+        renderer.update(data)
+        active = [names[i] for i in np.flatnonzero(model.light_active)]
+        assert set(tod.EGO_BEAM_NAMES) <= set(active) and "sun" not in active
+        assert len(active) + 1 == tod.GL_MAX_LIGHTS  # with the headlight: every OpenGL light
+        assert sum(n.startswith("tod/lamp") for n in active) >= 2
+
+
+def test_ego_low_beams_light_the_road_ahead(night_scene):
+    layout, model = night_scene
+    data = _posed(model, layout, 8.0)
+    beams = [model.light(name).id for name in tod.EGO_BEAM_NAMES]
+    with FrameRenderer(model, 320, 240, geom_instance_table(model),
+                       base_weather=wx.weather_at(SKY, 0.0, time_of_day="night")) as renderer:
+        renderer.update(data)
+        lit = _luma(renderer.render_rgb())
+        ids, geometry = renderer.render_instances()
+        pose = camera_pose(model, data, "ego")
+        forward = pose[:3, 2] * [1.0, 1.0, 0.0]
+        forward /= np.linalg.norm(forward)
+        points = [pose[:3, 3] * [1, 1, 0] + d * forward for d in np.arange(8.0, 26.0, 1.0)]
+        uv, _ = _project(renderer, data, points)
+        saved = model.light_diffuse[beams].copy()
+        model.light_diffuse[beams] = 0.0  # the same frame without the ego's beams
+        renderer.update(data)
+        dark = _luma(renderer.render_rgb())
+        model.light_diffuse[beams] = saved
+    road = [(x, y) for x, y in uv if 0 <= x < 320 and 0 <= y < 240 and ids[y, x] < 0
+            and geometry[y, x]]
+    assert len(road) >= 8
+    on = np.mean([lit[y, x] for x, y in road])
+    off = np.mean([dark[y, x] for x, y in road])
+    assert on > 1.4 * off and on > off + 10
+
+
+def test_vehicle_headlights_glow_brighter_than_the_vehicle(night_scene):
+    layout, model = night_scene
+    material = model.material("tod_headlamp").id
+    heads = np.flatnonzero(model.geom_matid == material)
+    assert heads.size >= 2
+    table = geom_instance_table(model)
+    with FrameRenderer(model, 320, 240, table,
+                       base_weather=wx.weather_at(SKY, 0.0, time_of_day="night")) as renderer:
+        best = None  # the frame whose nearest headlight facing the camera is nearest
+        for t in np.arange(1.0, 20.0, 1.0):
+            data = _posed(model, layout, t)
+            uv, depth = _project(renderer, data, data.geom_xpos[heads])
+            facing = data.geom_xmat[heads].reshape(-1, 3, 3)[:, :, 0] @ camera_pose(
+                model, data, "ego")[:3, 2] < -0.5
+            inside = ((uv[:, 0] >= 0) & (uv[:, 0] < 320) & (uv[:, 1] >= 0) & (uv[:, 1] < 240)
+                      & (depth > 2.0) & facing)
+            if inside.any() and (best is None or depth[inside].min() < best[0]):
+                best = (depth[inside].min(), t)
+        assert best is not None
+        data = _posed(model, layout, best[1])
+        renderer.update(data)
+        glowing = _luma(renderer.render_rgb())
+        ids, _ = renderer.render_instances()
+        model.mat_emission[material] = 0.0
+        renderer.update(data)
+        plain = _luma(renderer.render_rgb())
+        model.mat_emission[material] = tod.HEADLAMP_EMISSION
+    lamp = (glowing - plain) > 30  # the headlight geoms' pixels
+    assert lamp.sum() >= 4
+    owners = np.unique(ids[lamp])
+    owners = owners[owners >= 0]
+    body = np.isin(ids, owners) & ~lamp
+    assert glowing[lamp].max() >= 230 and glowing[lamp].mean() > glowing[body].mean() + 80
+
+
+def test_road_under_a_street_light_is_brighter_than_between_two(night_scene):
+    layout, model = night_scene
+    names = [model.light(i).name for i in range(model.nlight)]
+    lamps = [i for i, n in enumerate(names) if n.startswith("tod/lamp")]
+    beams = [i for i, n in enumerate(names) if n.endswith("_beam")]
+    with FrameRenderer(model, 320, 240, geom_instance_table(model),
+                       base_weather=wx.weather_at(SKY, 0.0, time_of_day="night")) as renderer:
+        model.light_diffuse[beams] = 0.0  # street lights alone (the weather is not re-applied)
+        found = None
+        for t in np.arange(2.0, 20.0, 1.0):
+            data = _posed(model, layout, t)
+            renderer.update(data)
+            ids, geometry, depth = renderer.render_instances_depth()
+            on = [i for i in lamps if model.light_active[i]]
+            for a in on:
+                for b in on:
+                    pa, pb = data.light_xpos[a], data.light_xpos[b]
+                    if not (abs(pa[1] - pb[1]) < 0.5 and 25.0 < pb[0] - pa[0] < 35.0):
+                        continue  # consecutive lamps on one side of the road
+                    points = [[pa[0], pa[1], 0.0], [(pa[0] + pb[0]) / 2, pa[1], 0.0]]
+                    uv, z = _project(renderer, data, points)
+                    ok = all(2 <= x < 318 and 2 <= y < 238 and zz > 2.0
+                             and (ids[y - 2:y + 3, x - 2:x + 3] < 0).all()
+                             and abs(depth[y, x] - zz) < 0.05 * zz for (x, y), zz in zip(uv, z))
+                    if ok:
+                        found = uv
+                        break
+                if found is not None:
+                    break
+            if found is not None:
+                break
+        assert found is not None, "no frame shows the road under two lit lamps"
+        luma = _luma(renderer.render_rgb())
+    (xa, ya), (xm, ym) = found
+    under = luma[ya - 1:ya + 2, xa - 1:xa + 2].mean()
+    between = luma[ym - 1:ym + 2, xm - 1:xm + 2].mean()
+    assert under > 1.3 * between and under > between + 8
+
+
+def test_wet_night_road_mirrors_the_strip_the_camera_sees(night_scene):
+    layout, model = night_scene
+    data = _posed(model, layout, 8.0)
+    table = geom_instance_table(model)
+    with FrameRenderer(model, 320, 240, table,
+                       base_weather=wx.weather_at(SKY, 0.0, time_of_day="night")) as renderer:
+        renderer.update(data)
+        base = renderer.render_rgb()
+        wet = renderer.render_weather(data, wx.weather_at(SKY, 50.0, time_of_day="night"))
+        strip = renderer._rig.mirror_geom(data, renderer.camera_id)
+    pose = camera_pose(model, data, "ego")
+    ahead = pose[:3, 3] + 15.0 * pose[:3, 2] * [1, 1, 0] / np.linalg.norm(pose[:3, 2][:2])
+    local = model.geom_size[strip, :2] - np.abs(
+        (data.geom_xmat[strip].reshape(3, 3).T @ (ahead - data.geom_xpos[strip]))[:2])
+    assert model.geom_matid[strip] == model.material("asphalt").id and (local >= 0).all()
+    assert _luma(wet).mean() < _luma(base).mean() and not math.isclose(
+        float(np.abs(wet.astype(int) - base).mean()), 0.0)
