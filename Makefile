@@ -93,7 +93,8 @@ bench: $(STAMP)
 	$(BIN)/python bench/inference.py --json results/bench/inference.json
 	$(BIN)/python bench/inference.py --imgsz 960 --json results/bench/inference_960.json
 	$(BIN)/python bench/inference.py --weights rainbench-yolo11s --imgsz 960 --json results/bench/inference_11s_960.json
-	$(BIN)/python bench/quality.py --weights rainbench-yolo11n --weights rainbench-yolo11s --json results/bench/quality.json
+	$(BIN)/python bench/quality.py --weights rainbench-yolo11n --weights rainbench-yolo11s \
+		--layouts street,intersection,curved,highway,residential --json results/bench/quality.json
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -40,9 +40,11 @@ from rainbench.gen.generate import GenerateConfig, build_scene
 
 
 def bare_render_seconds(frames: int, width: int, height: int, images_per_frame: int = 1) -> float:
-    """A bare ``mujoco.Renderer`` loop over the paper clip (seed 0, cloudy): ``images_per_frame``
-    RGB renders of each of ``frames`` frames."""
-    config = GenerateConfig(frames=frames, width=width, height=height, sky="cloudy")
+    """A bare ``mujoco.Renderer`` loop over the paper clip (seed 0, the cloudy street by day,
+    what ``rainbench generate`` makes given no scene flag): ``images_per_frame`` RGB renders of
+    each of ``frames`` frames."""
+    config = GenerateConfig(frames=frames, width=width, height=height, sky="cloudy",
+                            layout="street", time_of_day="day")
     setup = build_scene(config)
     data = mujoco.MjData(setup.model)
     driver = sim.ActorDriver(setup.model, setup.layout)

@@ -48,7 +48,8 @@ YOLOV4_TINY_BODY = [  # (filters, size, stride) of the yolov4-tiny backbone's pl
 def frames(count: int) -> list[np.ndarray]:
     from rainbench.gen.generate import GenerateConfig, render_clip
 
-    config = GenerateConfig(seed=0, frames=count, fps=count / 20.0, rates=(0.0,))
+    config = GenerateConfig(seed=0, frames=count, fps=count / 20.0, rates=(0.0,), layout="street",
+                            time_of_day="day")
     return [frame.rgb.copy() for _, frame, _ in render_clip(config)]
 
 

@@ -9,7 +9,8 @@ bar (AP@0.5 >= 0.80 for car and person, >= 0.60 for bicycle and motorcycle) and 
 way: it measures, it does not judge.
 
 Usage: ``python bench/quality.py [--weights rainbench-yolo11n ...] [--data data/quality]
-[--json OUT] [--seed 100] [--scenes 5] [--frames 40]``
+[--json OUT] [--seed 100] [--scenes 5] [--frames 40] [--layouts street,highway,...]``
+(``--layouts`` checks each road layout on its own data: the bar must hold per layout.)
 """
 
 from __future__ import annotations
@@ -39,6 +40,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", type=int, default=5)
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--imgsz", type=int, default=None, help="letterbox size (default: each model's own)")
+    parser.add_argument("--layouts", default="seed",
+                        help="comma list of road layouts, each checked on its own data (the "
+                             "same seeds at that layout, by day); 'seed' (default): each seed "
+                             "its own layout and time of day")
     parser.add_argument("--json", default=None, help="write the figures here")
     args = parser.parse_args(argv)
     if args.seed < 0 or args.seed + args.scenes > 1_000_000:
@@ -48,31 +53,37 @@ def main(argv: list[str] | None = None) -> int:
     from rainbench.gen.dataset import DatasetConfig, run_dataset
 
     weights = args.weights or ["rainbench-yolo11n"]
-    config = DatasetConfig(seed=args.seed, scenes=args.scenes, frames=args.frames,
-                           fps=args.frames / CLIP_SECONDS, rates=(0.0,))
-    started = time.perf_counter()
-    run_dataset(config, args.data, workers=1)
-    generated = time.perf_counter() - started
-    started = time.perf_counter()
-    result = run_eval(args.data, args.out, weights=weights, imgsz=args.imgsz, n_boot=200,
-                      device="cpu", progress=False, force=True)
-    evaluated = time.perf_counter() - started
-    rows = [{key: record[key] for key in ("model", "class", "n_gt", "ap50", "ap50_ci_low",
-                                          "ap50_ci_high", "f1")}
+    rows, seconds = [], {}
+    for layout in args.layouts.split(","):
+        chosen = {} if layout == "seed" else {"layout": layout, "time_of_day": "day"}
+        data, out = Path(args.data) / layout, Path(args.out) / layout
+        config = DatasetConfig(seed=args.seed, scenes=args.scenes, frames=args.frames,
+                               fps=args.frames / CLIP_SECONDS, rates=(0.0,), **chosen)
+        started = time.perf_counter()
+        run_dataset(config, data, workers=1)
+        seconds[f"generate {layout}"] = time.perf_counter() - started
+        started = time.perf_counter()
+        result = run_eval(data, out, weights=weights, imgsz=args.imgsz, n_boot=200,
+                          device="cpu", progress=False, force=True)
+        seconds[f"eval {layout}"] = time.perf_counter() - started
+        rows += [{"layout": layout, **{key: record[key] for key in (
+            "model", "class", "n_gt", "ap50", "ap50_ci_low", "ap50_ci_high", "f1")}}
             for record in result.records if record["rate"] == 0]
     print(f"seeds {args.seed}..{args.seed + args.scenes - 1}, {args.frames} frames each over "
-          f"{CLIP_SECONDS:g} s, imgsz {args.imgsz or 'per model'} (generate {generated:.0f} s, eval {evaluated:.0f} s)")
-    print("| model | class | boxes | AP@0.5 (95 % CI) | F1 | bar | met |")
-    print("|---|---|---|---|---|---|---|")
+          f"{CLIP_SECONDS:g} s, imgsz {args.imgsz or 'per model'} "
+          f"({', '.join(f'{k} {v:.0f} s' for k, v in seconds.items())})")
+    print("| layout | model | class | boxes | AP@0.5 (95 % CI) | F1 | bar | met |")
+    print("|---|---|---|---|---|---|---|---|")
     for row in rows:
         bar = QUALITY_BAR[row["class"]]
-        print(f"| {row['model']} | {row['class']} | {row['n_gt']} | {row['ap50']:.3f} "
-              f"({row['ap50_ci_low']:.3f}-{row['ap50_ci_high']:.3f}) | {row['f1']:.3f} | {bar:.2f} | "
-              f"{'yes' if row['ap50'] >= bar else 'no'} |")
+        print(f"| {row['layout']} | {row['model']} | {row['class']} | {row['n_gt']} | "
+              f"{row['ap50']:.3f} ({row['ap50_ci_low']:.3f}-{row['ap50_ci_high']:.3f}) | "
+              f"{row['f1']:.3f} | {bar:.2f} | {'yes' if row['ap50'] >= bar else 'no'} |")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"rows": rows, "bar": QUALITY_BAR, "seconds": {
-            "generate": generated, "eval": evaluated}, "cpu_count": os.cpu_count()}, indent=1))
+        Path(args.json).write_text(json.dumps({"rows": rows, "bar": QUALITY_BAR,
+                                               "seconds": seconds, "cpu_count": os.cpu_count()},
+                                              indent=1))
     return 0
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import os
 
+import cv2
 import mujoco
 import numpy as np
 
@@ -22,6 +23,10 @@ from .gl import state as _gl_state
 from .weather import WeatherRig
 
 HIDDEN_GROUP = 5
+MIRROR_SCALE = 0.5
+"""The wet road's mirror image is rendered at half the width and height and resized: rain-
+roughened water mirrors a blurred world (a sharp mirror looked like glass), and the pass costs
+a quarter of the pixels."""
 
 
 def camera_intrinsics(model: mujoco.MjModel, camera: str, width: int, height: int) -> np.ndarray:
@@ -198,7 +203,8 @@ class FrameRenderer:
         self._rig.set_mirror(True)
         option.geomgroup[PUDDLE_GROUP] = 0  # the mirror shows the world, not the puddles' film
         try:
-            mirror = self._render_rgb(data, option, self._rig.mirror_geom(data, self.camera_id))
+            mirror = self._render_rgb(data, option, self._rig.mirror_geom(data, self.camera_id),
+                                      scale=MIRROR_SCALE)
         finally:
             self._rig.set_mirror(False)
         rotation = camera_pose(self.model, data, self.model.camera(self.camera_id).name)[:3, :3]
@@ -212,10 +218,11 @@ class FrameRenderer:
         return np.rint(blended).astype(np.uint8)
 
     def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption,
-                    mirror_geom: int = -1) -> np.ndarray:
-        """RGB of ``data`` in the weather set; ``mirror_geom`` >= 0: the only geom drawn as a
-        mirror (MuJoCo mirrors the first reflective geom of the scene, which need not be the road
-        under the camera)."""
+                    mirror_geom: int = -1, scale: float = 1.0) -> np.ndarray:
+        """RGB (H, W, 3) of ``data`` in the weather set; ``mirror_geom`` >= 0: the only geom
+        drawn as a mirror (MuJoCo mirrors the first reflective geom of the scene, which need not
+        be the road under the camera). ``scale`` < 1: rendered at that fraction of the size
+        (same field of view), then resized to H x W (a softer, cheaper image)."""
         self._rig.select_lights(data, self.camera_id)
         mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
                                mujoco.mjtCatBit.mjCAT_ALL, self._scene)
@@ -227,9 +234,18 @@ class FrameRenderer:
                                                  and geom.objid == mirror_geom):
                     geom.reflectance = 0.0
         context = self._context(labels=False)
-        mujoco.mjr_render(self._rect, self._scene, context)
-        mujoco.mjr_readPixels(self._rgb, None, self._rect, context)
-        return np.flipud(self._rgb).copy()
+        if scale >= 1.0:
+            mujoco.mjr_render(self._rect, self._scene, context)
+            mujoco.mjr_readPixels(self._rgb, None, self._rect, context)
+            return np.flipud(self._rgb).copy()
+        width = max(1, round(self.width * scale))
+        height = max(1, round(self.height * scale))
+        rect = mujoco.MjrRect(0, 0, width, height)
+        small = np.empty((height, width, 3), np.uint8)
+        mujoco.mjr_render(rect, self._scene, context)
+        mujoco.mjr_readPixels(small, None, rect, context)
+        return cv2.resize(np.flipud(small), (self.width, self.height),
+                          interpolation=cv2.INTER_LINEAR)
 
     def render_rgb(self) -> np.ndarray:
         """RGB (H, W, 3) uint8 of the scene built by :meth:`update` (multisampled)."""

@@ -11,6 +11,7 @@ exact state at the frame time is written and ``mj_forward`` recomputes every pos
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -50,19 +51,38 @@ class ActorDriver:
             phase = (actor.instance_id * 0.618034 % 1.0) * 2 * math.pi
             self._people.append((actor.unit, addresses, riding, phase))
 
-    def apply(self, data: mujoco.MjData, t: float) -> None:
-        """Pose every mocap body (ego, sun rig, units) and every person's joints at time ``t``."""
+    def plan(self, times) -> "_Targets":
+        """The kinematic targets at ``times`` (T,) seconds, every unit's path evaluated once for
+        all of them (vectorised over time: a frame's physics steps share one evaluation)."""
         layout = self._layout
-        x, y, yaw = L.unit_pose(layout.ego, t)
+        times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        ego = L.unit_pose(layout.ego, times)  # (T, 3)
+        units = np.stack([L.unit_pose(unit, times) for unit in layout.units]) if layout.units \
+            else np.zeros((0, times.size, 3))  # (N, T, 3)
+        heights = np.zeros(units.shape[:2])
+        for index, unit in enumerate(layout.units):
+            if unit.kind == "pedestrian":
+                heights[index] = [L.ground_height(layout, x, y) for x, y in units[index, :, :2]]
+        return _Targets(times, ego, units, heights)
+
+    def write(self, data: mujoco.MjData, targets: "_Targets", step: int) -> None:
+        """Pose every mocap body (ego, sun rig, units) and every person's joints at
+        ``targets.times[step]``."""
+        layout = self._layout
+        t = float(targets.times[step])
+        x, y, yaw = targets.ego[step]
         data.mocap_pos[self._ego_mocap] = [x, y, 0.0]
         data.mocap_quat[self._ego_mocap] = parts.unit_yaw_quat(yaw)
         if self._rig_mocap >= 0:  # the sun follows the ego's position, not its yaw
             data.mocap_pos[self._rig_mocap] = [x, y, 0.0]
-        for unit, mocap_id in zip(layout.units, self._unit_mocap):
-            x, y, yaw = L.unit_pose(unit, t)
-            z = L.ground_height(layout, x, y) if unit.kind == "pedestrian" else 0.0
-            data.mocap_pos[mocap_id] = [x, y, z]
-            data.mocap_quat[mocap_id] = parts.unit_yaw_quat(yaw)
+        if len(self._unit_mocap):
+            poses = targets.units[:, step]
+            data.mocap_pos[self._unit_mocap, 0] = poses[:, 0]
+            data.mocap_pos[self._unit_mocap, 1] = poses[:, 1]
+            data.mocap_pos[self._unit_mocap, 2] = targets.heights[:, step]
+            half = poses[:, 2] / 2
+            data.mocap_quat[self._unit_mocap] = np.stack(
+                [np.cos(half), np.zeros_like(half), np.zeros_like(half), np.sin(half)], axis=-1)
         for unit_index, addresses, riding, sway_phase in self._people:
             if riding is not None:
                 data.qpos[addresses] = riding
@@ -78,14 +98,30 @@ class ActorDriver:
             data.qpos[addresses] = [pose[j] for j in parts.PERSON_JOINTS]
         data.qvel[:] = 0.0
 
+    def apply(self, data: mujoco.MjData, t: float) -> None:
+        """Pose every mocap body (ego, sun rig, units) and every person's joints at time ``t``."""
+        self.write(data, self.plan([t]), 0)
+
+
+@dataclass(frozen=True)
+class _Targets:
+    """Kinematic targets at ``times`` (T,): the ego's (T, 3) and every unit's (N, T, 3) pose
+    (x, y, yaw), and the units' (N, T) ground heights (people on walkways, else 0)."""
+
+    times: np.ndarray
+    ego: np.ndarray
+    units: np.ndarray
+    heights: np.ndarray
+
 
 def advance(model: mujoco.MjModel, data: mujoco.MjData, driver: ActorDriver,
             t_from: float, t_to: float) -> None:
     """Step the physics from ``t_from`` to ``t_to`` with ``mj_step``, then pose exactly at ``t_to``."""
     steps = max(0, int(round((t_to - t_from) / model.opt.timestep)))
+    targets = driver.plan(np.append(t_from + np.arange(steps) * model.opt.timestep, t_to))
     for step in range(steps):
-        driver.apply(data, t_from + step * model.opt.timestep)
+        driver.write(data, targets, step)
         mujoco.mj_step(model, data)
-    driver.apply(data, t_to)
+    driver.write(data, targets, steps)
     data.time = t_to
     mujoco.mj_forward(model, data)
