@@ -16,6 +16,10 @@ training run depends on:
   last stage's best weights are the result.
 - ``eval_imgsz`` (optional, default 640): the letterbox size the model is evaluated at, written
   to its card ``<name>.json`` (``rainbench eval`` uses it for a shipped model);
+- ``classes`` (optional, default the paper's four: person, bicycle, car, motorcycle): the COCO
+  classes trained, names or ids (``[person, bicycle, car, motorcycle, bus, truck]``); labels of
+  other classes are left out of the training labels, and the model's ``names`` are the dense ids
+  0..max with their COCO names;
 - ``tiles`` (optional, in any stage): a :class:`~rainbench.eval.tiles.TileConfig` mapping. That
   stage trains on tiles of the rescaled frames (:func:`prepare_tiles`) instead of whole frames,
   and must set ``imgsz`` to ``tiles.size``.
@@ -45,17 +49,25 @@ from rainbench.mjcf.classes import CLASS_NAMES, PAPER_CLASSES
 from rainbench.mjcf.layout import ScenarioConfig
 
 from .backends import DEFAULT_IMGSZ
+from .metrics import parse_classes
 from .tiles import TileConfig, TileError, export_tiles
 
 TRAIN_CLASSES: tuple[int, ...] = PAPER_CLASSES
-"""Class ids a recipe trains (the paper's four, as the shipped models): labels of other classes
-(bus 5, truck 7) are left out of the exported training labels, so the model has 4 classes."""
-TRAIN_CLASS_NAMES: tuple[str, ...] = tuple(CLASS_NAMES[: max(TRAIN_CLASSES) + 1])
-"""The model's ``names`` (dense ids 0..3, COCO names)."""
+"""Class ids a recipe trains unless it says otherwise (its ``classes``): the paper's four, as the
+shipped models; labels of other classes (bus 5, truck 7) are left out of the exported training
+labels, so the model has 4 classes."""
+
+
+def model_class_names(classes: tuple[int, ...]) -> tuple[str, ...]:
+    """The trained model's ``names``: dense ids 0..max(classes) with their COCO names (ultralytics
+    needs dense ids; ids in between that are never labelled, such as 4 airplane and 6 train when
+    bus 5 and truck 7 are trained, keep their names)."""
+    return tuple(CLASS_NAMES[: max(classes) + 1])
 TRAIN_SEED_START = 1_000_000
 """Seeds of training and validation scenes are >= this; evaluation seeds are below it."""
 RECIPES_DIR = Path(__file__).resolve().parent / "recipes"
-RECIPE_KEYS = {"name", "architecture", "train_data", "val_data", "train", "cpu", "eval_imgsz"}
+RECIPE_KEYS = {"name", "architecture", "train_data", "val_data", "train", "cpu", "eval_imgsz",
+               "classes"}
 # Arguments rainbench sets itself (offline, paths, resume); a recipe may not set them.
 RESERVED_TRAIN_ARGS = {"data", "project", "name", "exist_ok", "pretrained", "plots", "amp", "resume",
                        "device", "model"}
@@ -77,6 +89,7 @@ class Recipe:
     cpu_args: dict[str, Any]
     source: str
     eval_imgsz: int = DEFAULT_IMGSZ
+    classes: tuple[int, ...] = TRAIN_CLASSES  # COCO ids trained (labels of others are left out)
 
     def arguments(self, cuda: bool) -> dict[str, Any]:
         """ultralytics ``train()`` arguments of the first stage (``cpu`` overrides when not ``cuda``)."""
@@ -191,13 +204,17 @@ def load_recipe(recipe: str | Path) -> Recipe:
     eval_imgsz = raw.get("eval_imgsz", DEFAULT_IMGSZ)
     if not (isinstance(eval_imgsz, int) and not isinstance(eval_imgsz, bool) and eval_imgsz >= 32):
         raise TrainError(f"{source}: `eval_imgsz` must be an integer >= 32 (px), got {eval_imgsz!r}")
+    try:
+        classes = parse_classes(raw.get("classes", list(TRAIN_CLASSES)))
+    except ValueError as error:
+        raise TrainError(f"{source}: `classes`: {str(error).removeprefix('--classes: ')}") from None
     train_data = _dataset_config(raw["train_data"], "train_data", source)
     val_data = _dataset_config(raw["val_data"], "val_data", source)
     if _seed_range(train_data) & _seed_range(val_data):
         raise TrainError(f"{source}: train_data and val_data seeds overlap; validation scenes must be unseen")
     return Recipe(name=str(raw["name"]), architecture=str(raw["architecture"]), train_data=train_data,
                   val_data=val_data, train_args=dict(train_args), cpu_args=dict(cpu_args), source=source,
-                  eval_imgsz=eval_imgsz)
+                  eval_imgsz=eval_imgsz, classes=classes)
 
 
 def _seed_range(config: DatasetConfig) -> set[int]:
@@ -218,21 +235,27 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
         before = manifest.read_bytes() if manifest.is_file() else None
         run_dataset(config, data_dir, workers=workers, progress=progress)
         done_marker = yolo / split / ".exported"
-        if before != manifest.read_bytes() or not done_marker.is_file():
+        # the export is redone when the data or the trained classes change
+        stamp = json.dumps({"classes": list(recipe.classes), "manifest": manifest.read_text()})
+        if (before != manifest.read_bytes() or not done_marker.is_file()
+                or done_marker.read_text() != stamp):
             done_marker.unlink(missing_ok=True)
             export_yolo(data_dir, yolo / split, rates=[0.0], image_format="png", overwrite=True,
-                        classes=TRAIN_CLASSES)
-            done_marker.write_text(manifest.read_text())
-    return _dataset_yaml(out / "dataset.yaml", yolo, "train/rate_0/images", "val/rate_0/images")
+                        classes=recipe.classes)
+            done_marker.write_text(stamp)
+    return _dataset_yaml(out / "dataset.yaml", yolo, "train/rate_0/images", "val/rate_0/images",
+                         recipe.classes)
 
 
-def _dataset_yaml(path: Path, root: Path, train_images: str, val_images: str) -> Path:
-    names = "\n".join(f"  {i}: {n}" for i, n in enumerate(TRAIN_CLASS_NAMES))
+def _dataset_yaml(path: Path, root: Path, train_images: str, val_images: str,
+                  classes: tuple[int, ...]) -> Path:
+    names = "\n".join(f"  {i}: {n}" for i, n in enumerate(model_class_names(classes)))
     path.write_text(f"path: {root.resolve()}\ntrain: {train_images}\nval: {val_images}\nnames:\n{names}\n")
     return path
 
 
-def prepare_tiles(out: str | Path, config: TileConfig) -> Path:
+def prepare_tiles(out: str | Path, config: TileConfig,
+                  classes: tuple[int, ...] = TRAIN_CLASSES) -> Path:
     """Cut the exported YOLO folders of :func:`prepare_data` (``OUT/yolo``) into tiles under
     ``OUT/<config.token()>/{train,val}`` (sampled training tiles, a covering grid for validation);
     returns that tile set's ultralytics dataset yaml. An export that matches the config and the
@@ -249,9 +272,11 @@ def prepare_tiles(out: str | Path, config: TileConfig) -> Path:
         if done_marker.is_file() and done_marker.read_text() == stamp:
             continue
         done_marker.unlink(missing_ok=True)
-        export_tiles(source, root / split, config, grid=split == "val", num_classes=len(TRAIN_CLASS_NAMES))
+        export_tiles(source, root / split, config, grid=split == "val",
+                     num_classes=len(model_class_names(classes)))
         done_marker.write_text(stamp)
-    return _dataset_yaml(out / f"{config.token()}.yaml", root, "train/images", "val/images")
+    return _dataset_yaml(out / f"{config.token()}.yaml", root, "train/images", "val/images",
+                         classes)
 
 
 def _finished(path: Path) -> bool:
@@ -293,7 +318,7 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     stage_data = []
     for stage, arguments in enumerate(stages):
         tiles = _stage_tiles(arguments, f"{recipe.source}: `stage {stage}")
-        stage_data.append(dataset_yaml if tiles is None else prepare_tiles(out, tiles))
+        stage_data.append(dataset_yaml if tiles is None else prepare_tiles(out, tiles, recipe.classes))
     best = None
     for stage, arguments in enumerate(stages):
         arguments = {key: value for key, value in arguments.items() if key != "tiles"}

@@ -85,6 +85,31 @@ def test_bad_recipes_are_one_line_errors(tmp_path):
         train.load_recipe(write(TINY_RECIPE.replace("imgsz: 96,", "imgsz: 96, tiles: {size: 96, per_image: 0},")))
 
 
+def test_recipe_classes_choose_the_trained_labels_and_the_model_names(tmp_path):
+    write = tmp_path / "recipe.yaml"
+    assert train.load_recipe("rainbench-yolo11n").classes == (0, 1, 2, 3)  # the shipped models'
+    write.write_text(TINY_RECIPE + "classes: [person, car, bus, truck]\n")
+    recipe = train.load_recipe(write)
+    assert recipe.classes == (0, 2, 5, 7)
+    out = tmp_path / "run"
+    dataset_yaml = train.prepare_data(recipe, out)
+    names = [line.split(": ")[1] for line in dataset_yaml.read_text().splitlines()
+             if line.startswith("  ")]
+    assert names == list(CLASS_NAMES)  # dense ids 0..7, airplane and train never labelled
+    labels = [int(line.split()[0]) for path in (out / "yolo").rglob("*.txt")
+              for line in path.read_text().splitlines()]
+    assert labels and set(labels) <= {0, 2, 5, 7}
+    # the same data with other classes: the export is redone, not reused
+    write.write_text(TINY_RECIPE + "classes: [car]\n")
+    train.prepare_data(train.load_recipe(write), out)
+    labels = {int(line.split()[0]) for path in (out / "yolo").rglob("*.txt")
+              for line in path.read_text().splitlines()}
+    assert labels == {2}
+    write.write_text(TINY_RECIPE + "classes: [person, train]\n")
+    with pytest.raises(train.TrainError, match=r"`classes`: unknown class 'train'; expected names "):
+        train.load_recipe(write)
+
+
 def test_restarts_override_the_first_stage_and_cpu_wins():
     recipe = train.load_recipe("rainbench-yolo11n")
     cpu_stages, gpu_stages = recipe.stages(cuda=False), recipe.stages(cuda=True)

@@ -168,7 +168,7 @@ def test_bus_and_truck_are_much_larger_than_a_sedan(side_views):
     assert area["hatchback"] < area["sedan"] < area["suv"] < area["van"]
 
 
-@pytest.mark.parametrize("style", ["hatchback", "bus"])
+@pytest.mark.parametrize("style", V.VEHICLE_STYLES)
 def test_label_box_is_the_box_of_the_vehicle_geom_pixels(style):
     spec = _spec(_shape(style))
     model = spec.compile()
