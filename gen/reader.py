@@ -9,7 +9,7 @@ inconsistent ``/labels/offsets`` raise ``ShardFormatError`` naming the file and 
 Target keys (numpy arrays from :class:`ShardReader`, tensors from :class:`ShardDataset`):
 
 - ``boxes`` (M, 4) float32 x1, y1, x2, y2 in pixel-edge coordinates (``x2 = last column + 1``)
-- ``labels`` (M,) int64 COCO-80 class ids (0 person, 1 bicycle, 2 car, 3 motorcycle)
+- ``labels`` (M,) int64 COCO-80 class ids (0 person, 1 bicycle, 2 car, 3 motorcycle, 5 bus, 7 truck)
 - ``instance_id`` (M,) int64, stable per actor within a scene
 - ``visible_fraction`` (M,) float32, ``truncation`` (M,) float32
 - ``rate`` float32 scalar, mm/h; ``image_id`` int (1-based, the numbering of exports and eval:
