@@ -322,3 +322,20 @@ def test_shard_records_layout_and_time_of_day(tmp_path):
 def test_seed_and_sky_keeps_its_old_contract():
     assert cli._seed_and_sky(argparse.Namespace(seed=None, sky=None)) == (0, "cloudy")
     assert cli._seed_and_sky(argparse.Namespace(seed=None, sky=None, layout="curved")) == (0, None)
+
+
+@pytest.mark.parametrize("duration_s", [0.1, 2.0, 60.0])
+def test_every_layout_places_the_paper_mix_in_short_and_long_clips(duration_s):
+    """Clips of any length place every actor of the paper's mix (a busy junction in a short clip
+    sends turning and crossing traffic along the main road instead of failing)."""
+    for name in L.LAYOUTS:
+        for seed in range(5):
+            config = L.ScenarioConfig(duration_s=duration_s, layout=name)
+            layout = L.sample_layout(seed, config, np.random.default_rng(seed))
+            kinds = [unit.kind for unit in layout.units]
+            if name == "highway":  # its own mix: 1.5 x the cars, 5 people off the lanes at most
+                assert kinds.count("car") > config.num_cars
+                assert 0 < kinds.count("pedestrian") <= min(5, config.num_pedestrians)
+            else:
+                assert kinds.count("pedestrian") == config.num_pedestrians
+                assert kinds.count("car") >= config.num_cars
