@@ -347,8 +347,9 @@ def _add_layout_args(parser: argparse.ArgumentParser, hfov: bool = True) -> None
 
 def _add_scene_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=_seed, default=None,
-                        help="scene seed: layout, actors, colours, speeds, sky, sun, camera height "
-                             "(default 0; given neither --seed nor --sky: the paper's cloudy clip)")
+                        help="scene seed: road layout, time of day, actors, colours, speeds, sky, "
+                             "sun, camera rig (default 0; given none of --seed, --sky, --layout, "
+                             "--time: the paper's clip, the cloudy street by day)")
     parser.add_argument("--sky", choices=("clear", "cloudy", "overcast"), default=None,
                         help="base weather (default: the seed decides; the paper's clip: cloudy)")
     parser.add_argument("--frames", type=_positive_int("FRAMES", MAX_FRAMES), default=200,
