@@ -574,7 +574,7 @@ def output_layout(dims: list, nc: int | None, path: Path) -> tuple[str, int]:
 
 
 def _load_onnx(path: Path, class_map: str | None, device: str | None,
-               classes: Sequence[int] = CLASS_IDS) -> OnnxDetector:
+               classes: Sequence[int] = CLASS_IDS, name: str | None = None) -> OnnxDetector:
     try:
         import onnxruntime
     except ImportError:
@@ -597,7 +597,7 @@ def _load_onnx(path: Path, class_map: str | None, device: str | None,
                            f"and an (N, A, B) output, got input {input_dims} and output {output_dims}")
 
     names = _onnx_names(session)
-    detector = OnnxDetector(name=path.stem, session=session, names=names, class_map=class_map,
+    detector = OnnxDetector(name=name or path.stem, session=session, names=names, class_map=class_map,
                             input_shape=(_fixed_dim(input_dims[2]), _fixed_dim(input_dims[3])),
                             fixed_batch=_fixed_dim(input_dims[0]), classes=tuple(classes))
     if names is not None:  # a bad --class-map fails now, not at the first batch
@@ -812,7 +812,7 @@ def load_detector(weights: str | Path, *, class_map: str | None = None,
         parse_class_map(class_map)
     suffix = path.suffix.lower()
     if suffix == ".onnx":
-        return _load_onnx(path, class_map, device, classes)
+        return _load_onnx(path, class_map, device, classes, name)
     if suffix == ".weights":
         return _load_darknet(path, class_map, classes)
     if suffix != ".pt":
