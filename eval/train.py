@@ -45,7 +45,8 @@ from pathlib import Path
 from typing import Any
 
 from rainbench.gen.dataset import DatasetConfig, run_dataset
-from rainbench.mjcf.classes import CLASS_NAMES, PAPER_CLASSES
+from rainbench.gen.export import yolo_names
+from rainbench.mjcf.classes import PAPER_CLASSES
 from rainbench.mjcf.layout import ScenarioConfig
 
 from .backends import DEFAULT_IMGSZ
@@ -56,13 +57,6 @@ TRAIN_CLASSES: tuple[int, ...] = PAPER_CLASSES
 """Class ids a recipe trains unless it says otherwise (its ``classes``): the paper's four, as the
 shipped models; labels of other classes (bus 5, truck 7) are left out of the exported training
 labels, so the model has 4 classes."""
-
-
-def model_class_names(classes: tuple[int, ...]) -> tuple[str, ...]:
-    """The trained model's ``names``: dense ids 0..max(classes) with their COCO names (ultralytics
-    needs dense ids; ids in between that are never labelled, such as 4 airplane and 6 train when
-    bus 5 and truck 7 are trained, keep their names)."""
-    return tuple(CLASS_NAMES[: max(classes) + 1])
 TRAIN_SEED_START = 1_000_000
 """Seeds of training and validation scenes are >= this; evaluation seeds are below it."""
 RECIPES_DIR = Path(__file__).resolve().parent / "recipes"
@@ -225,7 +219,7 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
                  progress: Callable[[int], None] | None = None) -> Path:
     """Generate (or finish) the clean training and validation datasets under ``OUT/data`` and
     export them as YOLO folders under ``OUT/yolo``; returns the ultralytics ``dataset.yaml``."""
-    from rainbench.gen.export import export_yolo
+    from rainbench.gen.export import export_yolo  # noqa: PLC0415
 
     out = Path(out)
     yolo = out / "yolo"
@@ -249,7 +243,7 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
 
 def _dataset_yaml(path: Path, root: Path, train_images: str, val_images: str,
                   classes: tuple[int, ...]) -> Path:
-    names = "\n".join(f"  {i}: {n}" for i, n in enumerate(model_class_names(classes)))
+    names = "\n".join(f"  {i}: {n}" for i, n in enumerate(yolo_names(classes)))
     path.write_text(f"path: {root.resolve()}\ntrain: {train_images}\nval: {val_images}\nnames:\n{names}\n")
     return path
 
@@ -273,7 +267,7 @@ def prepare_tiles(out: str | Path, config: TileConfig,
             continue
         done_marker.unlink(missing_ok=True)
         export_tiles(source, root / split, config, grid=split == "val",
-                     num_classes=len(model_class_names(classes)))
+                     num_classes=len(yolo_names(classes)))
         done_marker.write_text(stamp)
     return _dataset_yaml(out / f"{config.token()}.yaml", root, "train/images", "val/images",
                          classes)

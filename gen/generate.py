@@ -249,8 +249,10 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     contrast = np.zeros((num_rates, num_boxes), np.float32)
     seeds = np.random.SeedSequence([config.rain_seed, config.seed, global_frame])
     clean = frame.rgb
-    if base_weather.gain > 1.0:  # the same noise field as the rainy rows' (one per frame)
+    noise = None  # one sensor-noise field per frame, shared by every row that needs it
+    if base_weather.gain > 1.0 or any(weather.gain > 1.0 for weather in weathers):
         noise = wx.noise_field(child_generator(seeds, STREAM_NOISE), *clean.shape[:2])
+    if base_weather.gain > 1.0:
         clean = wx.camera_response(clean, base_weather, noise)
         frame = dataclasses.replace(frame, rgb=clean)
     rainy_rows = [r for r, rate in enumerate(rates) if rate > 0]
@@ -271,7 +273,7 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     else:
         frames, coverages = _weather_rain(config, frame, K, seeds, clock, rain_config,
                                           [weathers[r] for r in rainy_rows],
-                                          [rates[r] for r in rainy_rows], layout)
+                                          [rates[r] for r in rainy_rows], layout, noise)
     reference = rain.SsimReference(frame.rgb)
 
     def statistics(row_frame_coverage):
@@ -288,16 +290,17 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
 
 def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
                   seeds: np.random.SeedSequence, clock, rain_config, weathers: list[Weather],
-                  rates: list[float], layout: L.Layout):
+                  rates: list[float], layout: L.Layout, noise: np.ndarray | None):
     """Rain over each rate's own weather: (list of RainFrame, list of (H, W) coverage incl. spray).
 
     Each rate's scene (its weather's render with tyre spray) gets rain drawn in its light, then
-    the camera's response. Rates whose light (exposure time, airlight) is the same share one
-    rain sweep.
+    the camera's response with the frame's sensor-noise field ``noise`` ((H, W, 3) float32, or
+    None when no weather has gain). Rates whose light (exposure time, airlight) is the same
+    share one rain sweep.
     """
     from rainbench import rain  # noqa: PLC0415
     from rainbench.rain import weather as wx  # noqa: PLC0415
-    from rainbench.rain._seeding import STREAM_NOISE, STREAM_SPRAY, child_generator  # noqa: PLC0415
+    from rainbench.rain._seeding import STREAM_SPRAY, child_generator  # noqa: PLC0415
 
     from .spray import spray_particles  # noqa: PLC0415
 
@@ -308,9 +311,6 @@ def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
                                                child_generator(seeds, STREAM_SPRAY))
         pose = frame.T_world_cam
         spray_points = (world - pose[:3, 3]) @ pose[:3, :3]
-    noise = None
-    if any(weather.gain > 1.0 for weather in weathers):
-        noise = wx.noise_field(child_generator(seeds, STREAM_NOISE), height, width)
     scenes, sprays, groups = [], [], {}
     for index, weather in enumerate(weathers):
         scene = frame.rgb_by_weather.get(weather, frame.rgb)
@@ -363,6 +363,7 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     out_dir.mkdir(parents=True, exist_ok=True)
     setup = build_scene(config)
     weathers = sweep_weathers(config, setup)
+    base_weather = setup.base_weather
     path = out_dir / shard_name(config.seed, config.frame_offset)
     attrs = {
         "sky": setup.layout.sky, "weather_follows_rate": config.follows_rate,
@@ -379,7 +380,7 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     def finish(index: int, frame: FrameResult, K: np.ndarray) -> None:
         images, drops, ssim, psnr, coverage, contrast = _rain_for_frame(
             config, frame, K, config.frame_offset + index, stats_pool, weathers, setup.layout,
-            setup.base_weather)
+            base_weather)
         writer.write_frame(index, images, frame.labels, frame.T_world_cam, depth=frame.depth,
                            instance=frame.instance, drop_count=drops, ssim=ssim, psnr=psnr,
                            rain_coverage=coverage, contrast_loss=contrast)

@@ -41,7 +41,6 @@ PEDESTRIAN_Y_RANGE = (ROAD_HALF_WIDTH + 0.9, SIDEWALK_OUTER - 1.1)
 LANE_CENTRES: tuple[float, ...] = (-5.25, -1.75, 1.75, 5.25)
 BIKE_LANE_Y = ROAD_HALF_WIDTH - SHOULDER_WIDTH / 2  # 7.75
 
-CAR_STYLES: tuple[str, ...] = ("sedan", "hatchback", "suv")
 # (length, width, height) of each car style's body, metres.
 CAR_DIMENSIONS: dict[str, tuple[float, float, float]] = {
     "sedan": (4.7, 1.85, 1.45),
@@ -56,7 +55,6 @@ FOOTPRINTS: dict[str, tuple[float, float]] = {
 }
 EGO_DIMENSIONS = (4.6, 1.9)
 SKY_PROBABILITIES = (0.40, 0.35, 0.25)  # clear, cloudy, overcast when the seed decides
-PUDDLE_SPACING_M = 9.0  # mean distance between puddles along the road
 
 CAR_PAINTS: tuple[tuple[float, float, float], ...] = (
     (0.75, 0.08, 0.08), (0.05, 0.15, 0.55), (0.85, 0.85, 0.85), (0.08, 0.08, 0.09),
@@ -653,7 +651,7 @@ class _Builder:
         ego (measured along ``road``) at a random time of the clip."""
         meet_time = self.rng.uniform(0.1 * self.duration, 0.9 * self.duration)
         ahead = self.rng.uniform(*ahead_range)
-        return ego_arc(self.ego, road, meet_time) + ahead - direction * speed * meet_time
+        return unit_distance(self.ego, meet_time) + ahead - direction * speed * meet_time
 
     def build(self, camera_height, camera_pitch_deg, sun_direction) -> Layout:
         xs = [unit_position(u, self.times)[:, 0] for u in self.placed]
@@ -669,13 +667,6 @@ class _Builder:
             name=self.name, camera_pitch_deg=float(camera_pitch_deg), roads=tuple(self.roads),
             props=tuple(self.props), walkways=tuple(self.walkways),
             road_surfaces=tuple(self.road_surfaces), extent=extent)
-
-
-def ego_arc(ego: Unit, road: Road, t: float) -> float:
-    """Centreline arc length of ``road`` abreast of the ego at time ``t`` (the ego drives
-    along the road from arc length 0 at t = 0; exact on straight roads, within a few percent
-    of lane-length difference on curves)."""
-    return float(unit_distance(ego, t))
 
 
 # -- roads as scenery ----------------------------------------------------------------------------
@@ -911,7 +902,7 @@ def _crosser(b: _Builder, index: int, road: Road, s: float, start_window=(0.0, 0
 def _span(b: _Builder, road: Road, before: float = 40.0, after: float = 120.0) -> tuple[float, float]:
     """Arc-length range of ``road`` covering every placed unit (projected onto the nearest
     centreline point, 1 m grid) with ``before`` / ``after`` metres of margin."""
-    reach = ego_arc(b.ego, road, b.duration) + max(u.speed for u in b.placed) * b.duration + 200
+    reach = unit_distance(b.ego, b.duration) + max(u.speed for u in b.placed) * b.duration + 200
     grid = np.arange(-reach, reach, 1.0)
     centre = road_pose(road, grid)[:, :2]
     lo = hi = 0.0
@@ -1163,7 +1154,7 @@ def _sample_curved(b: _Builder, road: Road) -> None:
     num_crossing = min(config.num_pedestrians, 1)
     for index in range(config.num_pedestrians):
         if index < num_crossing:
-            _crosser(b, index, road, ego_arc(b.ego, road, rng.uniform(0.3, 0.6) * b.duration)
+            _crosser(b, index, road, unit_distance(b.ego, rng.uniform(0.3, 0.6) * b.duration)
                      + 25.0)
         else:
             _sidewalk_walker(b, road, index, (road.half_width + 0.6,
@@ -1255,7 +1246,7 @@ def _sample_highway(b: _Builder, lanes: int) -> None:
         b.place(make, f"pedestrian {index} (overpass)", ((PERSON, "pedestrian"),))
     _riders(b, road, None, moto_speed=(22.0, 32.0))
     s_lo, s_hi = _span(b, road, 60.0, 200.0)
-    view = (-30.0, ego_arc(ego, road, duration) + 220.0)  # dense roadside scenery only here
+    view = (-30.0, unit_distance(ego, duration) + 220.0)  # dense roadside scenery only here
     road = Road(road.start, (), lanes, HIGHWAY_LANE_WIDTH, HIGHWAY_SHOULDER, HIGHWAY_MEDIAN, 0.0,
                 (s_lo, s_hi))
     b.roads.append(road)

@@ -416,11 +416,6 @@ def _add_hair_and_hat(head, prefix: str, b: PersonBuild, colours: dict, k: float
               pos=[head_x - 0.005 * k, 0, head_z + 0.62 * hh])
 
 
-RIDING_POSE: dict[str, float] = {  # the one riding pose before vehicle styles; see riding_pose()
-    "waist": 0.45, "hip_l": -1.35, "knee_l": 1.45, "hip_r": -1.1, "knee_r": 1.2,
-    "shoulder_l": -0.95, "elbow_l": -0.35, "shoulder_r": -0.95, "elbow_r": -0.35,
-}
-
 
 # -- bicycles and motorcycles -------------------------------------------------------------------
 

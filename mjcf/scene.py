@@ -25,7 +25,6 @@ ACTOR_PREFIX = "actor{:03d}/"
 # Render margin (fraction of width/height added on every side) of the unoccluded
 # "actor alone" pass that measures truncation; the framebuffer is sized for it.
 TRUNCATION_MARGIN = 0.25
-STATIC_SURFACE_Z = 0.002  # markings float this high above the asphalt (no z-fighting)
 PUDDLE_GROUP = 3  # puddles are drawn only when the road is wet (not in segmentation passes)
 CLOUD_DECK_GROUP = 4  # the rain-cloud deck: drawn only in renders of a sunless rainy weather
 CLOUD_DECK_HEIGHT_M = 60.0  # low enough that the deck is inside zfar (1000 m) down to 3.4 deg
@@ -144,7 +143,7 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     for index, (x, y, half_length, half_width, yaw) in enumerate(layout.puddles):
         # full-size puddles; the renderer scales them with the weather's puddle fraction
         world.add_geom(name=f"scenery/puddle{index}", type=GEOM.mjGEOM_ELLIPSOID,
-                       size=[half_length, half_width, 0.001], pos=[x, y, STATIC_SURFACE_Z * 2],
+                       size=[half_length, half_width, 0.001], pos=[x, y, L.STATIC_Z * 2],
                        quat=parts.unit_yaw_quat(yaw).tolist(), material="puddle",
                        group=PUDDLE_GROUP, contype=0, conaffinity=0)
 
@@ -184,10 +183,9 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
                 parts.add_person(body, prefix, unit.colours, build=unit.build,
                                  umbrella=unit.colours.get("umbrella"))
             elif actor.role == "bicycle":
-                parts.add_bicycle(body, prefix, unit.colours["frame"], unit.style or "city")
+                parts.add_bicycle(body, prefix, unit.colours["frame"], ride_style(unit))
             elif actor.role == "motorcycle":
-                parts.add_motorcycle(body, prefix, unit.colours["frame"],
-                                     unit.style or "standard")
+                parts.add_motorcycle(body, prefix, unit.colours["frame"], ride_style(unit))
             elif actor.role == "rider":
                 parts.add_rider(body, prefix, unit.colours, ride_style(unit), build=unit.build,
                                 helmet=unit.colours["helmet"])

@@ -35,11 +35,8 @@ from .parts import GLASS, HEADLIGHT, RIM, TAILLIGHT, TRIM, TYRE, Y_AXIS_QUAT, _g
 
 GEOM = mujoco.mjtGeom
 
-VEHICLE_STYLES: tuple[str, ...] = ("sedan", "hatchback", "suv", "van", "pickup", "bus", "truck")
-# COCO-80 class ids (as rainbench.mjcf.classes): car 2, bus 5, truck 7.
-VEHICLE_CLASS: dict[str, int] = {
-    "sedan": 2, "hatchback": 2, "suv": 2, "van": 2, "pickup": 2, "bus": 5, "truck": 7,
-}
+VEHICLE_STYLES = L.VEHICLE_STYLES  # one definition: the layout's (style -> COCO class id too)
+VEHICLE_CLASS = L.VEHICLE_CLASS
 BUS_PAINTS: tuple[tuple[float, float, float], ...] = (
     (0.80, 0.10, 0.08), (0.95, 0.72, 0.08), (0.92, 0.92, 0.90), (0.10, 0.30, 0.65),
     (0.15, 0.50, 0.25), (0.85, 0.45, 0.10),
