@@ -1,22 +1,18 @@
 """rainbench: synthetic MuJoCo driving datasets with calibrated rain, and a YOLO evaluator.
 
-Importing rainbench chooses MuJoCo's offscreen GL backend (see :mod:`rainbench.gen.gl`) before
-any rainbench module imports mujoco.
+Importing rainbench chooses nothing and imports neither MuJoCo nor OpenGL: the offscreen GL
+backend is chosen (:mod:`rainbench.gl`) when the rendering packages :mod:`rainbench.mjcf` and
+:mod:`rainbench.gen` are first imported, before they import mujoco.
 """
-
-import os as _os
-
-from rainbench.gen import gl as _gl
-
-GL_BACKEND = _gl.configure(_os.environ)
 
 __version__ = "0.1.0"
 
 
 def __getattr__(name):
-    """Lazy public API: ``from rainbench import ShardDataset, ShardReader`` (imports torch)."""
+    """Lazy public API: ``from rainbench import ShardDataset, ShardReader`` (the first imports
+    torch)."""
     if name in ("ShardDataset", "ShardReader"):
-        from rainbench.gen import reader
+        from rainbench import store
 
-        return getattr(reader, name)
+        return getattr(store, name)
     raise AttributeError(f"module 'rainbench' has no attribute {name!r}")

@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from rainbench.gen import gl
+from rainbench import gl
 
 EXIT_USAGE = 2
 
@@ -136,7 +136,7 @@ def _printable(text: str) -> str:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from rainbench.gen.dataset import unlisted_shards, verify_dataset
+    from rainbench.store import unlisted_shards, verify_dataset
 
     problems = verify_dataset(args.out)
     for path in unlisted_shards(args.out):
@@ -153,7 +153,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 def cmd_stats(args: argparse.Namespace) -> int:
     import json
 
-    from rainbench.gen.stats import dataset_stats, render_stats
+    from rainbench.store.stats import dataset_stats, render_stats
 
     stats = dataset_stats(args.data)
     print(json.dumps(stats, indent=1) if args.json else render_stats(stats).rstrip("\n"))
@@ -196,7 +196,7 @@ def _rate_list(text: str | None) -> list[float] | None:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from rainbench.gen.export import export_coco, export_yolo
+    from rainbench.store.export import export_coco, export_yolo
 
     out = _writable_dir(Path(args.out), "--out")
     export = export_yolo if args.format == "yolo" else export_coco
@@ -207,7 +207,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_preview(args: argparse.Namespace) -> int:
     if args.video:
-        from rainbench.gen.video import write_videos
+        from rainbench.store.video import write_videos
 
         out = _writable_dir(Path(args.out or Path(args.shard) / "videos"), "--out")
         for path in write_videos(args.shard, out, rates=_rate_list(args.rates),
@@ -216,17 +216,12 @@ def cmd_preview(args: argparse.Namespace) -> int:
         return 0
     import numpy as np
 
-    from rainbench.gen.dataset import list_shards, open_checked
-    from rainbench.gen.preview import montage, write_png
-    from rainbench.gen.shard import read_frame_labels, read_rgb
+    from rainbench.store import Dataset, list_shards, read_frame_labels
+    from rainbench.store.preview import montage, write_png
 
     path = Path(args.shard)
     if path.is_dir():
-        shards = list_shards(path) if (path / "manifest.json").exists() else \
-            sorted(path.glob("scene*_f*.h5"))
-        if not shards:
-            raise CliError(f"preview: no shard (scene*_f*.h5) in {path}")
-        path = shards[0]
+        path = list_shards(path)[0]
     name = f"{path.stem}_frame{args.frame:04d}_rates.png"
     out = Path(args.out) if args.out else path.with_name(name)
     if args.out and out.is_dir():
@@ -234,17 +229,17 @@ def cmd_preview(args: argparse.Namespace) -> int:
     elif out.suffix.lower() != ".png":
         raise CliError(f"--out: expected a .png file name or a directory, got {out}")
     _writable_dir(out.parent, "--out")
-    with open_checked(path) as handle:
-        frames = handle["rgb"].shape[1]
-        if not 0 <= args.frame < frames:
-            raise CliError(f"--frame: expected 0..{frames - 1} for {path.name}, got {args.frame}")
+    dataset = Dataset(path)
+    if not 0 <= args.frame < len(dataset):
+        raise CliError(f"--frame: expected 0..{len(dataset) - 1} for {path.name}, got {args.frame}")
+    image = dataset.images[args.frame]
+    with dataset.open(0) as handle:
         try:
-            images = np.stack([read_rgb(handle, row, args.frame)
-                               for row in range(handle["rgb"].shape[0])])
-            rates = handle["rates"][()]
+            images = np.stack([dataset.read_rgb(handle, image, rate) for rate in dataset.rates])
             labels = read_frame_labels(handle, args.frame)
         except OSError as error:
             raise CliError(f"{path}: frame {args.frame} does not decode ({error})") from None
+    rates = np.asarray(dataset.rates)
     boxes = (labels["bbox"], labels["class_id"]) if args.boxes else (None, None)
     write_png(out, montage(images, rates, boxes=boxes[0], class_ids=boxes[1]))
     print(out)
@@ -268,7 +263,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     _choose_gl(None)
-    from rainbench.eval.train import load_recipe, train
+    from rainbench.experiments.train import load_recipe, train
 
     recipe = load_recipe(args.recipe)
     out = _writable_dir(Path(args.out or Path("runs") / recipe.name), "--out")
@@ -284,7 +279,7 @@ def cmd_paper(args: argparse.Namespace) -> int:
     _choose_gl(None)
     import torch
 
-    from rainbench.eval.paper import PaperConfig, default_models, run_paper
+    from rainbench.experiments.paper import PaperConfig, default_models, run_paper
 
     models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
     seed, sky = _seed_and_sky(args)

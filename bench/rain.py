@@ -2,7 +2,7 @@
 
     python bench/rain.py [--frames N] [--repeats R] [--json OUT]
 
-For each of N synthetic 800x600 street frames (rainbench.rain.testframe, with a depth map), and
+For each of N synthetic 800x600 street frames (tests/testframe.py, with a depth map), and
 each rain model, it times:
 
 * sweep: ``render_rain_sweep`` over the 11 rates 0, 10, ..., 100 mm/h (what the dataset
@@ -29,6 +29,7 @@ import json  # noqa: E402
 import platform  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 
@@ -38,7 +39,8 @@ import numpy as np  # noqa: E402
 cv2.setNumThreads(1)
 
 from rainbench.rain import RAIN_MODELS, RainConfig, image_quality, render_rain, render_rain_sweep  # noqa: E402
-from rainbench.rain.testframe import street_frame  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from testframe import street_frame  # noqa: E402  -- the tests' synthetic street frame
 
 RATES = tuple(float(rate) for rate in range(0, 101, 10))
 QUALITY_RATES = (10.0, 50.0, 100.0)

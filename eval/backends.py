@@ -32,7 +32,7 @@ for ONNX and Darknet: confidence floor, per-class NMS (torchvision), at most ``m
 letterbox undone, boxes clipped to the image.
 
 Class mapping: rainbench class ids are COCO-80 indices 0 person, 1 bicycle, 2 car, 3 motorcycle,
-5 bus, 7 truck (:mod:`rainbench.mjcf.classes`). A model whose names[0..3] are those COCO names
+5 bus, 7 truck (:mod:`rainbench.store.classes`). A model whose names[0..3] are those COCO names
 maps each rainbench class it names at its COCO index directly (a COCO-80 model: all six; the
 shipped four-class models: 0..3) and drops its other classes (ONNX files without names metadata
 and Darknet files with 80 classes count as COCO-80); any other model needs a class map
@@ -57,7 +57,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .metrics import CLASS_IDS, CLASS_NAMES, LABELLED_CLASSES, class_list
+from rainbench.store.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES, class_list
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Shipped weights, selectable by name (docs/models.md): ``<name>.pt`` (the ultralytics
@@ -274,7 +274,7 @@ def parse_class_map(spec: str) -> dict[str, int]:
 
 
 def class_lookup(names: dict[int, str] | list[str], class_map: str | None, source: str,
-                 classes: Sequence[int] = CLASS_IDS) -> np.ndarray:
+                 classes: Sequence[int] = PAPER_CLASSES) -> np.ndarray:
     """Table model class index -> rainbench class id (-1: dropped) for a model's ``names``.
 
     ``classes``: the rainbench ids to keep (default the paper's four); a model class mapped to
@@ -300,7 +300,7 @@ def class_lookup(names: dict[int, str] | list[str], class_map: str | None, sourc
             table[index_of[name]] = class_id
         table[~np.isin(table, wanted)] = -1
         return table
-    if all(by_index.get(i) == CLASS_NAMES[i] for i in CLASS_IDS):
+    if all(by_index.get(i) == CLASS_NAMES[i] for i in PAPER_CLASSES):
         for class_id in wanted.tolist():
             if class_id < size and by_index.get(class_id) == CLASS_NAMES[class_id]:
                 table[class_id] = class_id
@@ -492,7 +492,7 @@ class OnnxDetector:
     fixed_batch: int | None
     layout: str | None = None  # "v8" or "v5"; decided from the output shape (:meth:`configure`)
     lookup: np.ndarray | None = None  # model class -> rainbench id of the evaluated classes (-1 dropped)
-    classes: tuple[int, ...] = CLASS_IDS  # the evaluated rainbench ids
+    classes: tuple[int, ...] = PAPER_CLASSES  # the evaluated rainbench ids
     full_lookup: np.ndarray | None = None  # model class -> any rainbench id (:func:`model_classes`)
 
     def configure(self, output_shape: list) -> None:
@@ -574,7 +574,7 @@ def output_layout(dims: list, nc: int | None, path: Path) -> tuple[str, int]:
 
 
 def _load_onnx(path: Path, class_map: str | None, device: str | None,
-               classes: Sequence[int] = CLASS_IDS, name: str | None = None) -> OnnxDetector:
+               classes: Sequence[int] = PAPER_CLASSES, name: str | None = None) -> OnnxDetector:
     try:
         import onnxruntime
     except ImportError:
@@ -709,7 +709,7 @@ def decode_darknet(rows: np.ndarray, input_size: tuple[int, int]) -> tuple[np.nd
     return boxes, rows[:, 5:]
 
 
-def _load_darknet(path: Path, class_map: str | None, kept: Sequence[int] = CLASS_IDS) -> DarknetDetector:
+def _load_darknet(path: Path, class_map: str | None, kept: Sequence[int] = PAPER_CLASSES) -> DarknetDetector:
     import cv2
 
     cfg = path.with_suffix(".cfg")
@@ -790,7 +790,7 @@ def _load_yolo_safely(ultralytics: Any, path: Path) -> Any:
 
 def load_detector(weights: str | Path, *, class_map: str | None = None,
                   device: str | None = None, trust_pickle: bool | None = None,
-                  classes: Sequence[int] = CLASS_IDS) -> Detector:
+                  classes: Sequence[int] = PAPER_CLASSES) -> Detector:
     """Load a detector from a weights spec (:func:`resolve_weights`); ``.name`` is the model name.
 
     ``classes``: the rainbench class ids it keeps (default the paper's four); the others it can

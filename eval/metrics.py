@@ -6,9 +6,9 @@ state); writing and plotting live in ``rainbench.eval.report``.
 Conventions (fixed by the project):
 
 - Class ids are COCO-80 indices: 0 person, 1 bicycle, 2 car, 3 motorcycle, 5 bus, 7 truck
-  (``CLASS_NAMES[i]`` is the name of class id ``i``, :mod:`rainbench.mjcf.classes`; 4 airplane and
+  (``CLASS_NAMES[i]`` is the name of class id ``i``, :mod:`rainbench.store.classes`; 4 airplane and
   6 train are never labelled). The paper's four classes 0..3 are evaluated by default
-  (``CLASS_IDS``). COCO category ids are the same numbers, *including 0*:
+  (``PAPER_CLASSES``). COCO category ids are the same numbers, *including 0*:
   pycocotools handles category id 0 (it indexes categories by value and never tests them for
   truth), which the tests pin against a direct ``loadRes``/``COCOeval`` run.
 - Dataset boxes are float32 ``x1, y1, x2, y2`` in pixel-edge coordinates (a box covering pixel
@@ -41,55 +41,7 @@ import numpy as np
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval, Params
 
-from rainbench.mjcf.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES
-
-PAPER_CLASS_NAMES: tuple[str, ...] = tuple(CLASS_NAMES[i] for i in PAPER_CLASSES)
-"""Names of the paper's four classes, ids 0..3 (the default categories of :func:`coco_ground_truth`)."""
-
-CLASS_IDS: tuple[int, ...] = PAPER_CLASSES
-"""Class ids evaluated by default: the seed paper's four (0 person, 1 bicycle, 2 car,
-3 motorcycle). ``CLASS_NAMES`` (ids 0..7, COCO-80 names) and ``LABELLED_CLASSES`` (the ids that
-occur in labels: also 5 bus and 7 truck) come from :mod:`rainbench.mjcf.classes`."""
-
-
-def class_list(class_ids: Sequence[int]) -> str:
-    """``"person (0), car (2), bus (5)"``: class ids with their names, for messages."""
-    return ", ".join(f"{CLASS_NAMES[class_id]} ({class_id})" for class_id in class_ids)
-
-
-def parse_classes(spec: str | Sequence[int | str]) -> tuple[int, ...]:
-    """Class ids of a ``--classes`` value, unique and in class-id order.
-
-    Args:
-        spec: Comma-separated names or ids (``"person,car,bus,truck"``, ``"0,2,5,7"``, mixed, any
-            case), or a sequence of names / ids. Allowed: the labelled classes
-            (``LABELLED_CLASSES``: person 0, bicycle 1, car 2, motorcycle 3, bus 5, truck 7).
-
-    Returns:
-        (K,) tuple of class ids, K >= 1, ascending.
-
-    Raises a one-line ValueError naming an unknown entry and the allowed names.
-    """
-    items = spec.split(",") if isinstance(spec, str) else list(spec)
-    allowed = f"expected names or ids of {class_list(LABELLED_CLASSES)}"
-    ids: set[int] = set()
-    for item in items:
-        if isinstance(item, str):
-            text = item.strip().lower()
-            if not text:
-                continue
-            class_id = int(text) if text.isdigit() else (CLASS_NAMES.index(text) if text in CLASS_NAMES else -1)
-        elif isinstance(item, (int, np.integer)) and not isinstance(item, (bool, np.bool_)):
-            class_id = int(item)
-        else:
-            class_id = -1
-        if class_id not in LABELLED_CLASSES:
-            raise ValueError(f"--classes: unknown class {item!r}; {allowed}")
-        ids.add(class_id)
-    if not ids:
-        raise ValueError(f"--classes: expected at least one class, got {spec!r}; {allowed}")
-    return tuple(sorted(ids))
-
+from rainbench.store.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASS_NAMES, PAPER_CLASSES, class_list
 
 IOU_THRESHOLDS: np.ndarray = Params(iouType="bbox").iouThrs.copy()
 """(10,) float64 COCO IoU thresholds 0.50:0.05:0.95, exactly as pycocotools builds them."""
@@ -605,7 +557,7 @@ def _class_matches(evaluator: COCOeval, area_index: int = 0) -> dict[int, ClassM
 def match_table(
     gt_dict: Mapping[str, Any],
     detections: Sequence[Mapping[str, Any]],
-    class_ids: Sequence[int] = CLASS_IDS,
+    class_ids: Sequence[int] = PAPER_CLASSES,
     image_ids: Sequence[int] | None = None,
     iou_thresholds: np.ndarray = IOU_THRESHOLDS,
 ) -> dict[int, ClassMatches]:
@@ -764,7 +716,7 @@ def _ap_from_precision(precision: np.ndarray) -> np.ndarray:
 def evaluate(
     gt_dict: Mapping[str, Any],
     detections: Sequence[Mapping[str, Any]],
-    class_ids: Sequence[int] = CLASS_IDS,
+    class_ids: Sequence[int] = PAPER_CLASSES,
     image_ids: Sequence[int] | None = None,
     conf: float = DEFAULT_CONF,
 ) -> dict[int, ClassMetrics]:
@@ -855,7 +807,7 @@ def _breakdown(
 def ap_by_size(
     gt_dict: Mapping[str, Any],
     detections: Sequence[Mapping[str, Any]],
-    class_ids: Sequence[int] = CLASS_IDS,
+    class_ids: Sequence[int] = PAPER_CLASSES,
     image_ids: Sequence[int] | None = None,
 ) -> dict[str, dict[int, BreakdownAP]]:
     """COCO AP by object size (small < 32², medium 32²..96², large > 96² px², box area).
@@ -889,7 +841,7 @@ def ap_by_visibility(
     visible_fraction: np.ndarray,
     bins: Sequence[float] = (0.0, 0.25, 0.5, 0.75, 1.0),
     unmatched: str = "fp",
-    class_ids: Sequence[int] = CLASS_IDS,
+    class_ids: Sequence[int] = PAPER_CLASSES,
     image_ids: Sequence[int] | None = None,
 ) -> dict[str, dict[int, BreakdownAP]]:
     """COCO AP by ground-truth visible fraction, one COCOeval run with one "area range" per bin.
@@ -1148,7 +1100,7 @@ def bootstrap_ci(
     rng: np.random.Generator,
     alpha: float = 0.05,
     metric: str = "ap50",
-    class_ids: Sequence[int] = CLASS_IDS,
+    class_ids: Sequence[int] = PAPER_CLASSES,
     image_ids: Sequence[int] | None = None,
 ) -> dict[int, BootstrapCI]:
     """Percentile bootstrap CI of per-class AP over frames (images resampled with replacement).

@@ -2,10 +2,10 @@
 
 Building blocks (each usable alone):
 
-- :func:`dataset_images` numbers the frames of a dataset folder (image ids 1-based, shards sorted
-  by name, then frame order: the numbering everywhere in rainbench);
-- :func:`dataset_rates` / :func:`ground_truth` read the rates and the COCO ground truth (labels are
-  the same at every rate, so one ground truth serves all rates);
+- :func:`open_dataset` opens ``--data`` through :class:`rainbench.store.Dataset` (image ids
+  1-based, manifest shard order, then frame order: the numbering everywhere in rainbench);
+- :func:`ground_truth` reads the COCO ground truth (labels are the same at every rate, so one
+  ground truth serves all rates);
 - :func:`rate_token` names prediction files ``rate_<token>.json``;
 - :func:`load_predictions_file` reads and checks one COCO results file;
 - :func:`run_eval` orchestrates everything and writes the outputs (see docs/eval.md).
@@ -25,16 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from rainbench.gen.dataset import (DatasetError, image_index, list_shards, open_checked, open_in_turn,
-                                   read_manifest)
-from rainbench.gen.export import rate_token
-from rainbench.gen.shard import open_shard, read_frame_labels, read_rgb
+from rainbench.store import SHARD_GLOB, Dataset, DatasetError, Image, read_frame_labels, read_manifest
+from rainbench.store.rates import rate_token
 
-from .metrics import (CLASS_IDS, CLASS_NAMES, LABELLED_CLASSES, bootstrap_ci, class_list, coco_ground_truth,
-                      evaluate, metric_records, parse_classes)
+from rainbench.store.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES, class_list, parse_classes
+from .metrics import bootstrap_ci, coco_ground_truth, evaluate, metric_records
 from .report import PAPER_TABLES, plot_detection_strip, plot_metric_vs_rate, render_report_md, write_metrics
 
-SHARD_GLOB = "scene*_f*.h5"
 BOOTSTRAP_SEED = 0
 """Seed of the bootstrap generator (``np.random.default_rng(BOOTSTRAP_SEED)`` per model and rate)."""
 
@@ -48,76 +45,55 @@ class EvalError(ValueError):
 # --------------------------------------------------------------------------------------------
 
 
-def _shards(data_dir: str | Path) -> list[Path]:
-    """Shards in manifest order (sorted names without a manifest): the rainbench numbering."""
+def open_dataset(data_dir: str | Path) -> Dataset:
+    """The dataset of ``--data`` (:class:`rainbench.store.Dataset`: image ids 1-based, manifest
+    shard order, then frame order; every shard holding the same rates).
+
+    Raises :class:`EvalError` for a missing or empty folder, and for shards whose rates differ.
+    """
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         raise EvalError(f"--data: {data_dir} is not a directory")
     if not any(data_dir.glob(SHARD_GLOB)) and read_manifest(data_dir) is None:
         raise EvalError(f"--data: no shard ({SHARD_GLOB}) in {data_dir}")
     try:
-        return list_shards(data_dir)
+        dataset = Dataset(data_dir)
     except DatasetError as error:
         raise EvalError(f"--data: {error}") from error
-
-
-def _scan(data_dir: str | Path) -> tuple[list[tuple[int, Path, int]], np.ndarray]:
-    shards = _shards(data_dir)
-    rates: np.ndarray | None = None
-    for shard in shards:
-        with open_checked(shard) as handle:  # labels checked: NaN boxes are refused
-            shard_rates = handle["rates"][()].astype(np.float32)
-        if rates is None:
-            rates = shard_rates
-        elif shard_rates.shape != rates.shape or not np.array_equal(shard_rates, rates):
-            raise EvalError(f"--data: {shard.name} has rates {shard_rates.tolist()} but {shards[0].name} has "
-                            f"{rates.tolist()}; all shards of a dataset must share the same rates")
-    images = image_index(shards)  # the rainbench numbering: 1-based, shard order, frame order
-    if not images:
+    if not dataset.images:
         raise EvalError(f"--data: the shards in {data_dir} hold no frames")
-    return images, rates
+    return dataset
 
 
-def dataset_images(data_dir: str | Path) -> list[tuple[int, Path, int]]:
-    """``[(image_id, shard_path, frame)]``: shards in manifest order (sorted names without a
-    manifest), ids from 1.
-
-    Raises :class:`EvalError` for a missing or empty folder, and for shards whose rates differ.
-    """
-    return _scan(data_dir)[0]
-
-
-def dataset_rates(data_dir: str | Path) -> list[float]:
-    """The rain rates (mm/h, ascending) shared by every shard of the dataset."""
-    return [float(r) for r in _scan(data_dir)[1]]
-
-
-def ground_truth(images: Sequence[tuple[int, Path, int]]) -> dict[str, list[dict]]:
-    """COCO ground-truth dict of ``images`` (from :func:`dataset_images`); valid at every rate.
+def ground_truth(dataset: Dataset, images: Sequence[Image] | None = None) -> dict[str, list[dict]]:
+    """COCO ground-truth dict of ``images`` (default all) of ``dataset``; valid at every rate.
 
     Categories are every class id 0..7 (``CLASS_NAMES``), whatever the shards' ``class_names``
     (older shards list the first four; the ids mean the same), so bus (5) and truck (7) boxes
     are ground truth too; which classes are scored is the evaluator's ``class_ids``."""
     entries = []
-    for image_id, _, frame, handle in open_in_turn(images):
-        labels = read_frame_labels(handle, frame)
-        entries.append((image_id, int(handle.attrs["width"]), int(handle.attrs["height"]),
+    for image, handle in dataset.walk(images):
+        labels = read_frame_labels(handle, image.frame)
+        height, width = dataset.size(image.shard_index)
+        entries.append((image.image_id, width, height,
                         np.asarray(labels["bbox"], np.float32).reshape(-1, 4),
                         np.asarray(labels["class_id"]).astype(np.int64)))
     return coco_ground_truth(entries, CLASS_NAMES)
 
 
-def _read_rgb(images: Sequence[tuple[int, Path, int]], rate_index: int, batch: int):
-    """Yield ``(image_ids, [RGB arrays])`` in batches of at most ``batch`` frames of one shard."""
-    by_shard: dict[Path, list[tuple[int, int]]] = {}
-    for image_id, shard, frame in images:
-        by_shard.setdefault(shard, []).append((image_id, frame))
-    for shard, items in by_shard.items():
-        with open_shard(shard) as handle:
-            for start in range(0, len(items), batch):
-                chunk = items[start:start + batch]
-                yield ([i for i, _ in chunk],
-                       [read_rgb(handle, rate_index, frame) for _, frame in chunk])
+def _read_rgb(dataset: Dataset, rate: float, batch: int):
+    """Yield ``(image_ids, [RGB arrays])`` at ``rate`` in batches of at most ``batch`` frames of
+    one shard."""
+    chunk: list[tuple[int, np.ndarray]] = []
+    current = None
+    for image, handle in dataset.walk():
+        if chunk and (image.shard_index != current or len(chunk) == batch):
+            yield [i for i, _ in chunk], [a for _, a in chunk]
+            chunk = []
+        current = image.shard_index
+        chunk.append((image.image_id, dataset.read_rgb(handle, image, rate)))
+    if chunk:
+        yield [i for i, _ in chunk], [a for _, a in chunk]
 
 
 # --------------------------------------------------------------------------------------------
@@ -131,7 +107,7 @@ def predictions_path(root: str | Path, model: str, rate: float) -> Path:
 
 
 def check_detections(records: Any, image_ids: set[int], where: str,
-                     classes: Sequence[int] = CLASS_IDS) -> list[dict]:
+                     classes: Sequence[int] = PAPER_CLASSES) -> list[dict]:
     """Check COCO results records; errors name ``where`` (the file). Returns the clean records of
     the evaluated ``classes`` (rainbench ids, default the paper's four): a record of another
     rainbench class (``LABELLED_CLASSES``, e.g. a bus while evaluating the paper's classes) is
@@ -165,7 +141,7 @@ def check_detections(records: Any, image_ids: set[int], where: str,
     return clean
 
 
-def load_predictions_file(path: str | Path, image_ids: set[int], classes: Sequence[int] = CLASS_IDS) -> list[dict]:
+def load_predictions_file(path: str | Path, image_ids: set[int], classes: Sequence[int] = PAPER_CLASSES) -> list[dict]:
     """Read and check one COCO results file (errors name the file); the records of the evaluated
     ``classes`` (:func:`check_detections`)."""
     path = Path(path)
@@ -224,14 +200,14 @@ def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map, clas
             "classes": list(classes)}
 
 
-def _infer(detector, images, rate_index: int, *, batch, imgsz, conf, iou, max_det, bar,
+def _infer(detector, dataset: Dataset, rate: float, *, batch, imgsz, conf, iou, max_det, bar,
            classes: Sequence[int]) -> list[dict]:
     """COCO results records of ``detector`` on ``images`` at one rate, of the rainbench ids
     ``classes`` only."""
     from .metrics import coco_detections
 
     records: list[dict] = []
-    for image_ids, arrays in _read_rgb(images, rate_index, batch):
+    for image_ids, arrays in _read_rgb(dataset, rate, batch):
         outputs = detector.predict(arrays, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det)
         for image_id, (boxes, scores, class_ids) in zip(image_ids, outputs, strict=True):
             class_ids = np.asarray(class_ids, np.int64).reshape(-1)
@@ -271,8 +247,35 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     Outputs: ``metrics.json``, ``metrics.csv``, ``images.json``, ``report.md``,
     ``ap50_vs_rate.png``, ``f1_vs_rate.png``, ``detections_strip.png``.
     """
-    from tqdm import tqdm
+    class_ids = _check_settings(predictions_dir, weights, imgsz=imgsz, batch=batch, max_det=max_det,
+                                n_boot=n_boot, conf=conf, iou=iou, report_conf=report_conf, classes=classes)
+    dataset = open_dataset(data_dir)
+    rates = list(dataset.rates)
+    image_ids = {image.image_id for image in dataset.images}
+    gt = ground_truth(dataset)
+    out_dir = Path(out_dir)
+    inference_runs = 0
+    if predictions_dir is not None:
+        models = prediction_models(predictions_dir)
+        detections = {(model, rate): load_predictions_file(predictions_path(predictions_dir, model, rate),
+                                                           image_ids, class_ids)
+                      for model in models for rate in rates}
+    else:
+        models, detections, inference_runs = _backend_detections(
+            dataset, list(weights), out_dir / "predictions", image_ids=image_ids, imgsz=imgsz, batch=batch,
+            conf=conf, iou=iou, max_det=max_det, class_map=class_map, device=device, force=force,
+            progress=progress, trust_pickle=trust_pickle, class_ids=class_ids,
+            classes_given=classes is not None)
+    records = _score(gt, detections, models, rates, class_ids=class_ids, report_conf=report_conf,
+                     n_boot=n_boot, progress=progress)
+    paths = _write_outputs(records, dataset, gt, detections, models, out_dir, class_ids=class_ids,
+                           report_conf=report_conf)
+    return EvalOutputs(records=records, paths=paths, inference_runs=inference_runs)
 
+
+def _check_settings(predictions_dir, weights, *, imgsz, batch, max_det, n_boot, conf, iou, report_conf,
+                    classes) -> tuple[int, ...]:
+    """Refuse bad evaluator settings before any work; returns the class ids to score."""
     if (predictions_dir is None) == (not weights):
         raise EvalError("expected exactly one of --weights or --predictions")
     for name, value in (("--imgsz", imgsz), ("--batch", batch), ("--max-det", max_det), ("n_boot", n_boot)):
@@ -282,79 +285,83 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
         if not 0.0 <= float(value) <= 1.0:
             raise EvalError(f"{name}: expected a value in [0, 1], got {value}")
     try:
-        class_ids = CLASS_IDS if classes is None else parse_classes(classes)
+        return PAPER_CLASSES if classes is None else parse_classes(classes)
     except ValueError as error:
         raise EvalError(str(error)) from None
-    images, rates_array = _scan(data_dir)
-    rates = [float(r) for r in rates_array]
-    image_ids = {image_id for image_id, _, _ in images}
-    gt = ground_truth(images)
-    out_dir = Path(out_dir)
 
+
+def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, image_ids: set[int], imgsz, batch,
+                        conf, iou, max_det, class_map, device, force, progress, trust_pickle,
+                        class_ids: Sequence[int], classes_given: bool
+                        ) -> tuple[list[str], dict[tuple[str, float], list[dict]], int]:
+    """Detections of every weights file at every rate of ``dataset``: (model names, {(model, rate):
+    COCO results records}, number of (model, rate) pairs inferred in this run). Backend
+    detections are cached under ``cache_root/<model>/`` and reused unless ``force``."""
+    from tqdm import tqdm
+
+    from . import backends
+
+    rates = list(dataset.rates)
+    resolved = [backends.resolve_weights(w, device) for w in specs]
+    if class_map is not None:
+        backends.parse_class_map(class_map)  # fail early on a bad spec
+    models = [name for _, name in resolved]
+    duplicates = sorted({m for m in models if models.count(m) > 1})
+    if duplicates:
+        raise EvalError(f"--weights: several weights files are named {duplicates[0]!r}; model names "
+                        "(file stems) must be unique")
+    # First load (and check) every detector that has rates to infer, then infer: a model that
+    # cannot predict a requested class fails the run before any inference.
+    plans = []
+    for spec, (path, model) in zip(specs, resolved, strict=True):
+        model_imgsz = backends.model_imgsz(spec) if imgsz is None else imgsz
+        settings = _cache_settings(path, imgsz=model_imgsz, conf=conf, iou=iou, max_det=max_det,
+                                   class_map=class_map, classes=class_ids)
+        meta_path = cache_root / model / "settings.json"
+        try:
+            cached_settings = json.loads(meta_path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            cached_settings = None
+        reuse = not force and cached_settings == settings
+        detector = None
+        if not all(reuse and predictions_path(cache_root, model, rate).is_file() for rate in rates):
+            extra = {} if trust_pickle is None else {"trust_pickle": trust_pickle}
+            if classes_given:
+                extra["classes"] = class_ids
+            detector = backends.load_detector(spec, class_map=class_map, device=device, **extra)
+            if classes_given:
+                backends.check_model_classes(detector, model, class_ids)
+            if not reuse:  # settings changed or --force: older rate files are stale
+                meta_path.unlink(missing_ok=True)
+        plans.append((model, model_imgsz, settings, meta_path, reuse, detector))
     detections: dict[tuple[str, float], list[dict]] = {}
     inference_runs = 0
-    if predictions_dir is not None:
-        models = prediction_models(predictions_dir)
-        for model in models:
-            for rate in rates:
-                detections[(model, rate)] = load_predictions_file(
-                    predictions_path(predictions_dir, model, rate), image_ids, class_ids)
-    else:
-        from . import backends
+    for model, model_imgsz, settings, meta_path, reuse, detector in plans:
+        for rate in rates:
+            cache = predictions_path(cache_root, model, rate)
+            if reuse and cache.is_file():
+                detections[(model, rate)] = load_predictions_file(cache, image_ids, class_ids)
+                continue
+            with tqdm(total=len(dataset), unit="img", desc=f"{model} {rate_token(rate)} mm/h",
+                      disable=not progress, dynamic_ncols=True) as bar:
+                records = _infer(detector, dataset, rate, batch=batch, imgsz=model_imgsz, conf=conf,
+                                 iou=iou, max_det=max_det, bar=bar, classes=class_ids)
+            if classes_given:  # an ONNX file without names learns its classes at its first batch
+                backends.check_model_classes(detector, model, class_ids)
+            _write_json(cache, records)
+            detections[(model, rate)] = records
+            inference_runs += 1
+        if detector is not None:
+            # Written once every rate is cached, so an interrupted run re-infers what is stale.
+            _write_json(meta_path, settings)
+    return models, detections, inference_runs
 
-        specs = list(weights)
-        resolved = [backends.resolve_weights(w, device) for w in specs]
-        weights = [path for path, _ in resolved]
-        if class_map is not None:
-            backends.parse_class_map(class_map)  # fail early on a bad spec
-        models = [name for _, name in resolved]
-        duplicates = sorted({m for m in models if models.count(m) > 1})
-        if duplicates:
-            raise EvalError(f"--weights: several weights files are named {duplicates[0]!r}; model names "
-                            "(file stems) must be unique")
-        # First load (and check) every detector that has rates to infer, then infer: a model that
-        # cannot predict a requested class fails the run before any inference.
-        plans = []
-        for spec, path, model in zip(specs, weights, models, strict=True):
-            model_imgsz = backends.model_imgsz(spec) if imgsz is None else imgsz
-            settings = _cache_settings(path, imgsz=model_imgsz, conf=conf, iou=iou, max_det=max_det,
-                                       class_map=class_map, classes=class_ids)
-            cache_root = out_dir / "predictions"
-            meta_path = cache_root / model / "settings.json"
-            try:
-                cached_settings = json.loads(meta_path.read_text(encoding="utf-8"))
-            except (OSError, ValueError):
-                cached_settings = None
-            reuse = not force and cached_settings == settings
-            detector = None
-            if not all(reuse and predictions_path(cache_root, model, rate).is_file() for rate in rates):
-                extra = {} if trust_pickle is None else {"trust_pickle": trust_pickle}
-                if classes is not None:
-                    extra["classes"] = class_ids
-                detector = backends.load_detector(spec, class_map=class_map, device=device, **extra)
-                if classes is not None:
-                    backends.check_model_classes(detector, model, class_ids)
-                if not reuse:  # settings changed or --force: older rate files are stale
-                    meta_path.unlink(missing_ok=True)
-            plans.append((model, model_imgsz, settings, cache_root, meta_path, reuse, detector))
-        for model, model_imgsz, settings, cache_root, meta_path, reuse, detector in plans:
-            for rate_index, rate in enumerate(rates):
-                cache = predictions_path(cache_root, model, rate)
-                if reuse and cache.is_file():
-                    detections[(model, rate)] = load_predictions_file(cache, image_ids, class_ids)
-                    continue
-                with tqdm(total=len(images), unit="img", desc=f"{model} {rate_token(rate)} mm/h",
-                          disable=not progress, dynamic_ncols=True) as bar:
-                    records = _infer(detector, images, rate_index, batch=batch, imgsz=model_imgsz, conf=conf,
-                                     iou=iou, max_det=max_det, bar=bar, classes=class_ids)
-                if classes is not None:  # an ONNX file without names learns its classes at its first batch
-                    backends.check_model_classes(detector, model, class_ids)
-                _write_json(cache, records)
-                detections[(model, rate)] = records
-                inference_runs += 1
-            if detector is not None:
-                # Written once every rate is cached, so an interrupted run re-infers what is stale.
-                _write_json(meta_path, settings)
+
+def _score(gt: dict, detections: dict, models: Sequence[str], rates: Sequence[float], *,
+           class_ids: Sequence[int], report_conf: float, n_boot: int, progress: bool) -> list[dict[str, Any]]:
+    """Metric records (:func:`rainbench.eval.metrics.metric_records`) of every model and rate,
+    with bootstrap intervals of AP50 and AP50:95."""
+    from tqdm import tqdm
 
     results, ci50, ci5095 = {}, {}, {}
     with tqdm(total=len(models) * len(rates), unit="eval", desc="metrics", disable=not progress,
@@ -369,34 +376,44 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
                                                      class_ids=class_ids)
                 bar.update(1)
     clean_rate = 0.0 if 0.0 in rates else rates[0]
-    records = metric_records(results, [ci50, ci5095], clean_rate=clean_rate)
+    return metric_records(results, [ci50, ci5095], clean_rate=clean_rate)
 
+
+def _strip_image(dataset: Dataset, gt: dict, class_ids: Sequence[int]) -> Image:
+    """The frame of the detection strip: the one with the most labels of the scored classes (the
+    first such)."""
+    counts: dict[int, int] = {}
+    for annotation in gt["annotations"]:
+        if annotation["category_id"] in class_ids:
+            counts[annotation["image_id"]] = counts.get(annotation["image_id"], 0) + 1
+    return max(dataset.images, key=lambda image: counts.get(image.image_id, 0))
+
+
+def _write_outputs(records: list[dict[str, Any]], dataset: Dataset, gt: dict, detections: dict,
+                   models: Sequence[str], out_dir: Path, *, class_ids: Sequence[int],
+                   report_conf: float) -> dict[str, Path]:
+    """Write metrics, image list, report, plots and the detection strip (the first model's
+    boxes of the scored classes, across rates); returns the paths by output name."""
+    rates = list(dataset.rates)
+    clean_rate = 0.0 if 0.0 in rates else rates[0]
     out_dir.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
     paths["metrics.json"], paths["metrics.csv"] = write_metrics(records, out_dir)
     paths["images.json"] = out_dir / "images.json"
     paths["images.json"].write_text(json.dumps(
-        [{"id": i, "shard": shard.name, "frame": frame} for i, shard, frame in images], indent=1) + "\n",
-        encoding="utf-8")
+        [{"id": image.image_id, "shard": image.shard.name, "frame": image.frame} for image in dataset.images],
+        indent=1) + "\n", encoding="utf-8")
     paths["report.md"] = out_dir / "report.md"
     paths["report.md"].write_text(render_report_md(records, paper=PAPER_TABLES, clean_rate=clean_rate),
                                   encoding="utf-8")
     paths["ap50_vs_rate.png"] = plot_metric_vs_rate(records, "ap50", out_dir / "ap50_vs_rate.png")
     paths["f1_vs_rate.png"] = plot_metric_vs_rate(records, "f1", out_dir / "f1_vs_rate.png")
-
-    # The frame with the most labels of the scored classes (the first such), across rates, with
-    # the first model's boxes (of the scored classes only).
-    counts: dict[int, int] = {}
-    for annotation in gt["annotations"]:
-        if annotation["category_id"] in class_ids:
-            counts[annotation["image_id"]] = counts.get(annotation["image_id"], 0) + 1
-    strip_id = max(sorted(image_ids), key=lambda i: counts.get(i, 0))
-    _, strip_shard, strip_frame = images[strip_id - 1]
-    with open_shard(strip_shard) as handle:
-        frames_by_rate = {rate: read_rgb(handle, index, strip_frame)
-                          for index, rate in enumerate(rates)}
-    strip_dets = {rate: [d for d in detections[(models[0], rate)] if d["image_id"] == strip_id] for rate in rates}
+    strip = _strip_image(dataset, gt, class_ids)
+    with dataset.open(strip.shard_index) as handle:
+        frames_by_rate = {rate: dataset.read_rgb(handle, strip, rate) for rate in rates}
+    strip_dets = {rate: [d for d in detections[(models[0], rate)] if d["image_id"] == strip.image_id]
+                  for rate in rates}
     paths["detections_strip.png"] = plot_detection_strip(frames_by_rate, strip_dets,
                                                          out_dir / "detections_strip.png",
                                                          class_names=CLASS_NAMES, min_score=report_conf)
-    return EvalOutputs(records=records, paths=paths, inference_runs=inference_runs)
+    return paths

@@ -17,7 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from .metrics import CLASS_NAMES, RECORD_FIELDS, percent_drop, robustness_records
+from rainbench.store.classes import CLASS_COLOURS, CLASS_NAMES
+
+from .metrics import RECORD_FIELDS, percent_drop, robustness_records
 
 PAPER_TABLES: dict[str, dict[str, dict[float, dict[str, float]]]] = {
     # Table III, "AP score" (YOLO val's per-class AP, read here as AP@0.5).
@@ -633,14 +635,6 @@ def plot_metric_vs_rate(
     return out_png
 
 
-_BOX_COLORS_BGR: tuple[tuple[int, int, int], ...] = (
-    (60, 60, 230), (230, 160, 40), (60, 200, 60), (200, 60, 200),
-    (128, 128, 128), (0, 200, 255), (128, 128, 128), (200, 200, 0),
-)
-"""Box colours (BGR) per class id 0..7 (bus 5 orange, truck 7 teal; 4 and 6 are never
-labelled); other ids cycle."""
-
-
 def plot_detection_strip(
     images_by_rate: Mapping[float, np.ndarray],
     detections_by_rate: Mapping[float, Sequence[Mapping[str, Any]]],
@@ -695,7 +689,7 @@ def plot_detection_strip(
                 continue
             x, y, w, h = (float(v) for v in record["bbox"])
             class_id = int(record["category_id"])
-            color = _BOX_COLORS_BGR[class_id % len(_BOX_COLORS_BGR)]
+            color = CLASS_COLOURS[class_id % len(CLASS_COLOURS)][::-1]  # BGR
             top_left = (int(round(x)), int(round(y)) + banner)
             bottom_right = (int(round(x + w)), int(round(y + h)) + banner)
             cv2.rectangle(tile, top_left, bottom_right, color, 2)

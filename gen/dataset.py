@@ -1,6 +1,7 @@
-"""Datasets: many scenes as many shards, a manifest, resume, verification, parallel workers.
+"""Writing datasets: many scenes as many shards, the manifest, resume, parallel workers.
 
-A dataset directory holds shards (format v1, docs/format.md) and ``manifest.json``:
+A dataset directory holds shards (docs/format.md) and ``manifest.json``
+(:mod:`rainbench.store.manifest`); reading it is :mod:`rainbench.store`'s job. Here:
 
 - scene k of a dataset uses seed ``seed + k``; a clip longer than ``frames_per_shard`` is split
   into shards of at most that many frames (the layout is planned for the whole clip);
@@ -19,12 +20,6 @@ A dataset directory holds shards (format v1, docs/format.md) and ``manifest.json
   workers at once instead of letting them finish their shards;
 - one ``generate`` at a time per directory: a second one is refused while the first holds the
   lock (``fcntl.flock`` on ``OUT/.rainbench-generate.lock``).
-
-Readers open shards with :func:`open_checked`: :func:`open_shard` plus :func:`check_labels`,
-which refuses NaN boxes and inconsistent ``/labels/offsets`` naming the file and the frame.
-
-Image ids are 1-based, counting frames in manifest shard order, then frame order: the same
-numbering everywhere in rainbench (exports, evaluation).
 """
 
 from __future__ import annotations
@@ -33,35 +28,29 @@ import contextlib
 import ctypes
 import dataclasses
 import fcntl
-import hashlib
 import json
 import math
 import multiprocessing
 import os
 import queue
-import re
 import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
-
-import numpy as np
+from pathlib import Path
 
 from rainbench import __version__
-from rainbench.mjcf.classes import CLASS_NAMES, LABELLED_CLASSES
 from rainbench.mjcf.layout import ScenarioConfig
+from rainbench.store.manifest import (MANIFEST, SHARD_GLOB, DatasetError, read_manifest, sha256_of,
+                                      shard_entry, write_manifest)
+from rainbench.store.shard import ShardFormatError, open_checked, read_rgb, shard_name
 
 from . import labels as lb
 from .generate import GenerateConfig, _json_default, generate_shard
-from .shard import ShardFormatError, open_shard, read_rgb, shard_name
 
-MANIFEST = "manifest.json"
-MANIFEST_FORMAT = "rainbench.manifest"
-MANIFEST_VERSION = 1
 EXECUTORS = ("local", "ray")
 LOCK = ".rainbench-generate.lock"
 MAX_FRAMES = 100_000
@@ -72,11 +61,6 @@ MAX_PIXELS = 4096 * 4096
 """Most pixels of one image: its framebuffer (the image plus the truncation margins, 2.25 times
 the pixels) is what Mesa's llvmpipe still allocates (measured: 4096 x 4096 and 8192 x 2048
 render; 8192 x 4096 and 5461 x 5461 do not)."""
-_SHA256 = re.compile(r"[0-9a-f]{64}")
-
-
-class DatasetError(ValueError):
-    """A dataset request or directory that cannot be honoured; the message is one line."""
 
 
 @dataclass(frozen=True)
@@ -152,354 +136,6 @@ class DatasetConfig:
 
 def _is_int(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
-
-
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 22), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def shard_entry(path: Path, task: GenerateConfig, root: Path) -> dict:
-    return {
-        "path": path.relative_to(root).as_posix(),
-        "scene_seed": task.seed,
-        "frame_offset": task.frame_offset,
-        "frames": task.frames,
-        "rates": [float(rate) for rate in task.rates],
-        "sha256": sha256_of(path),
-        "bytes": path.stat().st_size,
-    }
-
-
-def _atomic_write_json(path: Path, payload: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as handle:
-        json.dump(payload, handle, indent=1, sort_keys=True)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
-
-
-def write_manifest(root: Path, config: DatasetConfig, entries: list[dict], complete: bool) -> Path:
-    path = root / MANIFEST
-    _atomic_write_json(path, {
-        "format": MANIFEST_FORMAT, "format_version": MANIFEST_VERSION,
-        "config": config.to_dict(), "complete": complete, "shards": entries,
-    })
-    return path
-
-
-def read_manifest(root: str | Path) -> dict | None:
-    """The manifest of dataset ``root`` (None if it has none); errors name the file."""
-    path = Path(root) / MANIFEST
-    if not path.exists():
-        return None
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as error:  # UnicodeDecodeError and JSONDecodeError included
-        raise DatasetError(f"{path}: not a readable manifest ({error})") from error
-    except RecursionError:
-        raise DatasetError(f"{path}: not a readable manifest (nested too deeply)") from None
-    return check_manifest(manifest, path)
-
-
-def _show(value) -> str:
-    text = repr(value) if not isinstance(value, (dict, list)) else type(value).__name__
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-_ENTRY_FIELDS = (
-    ("path", lambda v: isinstance(v, str) and v != "", "a non-empty relative path"),
-    ("scene_seed", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
-    ("frame_offset", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
-    ("frames", lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
-    ("rates", lambda v: isinstance(v, list) and len(v) > 0 and all(
-        isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) for r in v),
-     "a non-empty list of rates"),
-    ("sha256", lambda v: isinstance(v, str) and _SHA256.fullmatch(v) is not None,
-     "64 lowercase hex digits"),
-    ("bytes", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
-)
-
-
-def check_manifest(manifest, path: str | Path) -> dict:
-    """``manifest`` (parsed JSON) if it is a well-formed manifest; otherwise one-line
-    :class:`DatasetError` naming the file and the field. Shard paths must stay inside the dataset
-    directory (relative, no ``..``)."""
-    if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
-        raise DatasetError(f"{path}: not a rainbench manifest")
-    if manifest.get("format_version") != MANIFEST_VERSION:
-        raise DatasetError(f"{path}: unknown manifest format_version "
-                           f"{_show(manifest.get('format_version'))}")
-    if not isinstance(manifest.get("config"), dict):
-        raise DatasetError(f"{path}: \"config\" must be an object, got "
-                           f"{_show(manifest.get('config'))}")
-    if not isinstance(manifest.get("complete"), bool):
-        raise DatasetError(f"{path}: \"complete\" must be true or false, got "
-                           f"{_show(manifest.get('complete'))}")
-    shards = manifest.get("shards")
-    if not isinstance(shards, list):
-        raise DatasetError(f"{path}: \"shards\" must be a list of shard entries, got "
-                           f"{_show(shards)}")
-    seen = set()
-    for number, entry in enumerate(shards):
-        where = f"{path}: shards[{number}]"
-        if not isinstance(entry, dict):
-            raise DatasetError(f"{where}: expected an object, got {_show(entry)}")
-        for key, valid, expected in _ENTRY_FIELDS:
-            if key not in entry:
-                raise DatasetError(f"{where}: \"{key}\" is missing")
-            if not valid(entry[key]):
-                raise DatasetError(f"{where}: \"{key}\" must be {expected}, got "
-                                   f"{_show(entry[key])}")
-        relative = PurePosixPath(entry["path"])
-        if (relative.is_absolute() or ".." in relative.parts or not relative.parts
-                or "\\" in entry["path"]):
-            raise DatasetError(f"{where}: path {_show(entry['path'])} leaves the dataset "
-                               "directory; shard paths must be relative paths inside it")
-        if not entry["path"].isprintable():
-            raise DatasetError(f"{where}: path {_show(entry['path'])} holds control "
-                               "characters; shard paths must be printable")
-        if relative in seen:
-            raise DatasetError(f"{where}: {entry['path']} is listed twice")
-        seen.add(relative)
-    return manifest
-
-
-def list_shards(data: str | Path | Sequence[str | Path]) -> list[Path]:
-    """Shard paths of a dataset directory (manifest order; sorted names without a manifest),
-    of one shard file, or of a list of shard files (kept in the given order)."""
-    if isinstance(data, (list, tuple)):
-        paths = [Path(p) for p in data]
-    else:
-        root = Path(data)
-        if root.is_file():
-            paths = [root]
-        elif root.is_dir():
-            manifest = read_manifest(root)
-            if manifest is not None:
-                paths = [root / entry["path"] for entry in manifest["shards"]]
-            else:
-                paths = sorted(root.glob("scene*_f*.h5"))
-        else:
-            raise DatasetError(f"{root}: no such dataset directory or shard")
-    if not paths:
-        raise DatasetError(f"{data}: no shards (scene*_f*.h5) found")
-    missing = [str(p) for p in paths if not p.is_file()]
-    if missing:
-        raise DatasetError(f"{missing[0]}: shard listed but missing")
-    return paths
-
-
-def check_labels(handle, path: str | Path | None = None) -> None:
-    """Refuse an open shard whose labels a reader would serve wrong: :class:`ShardFormatError`
-    naming the file and, for a bad row, the frame.
-
-    Checks ``/rgb`` against ``/rates`` and the ``width``/``height`` attributes, that
-    ``/labels/offsets`` starts at 0, never decreases and ends at the label count, that every
-    label array has one row per label, boxes finite with ``0 <= x1 < x2 <= W`` and
-    ``0 <= y1 < y2 <= H``, amodal boxes finite and ordered, ``class_names`` the first names of
-    :data:`rainbench.mjcf.classes.CLASS_NAMES` (older shards list 4, newer 8: the ids mean the
-    same), class ids naming a class of ``class_names`` that rainbench labels (not 4 airplane or
-    6 train), instance ids >= 0, visible fractions and truncations in [0, 1], and finite per-box
-    rain statistics.
-    """
-    path = path if path is not None else handle.filename
-    try:
-        rgb = handle["rgb"]
-        rgb_shape, _ = tuple(rgb.shape), (rgb.chunks, rgb.compression, rgb.dtype)
-        rate_values = handle["rates"][()]
-        rates = rate_values.shape
-        width, height = int(handle.attrs["width"]), int(handle.attrs["height"])
-        class_names = json.loads(handle.attrs["class_names"])
-        group = handle["labels"]
-        arrays = {key: group[key][()] for key in group if key in _LABEL_SHAPES}
-    except (KeyError, OSError, TypeError, ValueError, RecursionError) as error:
-        raise ShardFormatError(f"{path}: labels or attributes unreadable "
-                               f"({type(error).__name__}: {error})") from None
-    if len(rates) != 1 or len(rgb_shape) != 5 or rgb_shape[0] != rates[0] \
-            or rgb_shape[2:] != (height, width, 3):
-        raise ShardFormatError(f"{path}: /rgb has shape {rgb_shape}; expected (R, N, {height}, "
-                               f"{width}, 3) with R = {rates[0] if rates else '?'} rates")
-    if not isinstance(class_names, list):
-        raise ShardFormatError(f"{path}: class_names is not a JSON list")
-    if not class_names or class_names != list(CLASS_NAMES[:len(class_names)]):
-        raise ShardFormatError(f"{path}: class_names {str(class_names)[:120]} are not the rainbench "
-                               f"classes (the first names of {list(CLASS_NAMES)})")
-    if rgb.dtype != np.uint8:
-        raise ShardFormatError(f"{path}: /rgb holds {rgb.dtype}, not uint8")
-    with np.errstate(invalid="ignore"):
-        values = rate_values.astype(np.float64) if rate_values.dtype.kind in "fiu" else None
-        if values is None or not (np.isfinite(values).all() and (values >= 0).all()
-                                  and (np.diff(values) > 0).all()):
-            raise ShardFormatError(f"{path}: /rates {rate_values.tolist()!r:.80} are not "
-                                   "ascending finite rates >= 0")
-    frames, num_rates = rgb_shape[1], rgb_shape[0]
-    for key in _LABEL_SHAPES:
-        if key not in arrays and key not in ("rain_coverage", "contrast_loss"):
-            raise ShardFormatError(f"{path}: incomplete shard, /labels/{key} is missing")
-    offsets = arrays["offsets"]
-    if offsets.shape != (frames + 1,) or not np.issubdtype(offsets.dtype, np.integer):
-        raise ShardFormatError(f"{path}: /labels/offsets has shape {offsets.shape} "
-                               f"{offsets.dtype}; expected ({frames + 1},) integers for {frames} "
-                               "frames")
-    count = arrays["bbox"].shape[0] if arrays["bbox"].ndim else -1
-    if offsets[0] != 0:
-        raise ShardFormatError(f"{path}: frame 0: /labels/offsets starts at {offsets[0]}, not 0")
-    steps = np.diff(offsets)
-    if np.any(steps < 0):
-        frame = int(np.flatnonzero(steps < 0)[0])
-        raise ShardFormatError(f"{path}: frame {frame}: /labels/offsets decreases "
-                               f"({offsets[frame]} -> {offsets[frame + 1]})")
-    if offsets[-1] != count:
-        raise ShardFormatError(f"{path}: frame {frames - 1}: /labels/offsets ends at "
-                               f"{offsets[-1]} but /labels/bbox has {count} rows")
-    for key, shape in _LABEL_SHAPES.items():
-        if key == "offsets" or key not in arrays:
-            continue
-        expected = tuple(count if s == "M" else num_rates if s == "R" else s for s in shape)
-        if arrays[key].shape != expected:
-            raise ShardFormatError(f"{path}: /labels/{key} has shape {arrays[key].shape}, "
-                                   f"expected {expected}")
-
-    def refuse(rows: np.ndarray, what: str) -> None:
-        if rows.size:
-            row = int(rows[0])
-            frame = int(np.searchsorted(offsets, row, side="right") - 1)
-            raise ShardFormatError(f"{path}: frame {frame}: label {row - int(offsets[frame])} "
-                                   f"{what}")
-
-    with np.errstate(invalid="ignore"):
-        box = arrays["bbox"].astype(np.float64)
-        tol = 1e-3
-        bad = ~np.isfinite(box).all(axis=1) | (box[:, 0] >= box[:, 2]) | (box[:, 1] >= box[:, 3]) \
-            | (box[:, 0] < -tol) | (box[:, 1] < -tol) | (box[:, 2] > width + tol) \
-            | (box[:, 3] > height + tol)
-        rows = np.flatnonzero(bad)
-        if rows.size:
-            refuse(rows, f"has bbox {box[rows[0]].tolist()}; expected finite 0 <= x1 < x2 <= "
-                         f"{width}, 0 <= y1 < y2 <= {height}")
-        amodal = arrays["bbox_amodal"].astype(np.float64)
-        refuse(np.flatnonzero(~np.isfinite(amodal).all(axis=1) | (amodal[:, 0] > amodal[:, 2])
-                              | (amodal[:, 1] > amodal[:, 3])), "has a non-finite or inverted bbox_amodal")
-        class_id = arrays["class_id"]
-        if not np.issubdtype(class_id.dtype, np.integer):
-            raise ShardFormatError(f"{path}: /labels/class_id holds {class_id.dtype}, not integers")
-        refuse(np.flatnonzero((class_id < 0) | (class_id >= len(class_names))),
-               f"has a class_id outside 0..{len(class_names) - 1}")
-        unlabelled = np.flatnonzero(~np.isin(class_id, LABELLED_CLASSES))
-        if unlabelled.size:
-            refuse(unlabelled, f"has class_id {int(class_id[unlabelled[0]])} "
-                               f"({CLASS_NAMES[int(class_id[unlabelled[0]])]}), which rainbench never labels")
-        refuse(np.flatnonzero(arrays["instance_id"] < 0), "has a negative instance_id")
-        for key in ("visible_fraction", "truncation"):
-            values = arrays[key].astype(np.float64)
-            refuse(np.flatnonzero(~((values >= 0) & (values <= 1))), f"has {key} outside [0, 1]")
-        for key in ("rain_coverage", "contrast_loss"):
-            if key in arrays:
-                values = arrays[key].astype(np.float64)
-                refuse(np.flatnonzero(~np.isfinite(values).all(axis=0)), f"has a non-finite {key}")
-
-
-_LABEL_SHAPES = {
-    "offsets": None, "bbox": ("M", 4), "bbox_amodal": ("M", 4), "class_id": ("M",),
-    "instance_id": ("M",), "visible_fraction": ("M",), "truncation": ("M",),
-    "rain_coverage": ("R", "M"), "contrast_loss": ("R", "M"),
-}
-
-
-def open_checked(path: str | Path):
-    """:func:`open_shard` then :func:`check_labels`: how every rainbench reader opens a shard.
-    Every failure is a one-line :class:`ShardFormatError` naming the file."""
-    try:
-        handle = open_shard(path)
-    except ShardFormatError:
-        raise
-    except (KeyError, OSError, RuntimeError, TypeError, ValueError) as error:
-        # damaged HDF5 metadata surfaces from h5py as KeyError, OSError, ...
-        reason = " ".join(str(error).split())
-        raise ShardFormatError(f"{path}: not a readable shard ({type(error).__name__}: "
-                               f"{reason})") from None
-    try:
-        check_labels(handle, path)
-    except BaseException:
-        handle.close()
-        raise
-    return handle
-
-
-def image_index(shards: Sequence[Path]) -> list[tuple[int, Path, int]]:
-    """(image id, shard path, frame) for every frame; ids 1-based, shard order then frames."""
-    index, next_id = [], 1
-    for path in shards:
-        with open_checked(path) as handle:
-            frames = int(handle["labels/offsets"].shape[0]) - 1
-        for frame in range(frames):
-            index.append((next_id, Path(path), frame))
-            next_id += 1
-    return index
-
-
-def open_in_turn(index: Sequence[tuple[int, Path, int]]):
-    """Yield ``(image_id, shard_path, frame, handle)`` for the entries of :func:`image_index` (or a
-    slice of it), in order: each shard is opened once while its frames follow each other, and
-    closed when the walk moves on or ends. ``handle`` is an open :func:`open_checked` file."""
-    handle, current = None, None
-    try:
-        for image_id, path, frame in index:
-            if path != current:
-                if handle is not None:
-                    handle.close()
-                handle, current = open_checked(path), path
-            yield image_id, path, frame, handle
-    finally:
-        if handle is not None:
-            handle.close()
-
-
-def verify_dataset(root: str | Path) -> list[str]:
-    """Problems of dataset ``root``, one line each, naming the file (empty list: all good)."""
-    root = Path(root)
-    manifest = read_manifest(root)
-    if manifest is None:
-        return [f"{root / MANIFEST}: missing"]
-    problems = []
-    if not manifest.get("complete"):
-        problems.append(f"{root / MANIFEST}: the dataset is incomplete (run the same command "
-                        "again to finish it)")
-    for entry in manifest["shards"]:
-        path = root / entry["path"]
-        if not path.is_file():
-            problems.append(f"{path}: missing")
-            continue
-        if path.stat().st_size != entry["bytes"]:
-            problems.append(f"{path}: {path.stat().st_size} bytes, manifest says {entry['bytes']}")
-            continue
-        if sha256_of(path) != entry["sha256"]:
-            problems.append(f"{path}: sha256 differs from the manifest")
-            continue
-        try:
-            with open_checked(path) as handle:
-                rgb = handle["rgb"].shape
-                offsets = handle["labels/offsets"].shape[0]
-                if rgb[:2] != (len(entry["rates"]), entry["frames"]) or offsets != rgb[1] + 1:
-                    problems.append(f"{path}: shapes disagree with the manifest (rgb {rgb})")
-        except ShardFormatError as error:
-            problems.append(str(error))
-    return problems
-
-
-def unlisted_shards(root: str | Path) -> list[Path]:
-    """``.h5`` files under dataset ``root`` that its manifest does not list (so not part of the
-    dataset: ``rainbench verify`` warns about them). Hidden temporary files are not counted."""
-    root = Path(root)
-    manifest = read_manifest(root)
-    listed = {root / entry["path"] for entry in manifest["shards"]} if manifest else set()
-    return sorted(path for path in root.rglob("*.h5")
-                  if not path.name.startswith(".") and path not in listed)
 
 
 # -- generation --------------------------------------------------------------------------------
@@ -590,6 +226,12 @@ def _locked(root: Path):
         os.close(fd)
 
 
+def _entry(path: Path, task: GenerateConfig, root: Path) -> dict:
+    """The manifest entry of ``task``'s finished shard ``path``."""
+    return shard_entry(path, root, scene_seed=task.seed, frame_offset=task.frame_offset,
+                       frames=task.frames, rates=task.rates)
+
+
 def _remove_temporaries(root: Path) -> None:
     for stale in root.glob(".*.tmp-*"):
         stale.unlink(missing_ok=True)
@@ -610,7 +252,7 @@ def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> di
     if not overwrite:
         raise DatasetError(f"OUT: {root} holds a dataset of another config; use --overwrite to "
                            "replace it or choose another OUT")
-    for path in list(root.glob("scene*_f*.h5")) + [root / MANIFEST]:
+    for path in list(root.glob(SHARD_GLOB)) + [root / MANIFEST]:
         path.unlink(missing_ok=True)
     return {}
 
@@ -676,7 +318,7 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
                     and sha256_of(path) == entry["sha256"]:
                 entries[index] = entry
             elif entry is None and path.is_file() and _adoptable(path, task):
-                entries[index] = shard_entry(path, task, root)
+                entries[index] = _entry(path, task, root)
             else:
                 pending.append(index)
                 continue
@@ -684,11 +326,11 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
                 progress(task.frames)
 
         def save() -> Path:
-            return write_manifest(root, config, [entries[i] for i in sorted(entries)],
+            return write_manifest(root, config.to_dict(), [entries[i] for i in sorted(entries)],
                                   complete=len(entries) == len(tasks))
 
         def record(index: int, path: Path) -> None:
-            entries[index] = shard_entry(path, tasks[index], root)
+            entries[index] = _entry(path, tasks[index], root)
             save()
 
         save()  # before the first shard: an interrupted run always leaves a manifest to resume
@@ -710,7 +352,7 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
                 for index in pending:
                     path = root / shard_name(tasks[index].seed, tasks[index].frame_offset)
                     if index not in entries and path.is_file() and _adoptable(path, tasks[index]):
-                        entries[index] = shard_entry(path, tasks[index], root)
+                        entries[index] = _entry(path, tasks[index], root)
                 if executor == "local":
                     _remove_temporaries(root)
                 if fresh and not entries:

@@ -28,7 +28,7 @@ from rainbench.rain.weather import Weather, check_sky, check_time_of_day, weathe
 from . import labels as lb
 from . import sim
 from .render import FrameRenderer, camera_pose
-from .shard import STORABLE, ShardWriter, shard_name
+from rainbench.store.shard import STORABLE, ShardWriter, shard_name
 from .weather import render_key
 
 MAX_SEED = 2**31 - 1

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rainbench.store.labels import FrameLabels
+
 
 @dataclass(frozen=True)
 class LabelFilter:
@@ -35,25 +37,6 @@ class LabelFilter:
             )
         if self.min_visible_pixels < 1:
             raise ValueError(f"min_visible_pixels: expected >= 1, got {self.min_visible_pixels}")
-
-
-@dataclass(frozen=True)
-class FrameLabels:
-    """Labels of one frame; M labelled instances, sorted by instance id.
-
-    bbox, bbox_amodal: (M, 4) float32 xyxy pixel-edge; class_id, instance_id: (M,) int32;
-    visible_fraction, truncation: (M,) float32 in [0, 1].
-    """
-
-    bbox: np.ndarray
-    bbox_amodal: np.ndarray
-    class_id: np.ndarray
-    instance_id: np.ndarray
-    visible_fraction: np.ndarray
-    truncation: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.instance_id.shape[0])
 
 
 def _check_instance_map(instance_map: np.ndarray, name: str) -> None:

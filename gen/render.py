@@ -18,8 +18,8 @@ import numpy as np
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
 from rainbench.rain.weather import Weather, road_mirror_weight
 
-from .gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
-from .gl import state as _gl_state
+from rainbench.gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
+from rainbench.gl import state as _gl_state
 from .weather import WeatherRig
 
 HIDDEN_GROUP = 5

@@ -25,7 +25,7 @@ from rainbench.rain.weather import SKIES
 from . import people
 
 # COCO-80 indices, so any COCO-pretrained YOLO matches them directly (one definition: mjcf/classes.py).
-from rainbench.mjcf.classes import BICYCLE, CAR, CLASS_NAMES, MOTORCYCLE, PERSON  # noqa: E402,F401
+from rainbench.store.classes import BICYCLE, CAR, CLASS_NAMES, MOTORCYCLE, PERSON  # noqa: E402,F401
 
 LANE_WIDTH = 3.5
 NUM_LANES = 4
@@ -75,7 +75,7 @@ FACADES: tuple[tuple[float, float, float], ...] = (
 )
 
 
-from .classes import BUS, TRUCK  # noqa: E402  -- COCO ids of the heavy vehicles
+from rainbench.store.classes import BUS, TRUCK  # noqa: E402  -- COCO ids of the heavy vehicles
 
 # Vehicle styles every layout draws from, with their planning dimensions (length, width, height)
 # in metres; mjcf/scene.py `_add_vehicle` builds them.

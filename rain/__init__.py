@@ -17,7 +17,7 @@ from rainbench.rain.config import RAIN_MODELS, RainConfig
 from rainbench.rain.lens import LensClock, LensDrops, jeon2022_drop_count
 from rainbench.rain.metrics import SsimReference, box_rain_labels, image_quality, luma, psnr, ssim_gray
 from rainbench.rain.physical import AirDrops, extinction_coefficient, marshall_palmer_slope, terminal_velocity, visibility_km
-from rainbench.rain.rates import MAX_RATE_MM_H, RatesError, parse_rates
+from rainbench.store.rates import MAX_RATE_MM_H, RatesError, parse_rates
 from rainbench.rain.render import Drops, RainFrame, render_rain, render_rain_sweep, sample_drops
 
 __all__ = [

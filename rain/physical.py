@@ -28,7 +28,7 @@ import numpy as np
 
 from rainbench.rain._seeding import STREAM_AIR, child_generator
 from rainbench.rain.config import RainConfig
-from rainbench.rain.rates import MAX_RATE_MM_H
+from rainbench.store.rates import MAX_RATE_MM_H
 
 MP_N0_PER_M3_MM = 8000.0
 MP_LAMBDA_COEF = 4.1

@@ -20,7 +20,7 @@ from rainbench.rain import lens as lens_mod
 from rainbench.rain import physical as phys
 from rainbench.rain._seeding import check_seed_sequence
 from rainbench.rain.config import RAIN_MODELS, RainConfig
-from rainbench.rain.rates import MAX_RATE_MM_H
+from rainbench.store.rates import MAX_RATE_MM_H
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,6 +1,6 @@
-"""Shared fixtures. Importing rainbench first chooses MuJoCo's GL backend (MUJOCO_GL)."""
+"""Shared fixtures. Importing rainbench.gen first chooses MuJoCo's GL backend (MUJOCO_GL)."""
 
-import rainbench  # noqa: F401  -- must precede any mujoco import
+import rainbench.gen  # noqa: F401  -- must precede any mujoco import
 
 import mujoco
 import numpy as np

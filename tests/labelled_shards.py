@@ -4,9 +4,9 @@ import json
 
 import numpy as np
 
-from rainbench.gen.labels import FrameLabels
-from rainbench.gen.shard import ShardWriter, shard_name
-from rainbench.mjcf.classes import CLASS_NAMES
+from rainbench.store.labels import FrameLabels
+from rainbench.store.shard import ShardWriter, shard_name
+from rainbench.store.classes import CLASS_NAMES
 
 OLD_CLASS_NAMES = ["person", "bicycle", "car", "motorcycle"]
 """The ``class_names`` attribute of shards written before bus and truck existed."""

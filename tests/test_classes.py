@@ -14,12 +14,11 @@ from pycocotools.cocoeval import COCOeval
 
 from rainbench import cli
 from rainbench.eval import backends, pipeline
-from rainbench.eval.metrics import parse_classes
-from rainbench.gen.dataset import open_checked
-from rainbench.gen.export import export_coco, export_yolo, read_yolo_labels
-from rainbench.gen.shard import ShardFormatError
+from rainbench.store.shard import open_checked
+from rainbench.store.export import export_coco, export_yolo, read_yolo_labels
+from rainbench.store.shard import ShardFormatError
 from rainbench.mjcf import layout
-from rainbench.mjcf.classes import CLASS_NAMES
+from rainbench.store.classes import CLASS_NAMES, parse_classes
 
 # torch's triton segfaults when first loaded after Mesa rendered in the same process (see
 # tests/test_eval_pipeline.py); `rainbench paper` below loads it, so load it at collection.

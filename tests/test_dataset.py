@@ -14,16 +14,16 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from rainbench import ShardDataset, cli
+from rainbench import ShardDataset, cli, store
 from rainbench.gen import dataset as ds
-from rainbench.gen.reader import ShardReader
-from rainbench.gen.shard import ShardFormatError, ShardWriter, read_frame_labels, read_rgb
+from rainbench.store.reader import ShardReader
+from rainbench.store.shard import ShardFormatError, ShardWriter, read_frame_labels, read_rgb
 
 SMALL = dict(scenes=2, frames=4, frames_per_shard=2, width=96, height=72, rates=(0.0, 50.0))
 
 
 def _hashes(root):
-    manifest = json.loads((Path(root) / ds.MANIFEST).read_text())
+    manifest = json.loads((Path(root) / store.MANIFEST).read_text())
     return [(entry["path"], entry["sha256"]) for entry in manifest["shards"]]
 
 
@@ -35,21 +35,23 @@ def dataset_dir(tmp_path_factory):
 
 
 def test_manifest_lists_every_shard_in_order(dataset_dir):
-    manifest = json.loads((dataset_dir / ds.MANIFEST).read_text())
+    manifest = json.loads((dataset_dir / store.MANIFEST).read_text())
     assert manifest["complete"] is True and manifest["config"]["scenes"] == 2
     assert [(e["scene_seed"], e["frame_offset"], e["frames"]) for e in manifest["shards"]] == [
         (0, 0, 2), (0, 2, 2), (1, 0, 2), (1, 2, 2)]
     for entry in manifest["shards"]:
         assert entry["bytes"] == (dataset_dir / entry["path"]).stat().st_size
         assert entry["rates"] == [0.0, 50.0] and len(entry["sha256"]) == 64
-    ids = [image_id for image_id, _, _ in ds.image_index(ds.list_shards(dataset_dir))]
+    ids = [image.image_id for image in store.Dataset(dataset_dir).images]
     assert ids == list(range(1, 9))
 
 
-def test_open_in_turn_opens_each_shard_once_and_closes_it(dataset_dir):
-    index = ds.image_index(ds.list_shards(dataset_dir))
+def test_walk_opens_each_shard_once_and_closes_it(dataset_dir):
+    dataset = store.Dataset(dataset_dir)
+    index = [(image.image_id, image.shard, image.frame) for image in dataset.images]
     seen, handles = [], {}
-    for image_id, path, frame, handle in ds.open_in_turn(index):
+    for image, handle in dataset.walk():
+        image_id, path, frame = image.image_id, image.shard, image.frame
         seen.append((image_id, path, frame))
         handles.setdefault(path, []).append(handle)
         assert Path(handle.filename) == path and handle.id.valid
@@ -100,7 +102,7 @@ def test_resume_after_an_interrupted_run(dataset_dir, tmp_path):
         ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1, progress=crash)
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["manifest.json", "scene000000_f00000.h5"]  # nothing partial, no temp file
-    assert json.loads((tmp_path / ds.MANIFEST).read_text())["complete"] is False
+    assert json.loads((tmp_path / store.MANIFEST).read_text())["complete"] is False
     (tmp_path / ".scene000000_f00002.h5.tmp-99999").write_bytes(b"left by kill -9")
     ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1)
     assert _hashes(tmp_path) == _hashes(dataset_dir)
@@ -114,17 +116,17 @@ def test_kill_9_mid_run_then_resume(tmp_path):
             "--workers", "1", "--quiet"]
     process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
-    while not (out / ds.MANIFEST).exists() and time.time() < deadline and process.poll() is None:
+    while not (out / store.MANIFEST).exists() and time.time() < deadline and process.poll() is None:
         time.sleep(0.02)
     process.send_signal(signal.SIGKILL)
     process.wait()
-    listed = {e["path"] for e in json.loads((out / ds.MANIFEST).read_text())["shards"]}
+    listed = {e["path"] for e in json.loads((out / store.MANIFEST).read_text())["shards"]}
     for shard in out.glob("scene*.h5"):  # every shard under a final name is complete
         with h5py.File(shard) as handle:
             assert handle["labels/offsets"].shape == (3,)
     assert subprocess.run(argv, capture_output=True).returncode == 0
-    assert ds.verify_dataset(out) == []
-    assert len(json.loads((out / ds.MANIFEST).read_text())["shards"]) == 9 >= len(listed)
+    assert store.verify_dataset(out) == []
+    assert len(json.loads((out / store.MANIFEST).read_text())["shards"]) == 9 >= len(listed)
 
 
 def test_other_config_is_refused_unless_overwrite(dataset_dir, tmp_path, capsys):
@@ -133,7 +135,7 @@ def test_other_config_is_refused_unless_overwrite(dataset_dir, tmp_path, capsys)
     with pytest.raises(ds.DatasetError, match="holds a dataset of another config"):
         ds.run_dataset(ds.DatasetConfig(**other), tmp_path, workers=1)
     ds.run_dataset(ds.DatasetConfig(**other), tmp_path, workers=1, overwrite=True)
-    assert ds.verify_dataset(tmp_path) == []
+    assert store.verify_dataset(tmp_path) == []
     stranger = tmp_path / "stranger"
     stranger.mkdir()
     (stranger / "notes.txt").write_text("mine")

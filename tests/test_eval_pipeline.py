@@ -9,9 +9,9 @@ import pytest
 
 from rainbench import cli
 from rainbench.eval import backends, pipeline
-from rainbench.eval.metrics import CLASS_IDS, CLASS_NAMES, PAPER_CLASS_NAMES
+from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES, PAPER_CLASS_NAMES
 from rainbench.gen.generate import GenerateConfig, generate_shard
-from rainbench.gen.shard import open_shard, read_frame_labels
+from rainbench.store.shard import open_shard, read_frame_labels
 
 # torch (through torch._dynamo) loads triton, whose bundled LLVM segfaults when it is loaded
 # after Mesa's llvmpipe has rendered in the same process (seen here: generate a shard, then
@@ -22,6 +22,11 @@ import ultralytics  # noqa: E402,F401
 
 RATES = (0.0, 50.0)
 RECORD_KEYS = {"model", "rate", "class", "ap50", "ap50_95", "precision", "recall", "f1", "n_gt"}
+
+
+def _images(data_dir):
+    """(image id, shard path, frame) of every image, through the evaluator's dataset reader."""
+    return [(image.image_id, image.shard, image.frame) for image in pipeline.open_dataset(data_dir).images]
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +41,7 @@ def data_dir(tmp_path_factory):
 def _perfect_records(data_dir):
     """COCO results equal to the shard's own labels, score 1."""
     records = []
-    for image_id, shard, frame in pipeline.dataset_images(data_dir):
+    for image_id, shard, frame in _images(data_dir):
         with open_shard(shard) as handle:
             labels = read_frame_labels(handle, frame)
         for box, class_id in zip(labels["bbox"].tolist(), labels["class_id"].tolist()):
@@ -79,24 +84,24 @@ def test_rate_token_rejects_bad_rates(rate):
 
 
 def test_dataset_images_numbering_and_errors(data_dir, tmp_path):
-    images = pipeline.dataset_images(data_dir)
+    images = _images(data_dir)
     assert [(i, s.name, f) for i, s, f in images] == [(1, "scene000000_f00000.h5", 0),
                                                       (2, "scene000000_f00000.h5", 1)]
-    assert pipeline.dataset_rates(data_dir) == list(RATES)
+    assert list(pipeline.open_dataset(data_dir).rates) == list(RATES)
     # A second shard sorts after the first: ids continue in shard order.
     two = tmp_path / "two"
     two.mkdir()
     shutil.copy(data_dir / "scene000000_f00000.h5", two / "scene000000_f00002.h5")
     shutil.copy(data_dir / "scene000000_f00000.h5", two / "scene000000_f00000.h5")
-    assert [(i, s.name, f) for i, s, f in pipeline.dataset_images(two)] == [
+    assert [(i, s.name, f) for i, s, f in _images(two)] == [
         (1, "scene000000_f00000.h5", 0), (2, "scene000000_f00000.h5", 1),
         (3, "scene000000_f00002.h5", 0), (4, "scene000000_f00002.h5", 1)]
     (tmp_path / "empty").mkdir()
     with pytest.raises(pipeline.EvalError, match="no shard"):
-        pipeline.dataset_images(tmp_path / "empty")
+        _images(tmp_path / "empty")
     with pytest.raises(pipeline.EvalError, match="not a directory"):
-        pipeline.dataset_images(tmp_path / "missing")
-    gt = pipeline.ground_truth(images)
+        _images(tmp_path / "missing")
+    gt = pipeline.ground_truth(pipeline.open_dataset(data_dir))
     assert [im["id"] for im in gt["images"]] == [1, 2]
     assert gt["images"][0]["width"] == 96 and gt["images"][0]["height"] == 72
 
@@ -106,7 +111,7 @@ def test_mixed_rates_are_an_error(data_dir, tmp_path):
     generate_shard(GenerateConfig(seed=1, frames=1, width=96, height=72, rates=(0.0, 100.0)), other)
     shutil.copy(data_dir / "scene000000_f00000.h5", other / "scene000000_f00000.h5")
     with pytest.raises(pipeline.EvalError, match="same rates"):
-        pipeline.dataset_images(other)
+        _images(other)
 
 
 def test_predictions_mode_end_to_end_perfect_predictions(data_dir, tmp_path, capsys):
@@ -134,7 +139,7 @@ def test_predictions_mode_end_to_end_perfect_predictions(data_dir, tmp_path, cap
         else:
             assert record["ap50"] is None  # nan -> null
     present = {r["category_id"] for r in records}
-    assert {m["class"] for m in metrics if m["n_gt"] > 0} == {CLASS_NAMES[c] for c in present if c in CLASS_IDS}
+    assert {m["class"] for m in metrics if m["n_gt"] > 0} == {CLASS_NAMES[c] for c in present if c in PAPER_CLASSES}
     assert json.loads((out / "images.json").read_text()) == [
         {"id": 1, "shard": "scene000000_f00000.h5", "frame": 0},
         {"id": 2, "shard": "scene000000_f00000.h5", "frame": 1}]
@@ -179,7 +184,7 @@ class _FakeDetector:
 
 def test_backend_detections_are_cached_and_reused(data_dir, tmp_path, monkeypatch):
     by_bytes = {}
-    for _, shard, frame in pipeline.dataset_images(data_dir):
+    for _, shard, frame in _images(data_dir):
         with open_shard(shard) as handle:
             labels = read_frame_labels(handle, frame)
             for rate_index in range(len(RATES)):
@@ -244,7 +249,7 @@ def test_ultralytics_backend_end_to_end(data_dir, tiny_yolo, tmp_path):
     detector = backends.load_detector(tiny_yolo, device="cpu")
     assert detector.name == "tiny11n"
     images = []
-    for _, shard, frame in pipeline.dataset_images(data_dir):
+    for _, shard, frame in _images(data_dir):
         with open_shard(shard) as handle:
             images.append(handle["rgb"][1, frame])
     outputs = detector.predict(images, imgsz=96, conf=0.0001, iou=0.7, max_det=50)

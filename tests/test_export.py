@@ -1,6 +1,6 @@
 """YOLO / COCO exports and preview videos round-trip against the shards they came from."""
 
-import rainbench  # noqa: F401  -- must precede any mujoco import
+import rainbench.gen  # noqa: F401  -- must precede any mujoco import
 
 import json
 
@@ -8,12 +8,14 @@ import cv2
 import numpy as np
 import pytest
 
-from rainbench.gen import video as video_module
-from rainbench.gen.dataset import DatasetConfig, image_index, list_shards, run_dataset
-from rainbench.gen.export import (ExportError, export_coco, export_yolo, rate_token,
+from rainbench.store import video as video_module
+from rainbench.gen.dataset import DatasetConfig, run_dataset
+from rainbench.store import Dataset, list_shards
+from rainbench.store.rates import rate_token
+from rainbench.store.export import (ExportError, export_coco, export_yolo,
                                   read_yolo_labels)
-from rainbench.gen.shard import open_shard, read_frame_labels
-from rainbench.gen.video import write_videos
+from rainbench.store.shard import open_shard, read_frame_labels
+from rainbench.store.video import write_videos
 
 RATES = (0.0, 50.0)
 
@@ -31,7 +33,8 @@ def dataset(tmp_path_factory):
 def shard_truth(root):
     """[(image_id, shard, frame, rgb (R, H, W, 3), labels)] in image-id order."""
     truth = []
-    for image_id, path, frame in image_index(list_shards(root)):
+    for image in Dataset(root).images:
+        image_id, path, frame = image.image_id, image.shard, image.frame
         with open_shard(path) as handle:
             truth.append((image_id, path, frame, handle["rgb"][:, frame],
                           read_frame_labels(handle, frame)))
@@ -41,7 +44,7 @@ def shard_truth(root):
 def test_rate_token():
     assert [rate_token(r) for r in (0, 0.0, 12.5, 100, 100.0, 0.1, 2.25)] == \
         ["0", "0", "12.5", "100", "100", "0.1", "2.25"]
-    with pytest.raises(ExportError, match="rate"):
+    with pytest.raises(ValueError, match="rate"):
         rate_token(-1)
 
 

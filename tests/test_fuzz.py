@@ -31,11 +31,12 @@ from hypothesis import strategies as st
 
 from rainbench import ShardDataset, cli
 from rainbench.eval import backends, pipeline
+from rainbench import store
 from rainbench.gen import dataset as ds
 from rainbench.gen.generate import GenerateConfig, generate_shard
-from rainbench.gen.shard import ShardFormatError
+from rainbench.store.shard import ShardFormatError
 from rainbench.rain import parse_rates
-from rainbench.rain.rates import MAX_RATE_COUNT, MAX_RATE_MM_H, RatesError
+from rainbench.store.rates import MAX_RATE_COUNT, MAX_RATE_MM_H, RatesError
 
 # torch's triton segfaults when first loaded after Mesa's llvmpipe rendered in this process
 # (tests/test_eval_pipeline.py): load it at collection, before any fixture renders.
@@ -378,7 +379,7 @@ def manifests(draw, valid):
 
 @pytest.fixture(scope="module")
 def valid_manifest(dataset_dir):
-    return json.loads((dataset_dir / ds.MANIFEST).read_text())
+    return json.loads((dataset_dir / store.MANIFEST).read_text())
 
 
 def _check_manifest_result(root, manifest):
@@ -396,14 +397,14 @@ def test_manifest_loader_and_verify(dataset_dir, valid_manifest, data):
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "data"
         shutil.copytree(dataset_dir, root)
-        (root / ds.MANIFEST).write_text(text)
+        (root / store.MANIFEST).write_text(text)
         try:
-            manifest = ds.read_manifest(root)
+            manifest = store.read_manifest(root)
         except ds.DatasetError as error:
             message = str(error)
-            assert "\n" not in message and str(root / ds.MANIFEST) in message, message
+            assert "\n" not in message and str(root / store.MANIFEST) in message, message
             code, out, err = run_cli(["verify", root])
-            one_line_error(code, err, root / ds.MANIFEST)
+            one_line_error(code, err, root / store.MANIFEST)
             return
         _check_manifest_result(root, manifest)
         code, out, err = run_cli(["verify", root])
@@ -411,7 +412,7 @@ def test_manifest_loader_and_verify(dataset_dir, valid_manifest, data):
         for line in err.strip().splitlines():
             assert line.startswith(("rainbench: bad: ", "rainbench: warning: ")) and str(root) in line
         try:
-            shards = ds.list_shards(root)
+            shards = store.list_shards(root)
         except ds.DatasetError as error:
             assert "\n" not in str(error)
             return

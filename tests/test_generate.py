@@ -13,7 +13,7 @@ from rainbench.gen import labels as lb
 from rainbench.gen import sim
 from rainbench.gen.generate import GenerateConfig, build_scene, frame_labels, generate_shard
 from rainbench.gen.render import FrameRenderer
-from rainbench.gen.shard import ShardFormatError, ShardWriter, open_shard, read_frame_labels
+from rainbench.store.shard import ShardFormatError, ShardWriter, open_shard, read_frame_labels
 from rainbench.mjcf import layout as L
 from rainbench.mjcf.scene import build_spec, export_scene
 

@@ -20,12 +20,13 @@ import numpy as np
 import pytest
 
 from rainbench import ShardDataset, cli
+from rainbench import store
 from rainbench.gen import dataset as ds
-from rainbench.gen import export as ex
-from rainbench.gen import gl
+from rainbench.store import export as ex
+from rainbench import gl
 from rainbench.gen.generate import GenerateConfig, build_scene, generate_shard
 from rainbench.gen.render import FrameRenderer, padded_size
-from rainbench.gen.shard import ShardFormatError
+from rainbench.store.shard import ShardFormatError
 from rainbench.mjcf.scene import build_spec
 
 # torch's triton segfaults when first loaded after Mesa's llvmpipe rendered in this process
@@ -44,7 +45,7 @@ SLOW = ["--workers", "2", "--threads", "1", "--render-threads", "1"]
 
 
 def _hashes(root):
-    manifest = json.loads((Path(root) / ds.MANIFEST).read_text())
+    manifest = json.loads((Path(root) / store.MANIFEST).read_text())
     return [(entry["path"], entry["sha256"]) for entry in manifest["shards"]]
 
 
@@ -186,7 +187,7 @@ def test_kill_9_of_a_two_worker_run_kills_its_workers_and_the_rerun_resumes(refe
         time.sleep(2)
         assert sorted(p.name for p in out.iterdir()) == listing  # nothing appears afterwards
         # the manifest was written before the first shard and lists only complete ones
-        manifest = json.loads((out / ds.MANIFEST).read_text())
+        manifest = json.loads((out / store.MANIFEST).read_text())
         assert manifest["complete"] is False and len(manifest["shards"]) < 3
     finally:
         if _live_group(process.pid):
@@ -194,7 +195,7 @@ def test_kill_9_of_a_two_worker_run_kills_its_workers_and_the_rerun_resumes(refe
     rerun = subprocess.run([sys.executable, "-m", "rainbench.cli", *GEN, "--out", str(out),
                             "--workers", "2"], capture_output=True, text=True)
     assert rerun.returncode == 0, rerun.stderr
-    assert ds.verify_dataset(out) == [] and _hashes(out) == reference
+    assert store.verify_dataset(out) == [] and _hashes(out) == reference
     assert not list(out.glob(".*"))  # no temporary file, no lock file left
 
 
@@ -222,7 +223,7 @@ def test_ctrl_c_stops_the_workers_tells_the_truth_and_the_rerun_resumes(referenc
         assert sorted(p.name for p in out.glob("scene*.h5")) == finals  # no shard afterwards
         assert not list(out.glob(".*tmp*"))  # the stopped workers' temporary files are removed
         if finals:
-            listed = sorted(e["path"] for e in json.loads((out / ds.MANIFEST).read_text())["shards"])
+            listed = sorted(e["path"] for e in json.loads((out / store.MANIFEST).read_text())["shards"])
             assert listed == finals
     finally:
         if _live_group(process.pid):
@@ -247,23 +248,23 @@ def test_the_manifest_exists_before_the_first_shard(tmp_path):
 def test_a_complete_shard_missing_from_the_manifest_is_adopted(small, tmp_path, monkeypatch):
     """A run killed between a shard's rename and the manifest update: the re-run adopts it."""
     out = _copy_tree(small, tmp_path / "copy")
-    manifest = json.loads((out / ds.MANIFEST).read_text())
+    manifest = json.loads((out / store.MANIFEST).read_text())
     manifest["shards"], manifest["complete"] = manifest["shards"][:1], False
-    (out / ds.MANIFEST).write_text(json.dumps(manifest))
+    (out / store.MANIFEST).write_text(json.dumps(manifest))
 
     def no_render(*args, **kwargs):
         raise AssertionError("the shard should have been adopted, not rendered")
 
     monkeypatch.setattr(ds, "generate_shard", no_render)
     ds.run_dataset(ds.DatasetConfig(**SMALL), out, workers=1)
-    assert _hashes(out) == _hashes(small) and ds.verify_dataset(out) == []
+    assert _hashes(out) == _hashes(small) and store.verify_dataset(out) == []
 
 
 def test_a_corrupt_unlisted_shard_is_rendered_again(small, tmp_path, monkeypatch):
     out = _copy_tree(small, tmp_path / "copy")
-    manifest = json.loads((out / ds.MANIFEST).read_text())
+    manifest = json.loads((out / store.MANIFEST).read_text())
     manifest["shards"], manifest["complete"] = manifest["shards"][:1], False
-    (out / ds.MANIFEST).write_text(json.dumps(manifest))
+    (out / store.MANIFEST).write_text(json.dumps(manifest))
     corrupt = out / "scene000000_f00002.h5"
     with h5py.File(corrupt) as handle:
         info = handle["rgb"].id.get_chunk_info_by_coord((0, 0, 0, 0, 0))
@@ -413,9 +414,9 @@ def _manifest_cases():
 @pytest.mark.parametrize("name, change, message", _manifest_cases(), ids=[c[0] for c in _manifest_cases()])
 def test_bad_manifests_are_one_line_errors_everywhere(small, tmp_path, capsys, name, change, message):
     out = _copy_tree(small, tmp_path / "copy")
-    manifest = change(json.loads((out / ds.MANIFEST).read_text()))
-    (out / ds.MANIFEST).write_text(json.dumps(manifest))
-    where = re.escape(str(out / ds.MANIFEST)) + ": "
+    manifest = change(json.loads((out / store.MANIFEST).read_text()))
+    (out / store.MANIFEST).write_text(json.dumps(manifest))
+    where = re.escape(str(out / store.MANIFEST)) + ": "
     for argv in (["verify", str(out)],
                  ["generate", "--out", str(out), "--frames", "4", "--frames-per-shard", "2",
                   "--width", "96", "--height", "72", "--rates", "0,50", "--quiet"],
@@ -429,9 +430,9 @@ def test_bad_manifests_are_one_line_errors_everywhere(small, tmp_path, capsys, n
 
 def test_deeply_nested_manifest_names_the_file(small, tmp_path, capsys):
     out = _copy_tree(small, tmp_path / "copy")
-    (out / ds.MANIFEST).write_text("[" * 200_000)
+    (out / store.MANIFEST).write_text("[" * 200_000)
     _one_line_error(capsys, cli.main(["verify", str(out)]),
-                    re.escape(f"{out / ds.MANIFEST}: not a readable manifest (nested too deeply)"))
+                    re.escape(f"{out / store.MANIFEST}: not a readable manifest (nested too deeply)"))
 
 
 def _run_cli_env(tmp_path, env_changes):
@@ -537,7 +538,7 @@ def test_every_reader_refuses_bad_labels_naming_file_and_frame(labelled, tmp_pat
     with pytest.raises(ShardFormatError, match=pattern):
         ShardDataset(bad)
     with pytest.raises(ShardFormatError, match=pattern):
-        ds.image_index([bad])
+        store.Dataset([bad])
     for fmt in ("yolo", "coco"):
         code = cli.main(["export", str(bad), "--format", fmt, "--out", str(tmp_path / fmt)])
         _one_line_error(capsys, code, pattern)
@@ -559,9 +560,9 @@ def test_verify_reports_bad_labels(small, tmp_path, capsys):
         assert offsets.shape == (3,)
         del handle["labels/offsets"]
         handle.create_dataset("labels/offsets", data=np.array([0, offsets[-1] + 1, offsets[-1]]))
-    manifest = json.loads((out / ds.MANIFEST).read_text())
+    manifest = json.loads((out / store.MANIFEST).read_text())
     manifest["shards"][0].update(sha256=ds.sha256_of(shard), bytes=shard.stat().st_size)
-    (out / ds.MANIFEST).write_text(json.dumps(manifest))
+    (out / store.MANIFEST).write_text(json.dumps(manifest))
     assert cli.main(["verify", str(out)]) == 1
     assert capsys.readouterr().err.strip().splitlines() == [
         f"rainbench: bad: {shard}: frame 1: /labels/offsets decreases ({offsets[-1] + 1} -> "
@@ -570,7 +571,7 @@ def test_verify_reports_bad_labels(small, tmp_path, capsys):
 
 def test_good_labels_pass_the_check(labelled, small):
     for path in [labelled, *sorted(small.glob("*.h5"))]:
-        with ds.open_checked(path) as handle:
+        with store.open_checked(path) as handle:
             assert handle["labels/offsets"][-1] == handle["labels/bbox"].shape[0]
 
 
@@ -625,7 +626,7 @@ def test_verify_warns_about_shards_outside_the_manifest(small, tmp_path, capsys)
     assert captured.err.strip().splitlines() == [
         f"rainbench: warning: {out / name}: not listed in the manifest, so not part of the "
         "dataset (ignored)" for name in ("extra.h5", "old/scene000000_f00000.h5")]
-    assert ds.unlisted_shards(small) == []
+    assert store.unlisted_shards(small) == []
 
 
 @pytest.mark.parametrize("value", ["100001", "99999999999999999999", "0", "-3", "1e3"])

@@ -12,7 +12,7 @@ from rainbench import cli
 from rainbench.gen import sim
 from rainbench.gen.generate import GenerateConfig, build_scene, generate_shard, render_clip
 from rainbench.mjcf import layout as L
-from rainbench.mjcf.classes import BUS, CAR, PERSON, TRUCK
+from rainbench.store.classes import BUS, CAR, PERSON, TRUCK
 from rainbench.mjcf.scene import build_spec, export_scene
 
 SMALL = dict(width=160, height=120)

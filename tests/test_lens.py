@@ -11,7 +11,7 @@ import pytest
 from rainbench import rain
 from rainbench.rain import LensClock, RainConfig, image_quality, render_rain, render_rain_sweep, sample_drops
 from rainbench.rain import lens as lens_mod
-from rainbench.rain.testframe import street_frame
+from testframe import street_frame
 
 RATES = tuple(float(rate) for rate in range(0, 101, 10))
 CLIP = np.random.SeedSequence([3, 14])

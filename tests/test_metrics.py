@@ -13,6 +13,7 @@ from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
 from rainbench.eval import metrics as M
+from rainbench.store.classes import PAPER_CLASS_NAMES, PAPER_CLASSES
 
 PERSON, BICYCLE, CAR, MOTORCYCLE = 0, 1, 2, 3
 
@@ -102,7 +103,7 @@ def test_coco_ground_truth_layout():
         ]
     )
     assert [c["id"] for c in gt["categories"]] == [0, 1, 2, 3]
-    assert [c["name"] for c in gt["categories"]] == list(M.PAPER_CLASS_NAMES)
+    assert [c["name"] for c in gt["categories"]] == list(PAPER_CLASS_NAMES)
     assert [img["id"] for img in gt["images"]] == [1, 2]
     first, second = gt["annotations"]
     assert first == {
@@ -136,7 +137,7 @@ def test_perfect_predictions_give_ap_one():
         2, boxes, np.full(4, 0.8), classes[::-1].copy()
     )
     result = M.evaluate(gt, detections)
-    for class_id in M.CLASS_IDS:
+    for class_id in PAPER_CLASSES:
         metrics = result[class_id]
         assert (metrics.n_gt, metrics.n_det) == (2, 2)
         assert (metrics.ap50, metrics.ap75, metrics.ap50_95) == pytest.approx((1.0, 1.0, 1.0), abs=1e-12)
@@ -191,7 +192,7 @@ def test_matches_pycocotools_on_noisy_predictions(with_ignore):
     gt, detections = synthetic_set(np.random.default_rng(7), 120, with_ignore=with_ignore)
     reference = direct_cocoeval(gt, detections)
     result = M.evaluate(gt, detections)
-    for class_id in M.CLASS_IDS:
+    for class_id in PAPER_CLASSES:
         ap50, ap50_95 = direct_ap(reference, class_id)
         assert result[class_id].ap50 == pytest.approx(ap50, abs=1e-4)
         assert result[class_id].ap50_95 == pytest.approx(ap50_95, abs=1e-4)

@@ -24,7 +24,7 @@ from rainbench.rain import (
 from rainbench.rain import lens as lens_mod
 from rainbench.rain import physical as phys
 from rainbench.rain.metrics import luma, psnr
-from rainbench.rain.testframe import intrinsics, street_frame
+from testframe import intrinsics, street_frame
 
 RAIN_DIR = pathlib.Path(__file__).resolve().parents[1] / "rain"
 SWEEP_RATES = tuple(float(rate) for rate in range(0, 101, 10))

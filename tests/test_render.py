@@ -4,7 +4,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from rainbench.gen import gl
+from rainbench import gl
 from rainbench.gen import labels as lb
 from rainbench.gen.generate import frame_labels
 from rainbench.gen.render import FrameRenderer, camera_pose

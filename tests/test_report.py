@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from rainbench.eval import metrics as M
+from rainbench.store.classes import PAPER_CLASS_NAMES, PAPER_CLASSES
 from rainbench.eval import report as R
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -42,10 +43,10 @@ def _records(with_ci=True):
         for rate in RATES:
             fade = 1.0 - rate / 200.0  # 1.0, 0.75, 0.5
             per_class = {}
-            for class_id in M.CLASS_IDS:
+            for class_id in PAPER_CLASSES:
                 ap50 = scale * (0.4 + 0.1 * class_id) * fade
                 per_class[class_id] = _class_metrics(class_id, ap50, 0.8 * fade, n_gt=10 + class_id)
-            per_class[M.CLASS_IDS[1]] = (
+            per_class[PAPER_CLASSES[1]] = (
                 _class_metrics(1, float("nan"), float("nan"), n_gt=0) if rate == 50.0 else per_class[1]
             )
             results[(model, rate)] = per_class

@@ -7,8 +7,8 @@ import pytest
 from labelled_shards import OLD_CLASS_NAMES, write_labelled_shard
 
 from rainbench import cli
-from rainbench.gen.shard import ShardFormatError
-from rainbench.gen.stats import dataset_stats, render_stats
+from rainbench.store.shard import ShardFormatError
+from rainbench.store.stats import dataset_stats, render_stats
 
 PERSON, CAR, BUS, TRUCK = 0, 2, 5, 7
 

@@ -1,12 +1,12 @@
-"""Training tiles (rainbench.eval.tiles): labels cut exactly, placements inside the image and on
+"""Training tiles (rainbench.experiments.tiles): labels cut exactly, placements inside the image and on
 the picked objects, the covering grid, seeded exports, and one-line errors for bad settings."""
 
 import cv2
 import numpy as np
 import pytest
 
-from rainbench.eval import tiles
-from rainbench.gen.export import read_yolo_labels
+from rainbench.experiments import tiles
+from rainbench.store.export import read_yolo_labels
 
 
 def test_cut_boxes_clips_and_drops_by_area_fraction():

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from rainbench import cli
-from rainbench.eval import backends, train
-from rainbench.eval.metrics import CLASS_NAMES
+from rainbench.eval import backends
+from rainbench.experiments import train
+from rainbench.store.classes import CLASS_NAMES
 
 # Load torch's lazy modules before anything renders in this process (see test_eval_pipeline).
 backends._offline_ultralytics()
@@ -292,7 +293,7 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
         assert sorted({r["rate"] for r in records}) == [0, 50, 100]
         assert (tmp_path / "out" / rain / "ap50_vs_rate.png").stat().st_size > 1000
     # Table I counts equal the shard's labels.
-    from rainbench.eval.paper import table_one
+    from rainbench.experiments.paper import table_one
 
     counts = table_one(tmp_path / "data" / "jeon2022")
     records = json.loads((tmp_path / "out" / "jeon2022" / "metrics.json").read_text())

@@ -1,10 +1,11 @@
 """Dataset exports: YOLO folders (trainable with ultralytics) and COCO JSON, one per rain rate.
 
-Both exports number images with :func:`rainbench.gen.dataset.image_index` (1-based, manifest
-shard order, then frame order), the numbering used everywhere in rainbench, so an exported
+Both exports read through :class:`rainbench.store.dataset.Dataset` and number images as it does
+(1-based, manifest shard order, then frame order), the numbering used everywhere in rainbench, so an exported
 image ``000007.png`` is image id 7 in evaluation too.
 
-Layout of ``out_dir`` (``<token>`` is :func:`rate_token` of the rate, e.g. ``0``, ``12.5``):
+Layout of ``out_dir`` (``<token>`` is :func:`rainbench.store.rates.rate_token` of the rate,
+e.g. ``0``, ``12.5``):
 
 - YOLO: ``rate_<token>/images/<id:06d>.png``, ``rate_<token>/labels/<id:06d>.txt``,
   ``rate_<token>/data.yaml``;
@@ -13,7 +14,7 @@ Layout of ``out_dir`` (``<token>`` is :func:`rate_token` of the rate, e.g. ``0``
 
 Boxes in shards are float32 ``x1, y1, x2, y2`` in pixel-edge coordinates (docs/format.md).
 
-Class ids stay COCO-80 ids in both exports (:mod:`rainbench.mjcf.classes`: 0 person, 1 bicycle,
+Class ids stay COCO-80 ids in both exports (:mod:`rainbench.store.classes`: 0 person, 1 bicycle,
 2 car, 3 motorcycle, 5 bus, 7 truck). The classes an export declares are those its labels need
 (:func:`export_classes`): the paper's four when every label is one of them, else all six
 labelled classes. YOLO ``data.yaml`` ``names`` is the dict ``{id: name}`` over the dense ids
@@ -39,10 +40,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rainbench.mjcf.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES
-
-from .dataset import DatasetError, image_index, list_shards, open_checked, open_in_turn
-from .shard import read_frame_labels, read_rgb
+from .classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES, parse_classes
+from .dataset import Dataset
+from .manifest import DatasetError
+from .rates import rate_token
 
 IMAGE_FORMATS = ("png", "jpg")
 _JPEG_QUALITY = 95
@@ -52,53 +53,15 @@ class ExportError(DatasetError):
     """An export request that cannot be honoured; the message is one line naming the thing."""
 
 
-def rate_token(rate: float) -> str:
-    """Shortest decimal of ``rate`` as stored in shards (float32): 0 -> "0", 12.5 -> "12.5",
-    100 -> "100", 0.1 -> "0.1". Used in folder and file names (``rate_<token>``)."""
-    value = float(rate)
-    if not np.isfinite(value) or value < 0:
-        raise ExportError(f"rate: expected a finite rate >= 0 mm/h, got {rate!r}")
-    return np.format_float_positional(np.float32(value), trim="-")
-
-
-def dataset_rates(shards: Sequence[Path], rates: Sequence[float] | None = None) -> list[float]:
-    """The rates to export (float32 values as Python floats, in the requested order).
-
-    ``rates=None``: the rates of the first shard (ascending). Every selected rate must be in
-    every shard; otherwise one-line :class:`ExportError` naming the rate (and the shard).
-    """
-    per_shard = []
-    for path in shards:
-        with open_checked(path) as handle:
-            per_shard.append((Path(path), handle["rates"][:].astype(np.float32)))
-    if rates is None:
-        selected = [float(rate) for rate in per_shard[0][1]]
-    else:
-        try:
-            if isinstance(rates, (str, bytes)):
-                raise TypeError
-            rates = list(rates)
-        except TypeError as error:
-            raise ExportError(f"rates: expected a list of rates in mm/h, got {rates!r}") \
-                from error
-        if len(rates) == 0:
-            raise ExportError("rates: expected at least one rate, got an empty list")
-        selected = []
-        for rate in rates:
-            try:
-                value = float(np.float32(float(rate)))
-            except (TypeError, ValueError) as error:
-                raise ExportError(f"rates: {rate!r} is not a number") from error
-            rate_token(value)
-            if value not in selected:
-                selected.append(value)
-    for value in selected:
-        for path, shard_rates in per_shard:
-            if not np.any(shard_rates == np.float32(value)):
-                available = ", ".join(f"{r:g}" for r in shard_rates)
-                raise ExportError(f"rate {value:g} mm/h is not in the dataset ({path.name} has "
-                                  f"{available})")
-    return selected
+def open_for_export(data, rates: Sequence[float] | None) -> Dataset:
+    """:class:`Dataset` of ``data`` at ``rates`` (None: every rate of the dataset); a rate not
+    in every shard, or a malformed rate list, raises one-line :class:`ExportError`."""
+    try:
+        return Dataset(data, rates)
+    except DatasetError as error:
+        if type(error) is not DatasetError:
+            raise
+        raise ExportError(str(error)) from None
 
 
 def export_classes(class_ids: Sequence[int]) -> tuple[int, ...]:
@@ -114,14 +77,15 @@ def yolo_names(class_ids: Sequence[int]) -> list[str]:
     return list(CLASS_NAMES[:max(export_classes(class_ids)) + 1])
 
 
-def _check_classes(classes: Sequence[int] | None) -> np.ndarray | None:
+def _check_classes(classes: Sequence[int | str] | None) -> np.ndarray | None:
+    """(K,) int64 ids of the ``classes`` to export (:func:`rainbench.store.classes.parse_classes`),
+    None for every class; a bad entry raises one-line :class:`ExportError`."""
     if classes is None:
         return None
-    ids = [int(c) for c in classes]
-    unknown = [c for c in ids if c not in LABELLED_CLASSES]
-    if not ids or unknown:
-        raise ExportError(f"classes: expected rainbench class ids among {list(LABELLED_CLASSES)}, got {list(classes)}")
-    return np.asarray(sorted(set(ids)), np.int64)
+    try:
+        return np.asarray(parse_classes(classes), np.int64)
+    except ValueError as error:
+        raise ExportError(str(error).replace("--classes", "classes", 1)) from None
 
 
 _STAGE_PREFIX = ".export-tmp-"
@@ -193,33 +157,6 @@ def _write_image(path: Path, rgb: np.ndarray) -> None:
         raise OSError(f"{path}: could not write the image")
 
 
-def _walk(shards: Sequence[Path], rates: Sequence[float], classes: np.ndarray | None = None):
-    """Yield ``(image_id, shard_path, frame, rgb_by_rate, labels, (height, width))``.
-
-    ``rgb_by_rate``: list of (H, W, 3) uint8 RGB images, one per rate of ``rates`` (in that
-    order); ``labels``: :func:`read_frame_labels` of the frame (``bbox`` (M, 4) xyxy
-    pixel-edge float32, ``class_id`` (M,) int32, ...; ``rain_coverage`` and ``contrast_loss``
-    (R, M) sliced to the rates of ``rates``), only the labels of ``classes`` when given.
-    """
-    current, positions = None, None
-    for image_id, path, frame, handle in open_in_turn(image_index(shards)):
-        if path != current:
-            shard_rates = handle["rates"][:].astype(np.float32)
-            positions = [int(np.flatnonzero(shard_rates == np.float32(r))[0]) for r in rates]
-            current = path
-        labels = read_frame_labels(handle, frame)
-        for key in ("rain_coverage", "contrast_loss"):
-            if key in labels:
-                labels[key] = labels[key][positions]
-        if classes is not None:
-            keep = np.isin(labels["class_id"], classes)
-            labels = {key: value[:, keep] if key in ("rain_coverage", "contrast_loss") else value[keep]
-                      for key, value in labels.items()}
-        rgb = [read_rgb(handle, position, frame) for position in positions]
-        size = (int(handle.attrs["height"]), int(handle.attrs["width"]))
-        yield image_id, path, frame, rgb, labels, size
-
-
 def _yolo_lines(boxes: np.ndarray, class_ids: np.ndarray, width: int, height: int) -> str:
     """YOLO label text: ``class cx cy w h`` per box, normalised to [0, 1], 6 decimals."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
@@ -262,21 +199,20 @@ def export_yolo(data, out_dir, *, rates: Sequence[float] | None = None,
     """
     _check_image_format(image_format)
     keep = _check_classes(classes)
-    shards = list_shards(data)
-    selected = dataset_rates(shards, rates)
+    dataset = open_for_export(data, rates)
     out_dir = Path(out_dir)
-    folder_names = [f"rate_{rate_token(rate)}" for rate in selected]
+    folder_names = [f"rate_{rate_token(rate)}" for rate in dataset.rates]
     seen: set[int] = set()
     with _staged(out_dir, overwrite, folder_names) as stage:
         folders = [stage / name for name in folder_names]
         for folder in folders:
             (folder / "images").mkdir(parents=True, exist_ok=True)
             (folder / "labels").mkdir(parents=True, exist_ok=True)
-        for image_id, _path, _frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected,
-                                                                                   keep):
+        for frame in dataset.frames(keep):
+            labels, (height, width), image_id = frame.labels, frame.size, frame.image.image_id
             seen.update(labels["class_id"].tolist())
             text = _yolo_lines(labels["bbox"], labels["class_id"], width, height)
-            for folder, rgb in zip(folders, rgb_by_rate):
+            for folder, rgb in zip(folders, frame.rgb):
                 _write_image(folder / "images" / f"{image_id:06d}.{image_format}", rgb)
                 (folder / "labels" / f"{image_id:06d}.txt").write_text(text)
         names = yolo_names(seen)
@@ -314,7 +250,7 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
     """Export the dataset ``data`` as one COCO detection JSON per rain rate; returns the JSON
     paths ``out_dir/rate_<token>.json`` (in rate order).
 
-    - ``images``: ``id`` = rainbench image id (1-based, :func:`image_index`), ``file_name``
+    - ``images``: ``id`` = rainbench image id (1-based, :class:`Dataset` numbering), ``file_name``
       ``rate_<token>/images/<id:06d>.png`` relative to ``out_dir``, ``width``, ``height``,
       ``shard`` (shard file path relative to the dataset directory), ``frame`` (index in it);
     - ``annotations``: ``id`` 1-based, ``image_id``, ``category_id`` = rainbench class id
@@ -332,8 +268,8 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
     """
     _check_image_format(image_format)
     keep = _check_classes(classes)
-    shards = list_shards(data)
-    selected = dataset_rates(shards, rates)
+    dataset = open_for_export(data, rates)
+    selected = dataset.rates
     out_dir = Path(out_dir)
     tokens = [rate_token(rate) for rate in selected]
     # images first, the JSON files (which name the images) last
@@ -343,10 +279,13 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
         if images:
             for token in tokens:
                 (stage / f"rate_{token}" / "images").mkdir(parents=True, exist_ok=True)
-        root = Path(data) if not isinstance(data, (list, tuple)) and Path(data).is_dir() else None
+        root = dataset.root
         image_records, annotation_records = [], []  # rate-independent parts; file_name added later
         per_rate_extra: list[list[tuple[float, float]]] = []  # (rain_coverage, contrast_loss)
-        for image_id, path, frame, rgb_by_rate, labels, (height, width) in _walk(shards, selected, keep):
+        for frame_record in dataset.frames(keep):
+            image_id, path, frame = (frame_record.image.image_id, frame_record.image.shard,
+                                     frame_record.image.frame)
+            labels, (height, width), rgb_by_rate = frame_record.labels, frame_record.size, frame_record.rgb
             try:
                 shard = path.relative_to(root).as_posix() if root is not None else path.name
             except ValueError:

@@ -1,12 +1,14 @@
-"""HDF5 shards, format v1 (the contract is docs/format.md).
+"""HDF5 shards, formats v1 and v2 (the contract is docs/format.md).
 
 :class:`ShardWriter` writes one shard under a temporary name in the destination folder and
 renames it to its final name only in :meth:`ShardWriter.commit`, so a final name always holds
-a complete shard. :func:`open_shard` checks the format before anything is read.
+a complete shard. :func:`open_shard` checks the format before anything is read; :func:`open_checked`, how
+every reader opens a shard, also checks its labels (:func:`check_labels`).
 """
 
 from __future__ import annotations
 
+import json
 import os
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -15,6 +17,7 @@ import deflate
 import h5py
 import numpy as np
 
+from .classes import CLASS_NAMES, LABELLED_CLASSES
 from .labels import FrameLabels
 
 FORMAT = "rainbench.shard"
@@ -254,3 +257,140 @@ def read_frame_labels(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
         labels[key] = data[:, start:stop] if data.ndim == 2 and key in (
             "rain_coverage", "contrast_loss") else data[start:stop]
     return labels
+
+
+def check_labels(handle, path: str | Path | None = None) -> None:
+    """Refuse an open shard whose labels a reader would serve wrong: :class:`ShardFormatError`
+    naming the file and, for a bad row, the frame.
+
+    Checks ``/rgb`` against ``/rates`` and the ``width``/``height`` attributes, that
+    ``/labels/offsets`` starts at 0, never decreases and ends at the label count, that every
+    label array has one row per label, boxes finite with ``0 <= x1 < x2 <= W`` and
+    ``0 <= y1 < y2 <= H``, amodal boxes finite and ordered, ``class_names`` the first names of
+    :data:`rainbench.store.classes.CLASS_NAMES` (older shards list 4, newer 8: the ids mean the
+    same), class ids naming a class of ``class_names`` that rainbench labels (not 4 airplane or
+    6 train), instance ids >= 0, visible fractions and truncations in [0, 1], and finite per-box
+    rain statistics.
+    """
+    path = path if path is not None else handle.filename
+    try:
+        rgb = handle["rgb"]
+        rgb_shape, _ = tuple(rgb.shape), (rgb.chunks, rgb.compression, rgb.dtype)
+        rate_values = handle["rates"][()]
+        rates = rate_values.shape
+        width, height = int(handle.attrs["width"]), int(handle.attrs["height"])
+        class_names = json.loads(handle.attrs["class_names"])
+        group = handle["labels"]
+        arrays = {key: group[key][()] for key in group if key in _LABEL_SHAPES}
+    except (KeyError, OSError, TypeError, ValueError, RecursionError) as error:
+        raise ShardFormatError(f"{path}: labels or attributes unreadable "
+                               f"({type(error).__name__}: {error})") from None
+    if len(rates) != 1 or len(rgb_shape) != 5 or rgb_shape[0] != rates[0] \
+            or rgb_shape[2:] != (height, width, 3):
+        raise ShardFormatError(f"{path}: /rgb has shape {rgb_shape}; expected (R, N, {height}, "
+                               f"{width}, 3) with R = {rates[0] if rates else '?'} rates")
+    if not isinstance(class_names, list):
+        raise ShardFormatError(f"{path}: class_names is not a JSON list")
+    if not class_names or class_names != list(CLASS_NAMES[:len(class_names)]):
+        raise ShardFormatError(f"{path}: class_names {str(class_names)[:120]} are not the rainbench "
+                               f"classes (the first names of {list(CLASS_NAMES)})")
+    if rgb.dtype != np.uint8:
+        raise ShardFormatError(f"{path}: /rgb holds {rgb.dtype}, not uint8")
+    with np.errstate(invalid="ignore"):
+        values = rate_values.astype(np.float64) if rate_values.dtype.kind in "fiu" else None
+        if values is None or not (np.isfinite(values).all() and (values >= 0).all()
+                                  and (np.diff(values) > 0).all()):
+            raise ShardFormatError(f"{path}: /rates {rate_values.tolist()!r:.80} are not "
+                                   "ascending finite rates >= 0")
+    frames, num_rates = rgb_shape[1], rgb_shape[0]
+    for key in _LABEL_SHAPES:
+        if key not in arrays and key not in ("rain_coverage", "contrast_loss"):
+            raise ShardFormatError(f"{path}: incomplete shard, /labels/{key} is missing")
+    offsets = arrays["offsets"]
+    if offsets.shape != (frames + 1,) or not np.issubdtype(offsets.dtype, np.integer):
+        raise ShardFormatError(f"{path}: /labels/offsets has shape {offsets.shape} "
+                               f"{offsets.dtype}; expected ({frames + 1},) integers for {frames} "
+                               "frames")
+    count = arrays["bbox"].shape[0] if arrays["bbox"].ndim else -1
+    if offsets[0] != 0:
+        raise ShardFormatError(f"{path}: frame 0: /labels/offsets starts at {offsets[0]}, not 0")
+    steps = np.diff(offsets)
+    if np.any(steps < 0):
+        frame = int(np.flatnonzero(steps < 0)[0])
+        raise ShardFormatError(f"{path}: frame {frame}: /labels/offsets decreases "
+                               f"({offsets[frame]} -> {offsets[frame + 1]})")
+    if offsets[-1] != count:
+        raise ShardFormatError(f"{path}: frame {frames - 1}: /labels/offsets ends at "
+                               f"{offsets[-1]} but /labels/bbox has {count} rows")
+    for key, shape in _LABEL_SHAPES.items():
+        if key == "offsets" or key not in arrays:
+            continue
+        expected = tuple(count if s == "M" else num_rates if s == "R" else s for s in shape)
+        if arrays[key].shape != expected:
+            raise ShardFormatError(f"{path}: /labels/{key} has shape {arrays[key].shape}, "
+                                   f"expected {expected}")
+
+    def refuse(rows: np.ndarray, what: str) -> None:
+        if rows.size:
+            row = int(rows[0])
+            frame = int(np.searchsorted(offsets, row, side="right") - 1)
+            raise ShardFormatError(f"{path}: frame {frame}: label {row - int(offsets[frame])} "
+                                   f"{what}")
+
+    with np.errstate(invalid="ignore"):
+        box = arrays["bbox"].astype(np.float64)
+        tol = 1e-3
+        bad = ~np.isfinite(box).all(axis=1) | (box[:, 0] >= box[:, 2]) | (box[:, 1] >= box[:, 3]) \
+            | (box[:, 0] < -tol) | (box[:, 1] < -tol) | (box[:, 2] > width + tol) \
+            | (box[:, 3] > height + tol)
+        rows = np.flatnonzero(bad)
+        if rows.size:
+            refuse(rows, f"has bbox {box[rows[0]].tolist()}; expected finite 0 <= x1 < x2 <= "
+                         f"{width}, 0 <= y1 < y2 <= {height}")
+        amodal = arrays["bbox_amodal"].astype(np.float64)
+        refuse(np.flatnonzero(~np.isfinite(amodal).all(axis=1) | (amodal[:, 0] > amodal[:, 2])
+                              | (amodal[:, 1] > amodal[:, 3])), "has a non-finite or inverted bbox_amodal")
+        class_id = arrays["class_id"]
+        if not np.issubdtype(class_id.dtype, np.integer):
+            raise ShardFormatError(f"{path}: /labels/class_id holds {class_id.dtype}, not integers")
+        refuse(np.flatnonzero((class_id < 0) | (class_id >= len(class_names))),
+               f"has a class_id outside 0..{len(class_names) - 1}")
+        unlabelled = np.flatnonzero(~np.isin(class_id, LABELLED_CLASSES))
+        if unlabelled.size:
+            refuse(unlabelled, f"has class_id {int(class_id[unlabelled[0]])} "
+                               f"({CLASS_NAMES[int(class_id[unlabelled[0]])]}), which rainbench never labels")
+        refuse(np.flatnonzero(arrays["instance_id"] < 0), "has a negative instance_id")
+        for key in ("visible_fraction", "truncation"):
+            values = arrays[key].astype(np.float64)
+            refuse(np.flatnonzero(~((values >= 0) & (values <= 1))), f"has {key} outside [0, 1]")
+        for key in ("rain_coverage", "contrast_loss"):
+            if key in arrays:
+                values = arrays[key].astype(np.float64)
+                refuse(np.flatnonzero(~np.isfinite(values).all(axis=0)), f"has a non-finite {key}")
+
+
+_LABEL_SHAPES = {
+    "offsets": None, "bbox": ("M", 4), "bbox_amodal": ("M", 4), "class_id": ("M",),
+    "instance_id": ("M",), "visible_fraction": ("M",), "truncation": ("M",),
+    "rain_coverage": ("R", "M"), "contrast_loss": ("R", "M"),
+}
+
+
+def open_checked(path: str | Path):
+    """:func:`open_shard` then :func:`check_labels`: how every rainbench reader opens a shard.
+    Every failure is a one-line :class:`ShardFormatError` naming the file."""
+    try:
+        handle = open_shard(path)
+    except ShardFormatError:
+        raise
+    except (KeyError, OSError, RuntimeError, TypeError, ValueError) as error:
+        # damaged HDF5 metadata surfaces from h5py as KeyError, OSError, ...
+        reason = " ".join(str(error).split())
+        raise ShardFormatError(f"{path}: not a readable shard ({type(error).__name__}: "
+                               f"{reason})") from None
+    try:
+        check_labels(handle, path)
+    except BaseException:
+        handle.close()
+        raise
+    return handle

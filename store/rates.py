@@ -1,13 +1,24 @@
-"""Parsing of rain-rate specifications such as ``"0:100:10"``, ``"0,25,50"`` or ``"50"``.
+"""The rate vocabulary: parsing ``RATES`` specs, checking rate lists, naming and finding rates.
 
-Rates are rainfall intensities in millimetres per hour (mm/h). Every refusal raises
-:class:`RatesError` with a single-line message that starts with ``RATES`` and quotes the spec.
+Rates are rainfall intensities in millimetres per hour (mm/h). Shards store them as float32
+(``/rates``); everywhere in rainbench a rate is identified by its **decimal**: the shortest
+decimal that reads back as the stored value (:func:`rate_decimal`, ``12.5`` for float32 12.5,
+``0.1`` for float32 0.1). :func:`rate_token` names files and folders by it (``rate_0.1``), and
+:func:`rate_rows` finds a rate the user wrote (``"0.1"``, ``0.1``) in a shard's ``/rates``
+by comparing decimals, whatever the storage dtype.
+
+Every refusal of a spec raises :class:`RatesError` with a single-line message that starts with
+``RATES`` and quotes the spec.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
+from decimal import Decimal, InvalidOperation
+
+import numpy as np
 
 MAX_RATE_MM_H = 1000.0
 """Largest accepted rain rate in mm/h (the world record hourly rainfall is about 300 mm/h)."""
@@ -119,3 +130,78 @@ def parse_rates(spec: str) -> tuple[float, ...]:
     value = _parse_number(spec, text, "rate")
     _check_rate(spec, value, "rate")
     return (value,)
+
+
+def check_rate_list(rates, what: str = "rates") -> tuple[float, ...]:
+    """``rates`` as a tuple of floats if it is a non-empty, strictly ascending sequence of finite
+    rates in ``[0, 1000]`` mm/h; otherwise a one-line ``ValueError`` naming ``what``. The one
+    check of a rate list that code (not a RATES spec) hands over: configs, writers, readers."""
+    if isinstance(rates, (str, bytes)) or not isinstance(rates, (Sequence, np.ndarray)):
+        raise ValueError(f"{what}: expected a sequence of rates in mm/h, got {type(rates).__name__}")
+    try:
+        values = tuple(float(rate) for rate in rates)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}: expected numbers in mm/h, got {list(rates)!r:.80}") from None
+    if not values or not all(math.isfinite(v) and 0.0 <= v <= MAX_RATE_MM_H for v in values) \
+            or any(lower >= upper for lower, upper in zip(values, values[1:])):
+        raise ValueError(f"{what}: expected ascending distinct values in [0, {MAX_RATE_MM_H:g}] "
+                         f"mm/h, got {tuple(rates)!r:.80}")
+    return values
+
+
+def rate_decimal(rate) -> Decimal:
+    """The decimal a rate stands for: a ``Decimal`` itself; a ``str`` as written (``"12.50"`` -> 12.5); a numpy
+    float the shortest decimal that reads back as it in its own dtype (float32 0.1 -> 0.1); a
+    Python number its shortest repr, or its shortest float32 decimal when it is exactly a
+    float32 value (a rate read from a shard: 0.10000000149011612 -> 0.1). Raises
+    ``ValueError`` for what is not a finite rate >= 0."""
+    try:
+        if isinstance(rate, Decimal):
+            value = rate
+        elif isinstance(rate, str):
+            value = Decimal(rate.strip())
+        elif isinstance(rate, np.floating):
+            value = Decimal(np.format_float_positional(rate, unique=True, trim="-"))
+        elif isinstance(rate, (int, float, np.integer)) and not isinstance(rate, bool):
+            number = float(rate)
+            single = np.float32(number) if abs(number) < 3e38 else None
+            value = (Decimal(np.format_float_positional(single, unique=True, trim="-"))
+                     if single is not None and float(single) == number else Decimal(repr(number)))
+        else:
+            raise InvalidOperation
+    except (InvalidOperation, ValueError, OverflowError):
+        raise ValueError(f"rate: expected a number in mm/h, got {rate!r}") from None
+    if not value.is_finite() or value < 0:
+        raise ValueError(f"rate: expected a finite rate >= 0 mm/h, got {rate!r}")
+    return value.normalize() if value else Decimal(0)
+
+
+def rate_token(rate) -> str:
+    """Name of a rate in file and folder names (``rate_<token>``): its shortest float32
+    decimal, as shards store rates: 0 -> "0", 12.5 -> "12.5", 100 -> "100", 0.1 -> "0.1"."""
+    return format(rate_decimal(np.float32(float(rate_decimal(rate)))), "f")
+
+
+class MissingRate(LookupError):
+    """A rate that a shard's ``/rates`` does not hold: ``rate`` (its decimal), ``have`` (the
+    stored rates' decimals)."""
+
+    def __init__(self, rate: Decimal, have: Sequence[Decimal]) -> None:
+        self.rate, self.have = rate, tuple(have)
+        super().__init__(f"has no rate {format(rate, 'f')} mm/h (it has "
+                         f"{', '.join(format(d, 'f') for d in self.have)})")
+
+
+def rate_rows(stored: np.ndarray, wanted) -> list[int]:
+    """Rows of ``stored`` (a shard's ``/rates``) holding each rate of ``wanted``, in that
+    order: a rate matches the stored value whose decimal (:func:`rate_decimal`) is its own.
+    A rate that is not there raises :class:`MissingRate`."""
+    decimals = [rate_decimal(value) for value in stored]
+    rows = []
+    for rate in wanted:
+        decimal = rate_decimal(rate)
+        matches = [row for row, stored_decimal in enumerate(decimals) if stored_decimal == decimal]
+        if not matches:
+            raise MissingRate(decimal, decimals)
+        rows.append(matches[0])
+    return rows

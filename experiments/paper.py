@@ -19,12 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from rainbench.gen.dataset import DatasetConfig, open_in_turn, run_dataset
-from rainbench.gen.shard import open_shard, read_frame_labels
+from rainbench.gen.dataset import DatasetConfig, run_dataset
+from rainbench.store import Dataset, read_frame_labels
 
-from .metrics import CLASS_IDS, CLASS_NAMES, ap_by_size, ap_by_visibility, half_value_rate, parse_classes
-from .pipeline import EvalError, dataset_images, ground_truth, load_predictions_file, predictions_path, run_eval
-from .report import render_paper_md
+from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES, parse_classes
+from rainbench.eval.metrics import ap_by_size, ap_by_visibility, half_value_rate
+from rainbench.eval.pipeline import EvalError, ground_truth, load_predictions_file, open_dataset, predictions_path, run_eval
+from rainbench.eval.report import render_paper_md
 
 RAIN_MODELS = ("jeon2022", "physical")
 VISIBILITY_BINS = (0.1, 0.25, 0.5, 0.75, 1.0)  # labels start at visible_fraction 0.10
@@ -90,18 +91,18 @@ detector of the paper's strength."""
 def default_models(cuda: bool) -> tuple[str, ...]:
     """The shipped models ``make paper`` evaluates: the nano one, the small one (when shipped) on
     a GPU, and the weak control (when shipped)."""
-    from .backends import shipped_models
+    from rainbench.eval.backends import shipped_models
 
     wanted = ("rainbench-yolo11n", "rainbench-yolo11s") if cuda else ("rainbench-yolo11n",)
     wanted += (CONTROL_MODEL,)
     return tuple(name for name in wanted if name in shipped_models()) or ("rainbench-yolo11n",)
 
 
-def table_one(data_dir: Path, classes: Sequence[int] = CLASS_IDS) -> dict[str, tuple[int, int]]:
+def table_one(data_dir: Path, classes: Sequence[int] = PAPER_CLASSES) -> dict[str, tuple[int, int]]:
     """``{class: (objects, instances)}`` of the class ids ``classes`` (default the paper's four), in
     that order: distinct (scene seed, instance id) and labelled boxes over all frames
-    (:func:`rainbench.gen.stats.dataset_stats`)."""
-    from rainbench.gen.stats import dataset_stats
+    (:func:`rainbench.store.stats.dataset_stats`)."""
+    from rainbench.store.stats import dataset_stats
 
     try:
         stats = dataset_stats(data_dir)
@@ -112,17 +113,17 @@ def table_one(data_dir: Path, classes: Sequence[int] = CLASS_IDS) -> dict[str, t
 
 
 def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[float],
-               classes: Sequence[int] = CLASS_IDS) -> dict:
+               classes: Sequence[int] = PAPER_CLASSES) -> dict:
     """``{"visible fraction" | "box size": {rate: {bin: {class name: BreakdownAP}}}}`` of one model
     and the class ids ``classes``, from the cached predictions of :func:`run_eval` in
     ``results_dir``."""
-    images = dataset_images(data_dir)
-    gt = ground_truth(images)
-    visible = np.concatenate([np.asarray(read_frame_labels(handle, frame)["visible_fraction"], np.float64)
-                              for _, _, frame, handle in open_in_turn(images)] or [np.zeros(0)])
+    dataset = open_dataset(data_dir)
+    gt = ground_truth(dataset)
+    visible = np.concatenate([np.asarray(read_frame_labels(handle, image.frame)["visible_fraction"], np.float64)
+                              for image, handle in dataset.walk()] or [np.zeros(0)])
     if len(visible) != len(gt["annotations"]):
         raise EvalError(f"{data_dir}: {len(visible)} visible fractions for {len(gt['annotations'])} boxes")
-    image_ids = {image_id for image_id, _, _ in images}
+    image_ids = {image.image_id for image in dataset.images}
     result: dict[str, dict] = {"visible fraction": {}, "box size": {}}
     for rate in rates:
         detections = load_predictions_file(predictions_path(results_dir / "predictions", model, rate), image_ids,
@@ -140,11 +141,11 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
               force: bool = False, progress: bool = True) -> Path:
     """Generate, evaluate and report; returns ``OUT/report.md``. Datasets go to
     ``data_root/<rain model>/`` and are reused (resumed) by later runs with the same config."""
-    from .backends import check_model_classes, load_detector, model_imgsz, preload_torch, resolve_weights
+    from rainbench.eval.backends import check_model_classes, load_detector, model_imgsz, preload_torch, resolve_weights
 
     preload_torch()  # before generating: triton after Mesa rendering crashes
     out_dir, data_root = Path(out_dir), Path(data_root)
-    class_ids = CLASS_IDS if config.classes is None else parse_classes(config.classes)
+    class_ids = PAPER_CLASSES if config.classes is None else parse_classes(config.classes)
     if config.classes is not None:  # a model that cannot predict a requested class fails before generating
         for spec in config.weights:
             detector = load_detector(spec, device=config.device, classes=class_ids)
@@ -162,8 +163,9 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
         start = time.perf_counter()
         run_dataset(dataset, data_dir, workers=workers)
         timings[f"generate {name}"] = time.perf_counter() - start
-        for path in sorted(data_dir.glob("scene*_f*.h5")):
-            with open_shard(path) as handle:
+        written = Dataset(data_dir)
+        for shard in range(len(written.shards)):
+            with written.open(shard) as handle:
                 skies.add(str(handle.attrs.get("sky", "clear (format v1)")))
         start = time.perf_counter()
         outputs = run_eval(data_dir, out_dir / name, weights=list(config.weights), imgsz=config.imgsz,

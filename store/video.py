@@ -9,10 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .dataset import list_shards
-from .export import ExportError, _walk, dataset_rates, rate_token
-from .preview import BOX_COLOURS
-from .shard import open_shard
+from .classes import CLASS_COLOURS
+from .export import ExportError, open_for_export
+from .rates import rate_token
 
 
 def write_videos(data, out_dir, *, rates: Sequence[float] | None = None, boxes: bool = True,
@@ -21,21 +20,19 @@ def write_videos(data, out_dir, *, rates: Sequence[float] | None = None, boxes: 
 
     Frames: every frame of every shard of ``data`` (a dataset directory, a shard, or a list of
     shards) in image-id order (manifest shard order, then frame order), W x H as stored.
-    ``boxes=True`` draws each label's xyxy pixel-edge ``bbox`` (colour :data:`BOX_COLOURS` by
-    class id) and prints "<rate> mm/h" in the corner; ``boxes=False`` writes the frames
+    ``boxes=True`` draws each label's xyxy pixel-edge ``bbox`` (colour
+    :data:`rainbench.store.classes.CLASS_COLOURS` by class id) and prints "<rate> mm/h" in the corner; ``boxes=False`` writes the frames
     untouched. ``fps=None`` uses the ``fps`` attribute of the first shard. ``rates=None``: all
     rates of the dataset; a rate not in it raises :class:`ExportError`. An existing
     ``rate_<token>.mp4`` raises unless ``overwrite``. Each file is written under a temporary
     name and renamed when complete; an unavailable codec raises a one-line error.
     """
-    shards = list_shards(data)
-    selected = dataset_rates(shards, rates)
-    sizes = set()
-    for path in shards:
-        with open_shard(path) as handle:
-            sizes.add((int(handle.attrs["width"]), int(handle.attrs["height"])))
-            if fps is None:
-                fps = float(handle.attrs.get("fps", 10.0))
+    dataset = open_for_export(data, rates)
+    selected = dataset.rates
+    sizes = {dataset.size(shard)[::-1] for shard in range(len(dataset.shards))}
+    if fps is None:
+        with dataset.open(0) as handle:
+            fps = float(handle.attrs.get("fps", 10.0))
     if len(sizes) != 1:
         raise ExportError(f"{data}: shards have different image sizes {sorted(sizes)}; one "
                           "video needs one size")
@@ -61,13 +58,14 @@ def write_videos(data, out_dir, *, rates: Sequence[float] | None = None, boxes: 
             if not writer.isOpened():
                 raise ExportError(f"{final}: cannot open an mp4v video writer (codec "
                                   "unavailable in this OpenCV build)")
-        for _id, _path, _frame, rgb_by_rate, labels, _size in _walk(shards, selected):
-            for writer, rate, rgb in zip(writers, selected, rgb_by_rate):
+        for record in dataset.frames():
+            labels = record.labels
+            for writer, rate, rgb in zip(writers, selected, record.rgb):
                 frame = np.ascontiguousarray(rgb[:, :, ::-1])  # BGR for OpenCV
                 if boxes:
                     for box, class_id in zip(labels["bbox"], labels["class_id"]):
                         x1, y1, x2, y2 = np.round(np.asarray(box, np.float64)).astype(int)
-                        r, g, b = BOX_COLOURS[int(class_id) % len(BOX_COLOURS)]
+                        r, g, b = CLASS_COLOURS[int(class_id) % len(CLASS_COLOURS)]
                         cv2.rectangle(frame, (x1, y1), (x2 - 1, y2 - 1), (b, g, r), 1)
                     label = f"{rate:g} mm/h"
                     for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):

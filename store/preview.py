@@ -9,9 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-# RGB per COCO class id 0..7: person, bicycle, car, motorcycle, (airplane), bus, (train), truck
-BOX_COLOURS = ((230, 60, 60), (60, 200, 60), (60, 120, 240), (240, 200, 40), (128, 128, 128),
-               (240, 130, 30), (128, 128, 128), (170, 80, 220))
+from .classes import CLASS_COLOURS
 
 
 def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
@@ -38,7 +36,7 @@ def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
                 if not np.all(np.isfinite(box)):
                     raise ValueError(f"boxes: expected finite x1, y1, x2, y2, got {list(box)}")
                 x1, y1, x2, y2 = (np.asarray(box) * scale).round().astype(int)
-                colour = BOX_COLOURS[int(class_id) % len(BOX_COLOURS)]
+                colour = CLASS_COLOURS[int(class_id) % len(CLASS_COLOURS)]
                 cv2.rectangle(tile, (x1, y1), (x2 - 1, y2 - 1), colour, 1)
         label = f"{rate:g} mm/h"
         for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):

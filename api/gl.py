@@ -1,7 +1,9 @@
 """Choosing MuJoCo's offscreen OpenGL backend before ``mujoco`` is imported.
 
 MuJoCo reads ``MUJOCO_GL`` once, when it is first imported. rainbench therefore decides the
-backend in ``rainbench/__init__.py``, before any of its modules imports mujoco:
+backend when its rendering packages are first imported (``rainbench.mjcf`` and ``rainbench.gen``
+call :func:`configure` before any of their modules imports mujoco); importing ``rainbench``,
+``rainbench.store`` or ``rainbench.eval`` chooses nothing:
 
 - a ``MUJOCO_GL`` the user set is respected as it is (never overridden);
 - otherwise ``egl`` if the EGL library is found, else ``osmesa`` if OSMesa is found;

@@ -14,8 +14,7 @@ What is counted (labels are per frame and shared by every rain rate, so each is 
 - per layout and per time of day (shard attributes ``layout`` and ``time_of_day``; a shard
   without them counts as ``street`` and ``day``): scenes, frames, objects and instances.
 
-:func:`read_dataset_labels` reads the label arrays through the checked readers
-(:func:`rainbench.gen.dataset.list_shards`, :func:`~rainbench.gen.dataset.open_checked`); a path
+:func:`read_dataset_labels` reads the label arrays through :class:`rainbench.store.Dataset`; a path
 without shards or a corrupt shard is a one-line ValueError naming it. :func:`label_stats` and
 :func:`render_stats` are pure. The keys of :func:`label_stats`'s dict (the ``--json`` output) are
 listed in docs/datasets.md ("Dataset statistics").
@@ -31,9 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from rainbench.mjcf.classes import CLASS_NAMES
-
-from .dataset import list_shards, open_checked
+from .classes import CLASS_NAMES
+from .dataset import Dataset
 
 PERCENTILES: tuple[int, ...] = (5, 25, 50, 75, 95)
 """Box height percentiles reported per class."""
@@ -98,7 +96,7 @@ def _scene_key(handle: Any, path: Path) -> int | str:
 
 
 def read_shard_labels(handle: Any, path: str | Path) -> ShardLabels:
-    """The :class:`ShardLabels` of an open, checked shard (:func:`open_checked`)."""
+    """The :class:`ShardLabels` of an open, checked shard (:meth:`Dataset.open`)."""
     path = Path(path)
     offsets = handle["labels/offsets"][()].astype(np.int64)
     frames = len(offsets) - 1
@@ -119,9 +117,10 @@ def read_dataset_labels(data: str | Path | Sequence[str | Path]) -> list[ShardLa
     """:class:`ShardLabels` of every shard of ``data`` (a dataset directory, one shard, or a list
     of shards), in manifest order. Raises a one-line ValueError (``DatasetError``,
     ``ShardFormatError``) naming the path without shards or the corrupt shard."""
+    dataset = Dataset(data)
     result = []
-    for path in list_shards(data):
-        with open_checked(path) as handle:
+    for number, path in enumerate(dataset.shards):
+        with dataset.open(number) as handle:
             result.append(read_shard_labels(handle, path))
     return result
 

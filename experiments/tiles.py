@@ -201,7 +201,7 @@ def export_tiles(source: Path, out: Path, config: TileConfig, *, grid: bool,
     (validation). Images are rescaled by ``config.scale`` with bilinear interpolation, as
     ultralytics' letterbox does. ``out`` is replaced.
     """
-    from rainbench.gen.export import _yolo_lines, read_yolo_labels
+    from rainbench.store.export import _yolo_lines, read_yolo_labels
 
     images = sorted((source / "images").glob("*.png"))
     if not images:

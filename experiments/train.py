@@ -1,6 +1,6 @@
 """``rainbench train``: in-domain YOLO detectors trained from scratch on clean rainbench scenes.
 
-A *recipe* (``eval/recipes/<name>.yaml``, or any YAML file with the same keys) says everything a
+A *recipe* (``experiments/recipes/<name>.yaml``, or any YAML file with the same keys) says everything a
 training run depends on:
 
 - ``name``: the weights' name (``<name>.pt``);
@@ -20,7 +20,7 @@ training run depends on:
   classes trained, names or ids (``[person, bicycle, car, motorcycle, bus, truck]``); labels of
   other classes are left out of the training labels, and the model's ``names`` are the dense ids
   0..max with their COCO names;
-- ``tiles`` (optional, in any stage): a :class:`~rainbench.eval.tiles.TileConfig` mapping. That
+- ``tiles`` (optional, in any stage): a :class:`~rainbench.experiments.tiles.TileConfig` mapping. That
   stage trains on tiles of the rescaled frames (:func:`prepare_tiles`) instead of whole frames,
   and must set ``imgsz`` to ``tiles.size``.
 
@@ -45,13 +45,12 @@ from pathlib import Path
 from typing import Any
 
 from rainbench.gen.dataset import DatasetConfig, run_dataset
-from rainbench.gen.export import yolo_names
-from rainbench.mjcf.classes import PAPER_CLASSES
+from rainbench.store.export import yolo_names
+from rainbench.store.classes import PAPER_CLASSES, parse_classes
 from rainbench.mjcf.layout import ScenarioConfig
 
-from .backends import DEFAULT_IMGSZ
-from .metrics import parse_classes
-from .tiles import TileConfig, TileError, export_tiles
+from rainbench.eval.backends import DEFAULT_IMGSZ
+from rainbench.experiments.tiles import TileConfig, TileError, export_tiles
 
 TRAIN_CLASSES: tuple[int, ...] = PAPER_CLASSES
 """Class ids a recipe trains unless it says otherwise (its ``classes``): the paper's four, as the
@@ -92,7 +91,7 @@ class Recipe:
     def stages(self, cuda: bool) -> list[dict[str, Any]]:
         """Arguments of every stage: the first stage's, then one per restart (the first stage's
         arguments with that restart's overrides). Each is ultralytics ``train()`` arguments plus,
-        for a tile stage, ``tiles`` (a mapping of :class:`~rainbench.eval.tiles.TileConfig`)."""
+        for a tile stage, ``tiles`` (a mapping of :class:`~rainbench.experiments.tiles.TileConfig`)."""
         return _stage_arguments(dict(self.train_args) if cuda else {**self.train_args, **self.cpu_args})
 
 
@@ -219,7 +218,7 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
                  progress: Callable[[int], None] | None = None) -> Path:
     """Generate (or finish) the clean training and validation datasets under ``OUT/data`` and
     export them as YOLO folders under ``OUT/yolo``; returns the ultralytics ``dataset.yaml``."""
-    from rainbench.gen.export import export_yolo  # noqa: PLC0415
+    from rainbench.store.export import export_yolo  # noqa: PLC0415
 
     out = Path(out)
     yolo = out / "yolo"
@@ -295,7 +294,7 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     cut-off one resumes from its ``last.pt``, and a restart starts from the previous stage's
     ``best.pt``.
     """
-    from .backends import preload_torch
+    from rainbench.eval.backends import preload_torch
 
     ultralytics = preload_torch()  # before generating: triton after Mesa rendering crashes
     import torch
@@ -341,7 +340,7 @@ def write_companions(weights: Path, eval_imgsz: int) -> tuple[Path, Path]:
     (:func:`~rainbench.eval.backends.export_onnx`, run on CPU) and the card ``<name>.json``
     (``{"imgsz": eval_imgsz}``). Shipping a model is copying the three files to
     ``eval/weights/`` (docs/models.md). Returns ``(onnx path, card path)``."""
-    from .backends import export_onnx
+    from rainbench.eval.backends import export_onnx
 
     onnx = export_onnx(weights, weights.with_suffix(".onnx"))
     card = weights.with_suffix(".json")

@@ -1,0 +1,176 @@
+"""The one reader of a rainbench dataset: shard order, image ids, rate rows, frame walks.
+
+Every reader in rainbench (the numpy and torch readers, exports, videos, previews, statistics,
+the evaluator and the paper report) opens a dataset through :class:`Dataset`, so that:
+
+- shards come in one order: manifest order for a dataset directory (sorted names without a
+  manifest), the given order for a list of shards;
+- images are numbered one way: ids 1-based, shard order, then frame order (an exported
+  ``000007.png`` is image 7 in evaluation too);
+- a rate is found one way: :meth:`Dataset.rate_row` compares the decimal the user wrote
+  (``"12.5"``, ``0.1``) with each stored rate's shortest decimal
+  (:func:`rainbench.store.rates.rate_rows`), whatever the storage dtype;
+- every shard is checked when it is opened (:func:`rainbench.store.shard.open_checked`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .manifest import DatasetError, list_shards
+from .rates import MissingRate, rate_decimal, rate_rows
+from .shard import open_checked, read_frame_labels, read_rgb
+
+
+@dataclass(frozen=True)
+class Image:
+    """One frame of the dataset: ``image_id`` (1-based), ``shard`` (path), ``frame`` (index in
+    the shard) and ``shard_index`` (position of the shard in :attr:`Dataset.shards`)."""
+
+    image_id: int
+    shard: Path
+    frame: int
+    shard_index: int
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame read at the dataset's selected rates.
+
+    ``rgb``: one (H, W, 3) uint8 RGB image per rate of :attr:`Dataset.rates` (in that order);
+    ``labels``: :func:`rainbench.store.shard.read_frame_labels` (``bbox`` (M, 4) float32 xyxy
+    pixel-edge, ``class_id`` (M,) int32, ...; ``rain_coverage`` and ``contrast_loss`` (R, M)
+    sliced to the selected rates); ``size``: (height, width).
+    """
+
+    image: Image
+    rgb: list[np.ndarray]
+    labels: dict[str, np.ndarray]
+    size: tuple[int, int]
+
+
+class Dataset:
+    """A dataset directory, one shard, or a list of shards, read through one index.
+
+    ``rates``: the rates to read (mm/h, as decimals, strings or numbers; each must be in every
+    shard) or None for every rate, which every shard must then share. Failures are one-line
+    :class:`DatasetError` (or :class:`rainbench.store.shard.ShardFormatError`) naming the file.
+
+    Attributes: ``shards`` (list of paths), ``rates`` (tuple of floats: the selected rates as
+    their decimals), ``images`` (tuple of :class:`Image` in image-id order), ``root`` (the
+    dataset directory, or None for shard files).
+    """
+
+    def __init__(self, data: str | Path | Sequence[str | Path],
+                 rates: Sequence[float | str] | None = None) -> None:
+        self.shards: list[Path] = list_shards(data)
+        single = not isinstance(data, (list, tuple))
+        self.root: Path | None = Path(data) if single and Path(data).is_dir() else None
+        if rates is not None:
+            if isinstance(rates, (str, bytes)) or not isinstance(rates, (Sequence, np.ndarray)):
+                raise DatasetError(f"rates: expected a list of rates in mm/h, got {rates!r}")
+            if len(rates) == 0:
+                raise DatasetError("rates: expected at least one rate, got an empty list")
+            try:
+                wanted = list(dict.fromkeys(rate_decimal(rate) for rate in rates))
+            except ValueError as error:
+                raise DatasetError(str(error)) from None
+        images: list[Image] = []
+        self._rows: list[list[int]] = []
+        self._sizes: list[tuple[int, int]] = []
+        first: np.ndarray | None = None
+        for number, path in enumerate(self.shards):
+            with open_checked(path) as handle:  # refuses NaN boxes, inconsistent offsets
+                stored = handle["rates"][()]
+                frames = int(handle["labels/offsets"].shape[0]) - 1
+                self._sizes.append((int(handle.attrs["height"]), int(handle.attrs["width"])))
+            if rates is None:
+                if first is None:
+                    first, wanted = stored, [rate_decimal(value) for value in stored]
+                elif stored.shape != first.shape or not np.array_equal(stored, first):
+                    raise DatasetError(
+                        f"{path.name} has rates {stored.tolist()} but {self.shards[0].name} has "
+                        f"{first.tolist()}; all shards of a dataset must share the same rates "
+                        "(or select rates that every shard holds)")
+            try:
+                self._rows.append(rate_rows(stored, wanted))
+            except MissingRate as missing:
+                raise DatasetError(f"rate {format(missing.rate, 'f')} mm/h is not in the dataset: "
+                                   f"{path.name} {missing}") from None
+            images += [Image(len(images) + 1 + frame, path, frame, number) for frame in range(frames)]
+        self.rates: tuple[float, ...] = tuple(float(decimal) for decimal in wanted)
+        self._decimals = tuple(wanted)
+        self.images: tuple[Image, ...] = tuple(images)
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def image(self, image_id: int) -> Image:
+        """The :class:`Image` of ``image_id`` (1-based)."""
+        if not 1 <= image_id <= len(self.images):
+            raise IndexError(f"image id {image_id} out of range 1..{len(self.images)}")
+        return self.images[image_id - 1]
+
+    def rate_number(self, rate: float | str) -> int:
+        """Position of ``rate`` in :attr:`rates` (compared as decimals); DatasetError if absent."""
+        try:
+            decimal = rate_decimal(rate)
+        except ValueError as error:
+            raise DatasetError(str(error)) from None
+        if decimal not in self._decimals:
+            raise DatasetError(f"rate {format(decimal, 'f')} mm/h is not among the selected "
+                               f"rates ({', '.join(format(d, 'f') for d in self._decimals)})")
+        return self._decimals.index(decimal)
+
+    def rate_row(self, rate: float | str, shard: int = 0) -> int:
+        """Row of ``/rgb`` (and ``/rates``) holding ``rate`` in shard number ``shard``."""
+        return self._rows[shard][self.rate_number(rate)]
+
+    def size(self, shard: int = 0) -> tuple[int, int]:
+        """(height, width) of the images of shard number ``shard``."""
+        return self._sizes[shard]
+
+    def open(self, shard: int):
+        """Open shard number ``shard`` read-only, checked (an ``h5py.File``; close it)."""
+        return open_checked(self.shards[shard])
+
+    def walk(self, images: Sequence[Image] | None = None) -> Iterator[tuple[Image, object]]:
+        """Yield ``(image, handle)`` for ``images`` (default all) in their order: each shard is
+        opened once while its frames follow each other, and closed when the walk moves on."""
+        handle, current = None, None
+        try:
+            for image in self.images if images is None else images:
+                if image.shard_index != current:
+                    if handle is not None:
+                        handle.close()
+                        handle = None
+                    handle, current = self.open(image.shard_index), image.shard_index
+                yield image, handle
+        finally:
+            if handle is not None:
+                handle.close()
+
+    def read_rgb(self, handle, image: Image, rate: float | str) -> np.ndarray:
+        """(H, W, 3) uint8 RGB of ``image`` at ``rate`` from its open shard ``handle``."""
+        return read_rgb(handle, self.rate_row(rate, image.shard_index), image.frame)
+
+    def frames(self, classes: Sequence[int] | None = None) -> Iterator[Frame]:
+        """Every frame at the selected rates (:class:`Frame`), in image-id order; with
+        ``classes``, only the labels of those class ids."""
+        keep_classes = None if classes is None else np.asarray(classes, np.int64)
+        for image, handle in self.walk():
+            rows = self._rows[image.shard_index]
+            labels = read_frame_labels(handle, image.frame)
+            for key in ("rain_coverage", "contrast_loss"):
+                if key in labels:
+                    labels[key] = labels[key][rows]
+            if keep_classes is not None:
+                keep = np.isin(labels["class_id"], keep_classes)
+                labels = {key: value[:, keep] if key in ("rain_coverage", "contrast_loss")
+                          else value[keep] for key, value in labels.items()}
+            rgb = [read_rgb(handle, row, image.frame) for row in rows]
+            yield Frame(image, rgb, labels, self._sizes[image.shard_index])

@@ -1,0 +1,220 @@
+"""The dataset manifest: ``manifest.json`` beside the shards, its hashing and verification.
+
+The manifest lists every finished shard (relative path, scene seed, frame range, rates, sha256,
+byte size) in dataset order and the full dataset config; ``"complete": true`` once every shard
+is in. It is rewritten atomically (temporary file + rename). The generator (:mod:`rainbench.gen`)
+writes it; every reader finds a dataset's shards through :func:`list_shards`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+from collections.abc import Sequence
+from pathlib import Path, PurePosixPath
+
+from .shard import ShardFormatError, open_checked
+
+MANIFEST = "manifest.json"
+MANIFEST_FORMAT = "rainbench.manifest"
+MANIFEST_VERSION = 1
+SHARD_GLOB = "scene*_f*.h5"
+"""File names of shards (:func:`rainbench.store.shard.shard_name`)."""
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
+class DatasetError(ValueError):
+    """A dataset request or directory that cannot be honoured; the message is one line."""
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 22), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def shard_entry(path: Path, root: Path, *, scene_seed: int, frame_offset: int, frames: int,
+                rates) -> dict:
+    """The manifest entry of the finished shard ``path`` of dataset ``root`` (hashes the file)."""
+    return {
+        "path": path.relative_to(root).as_posix(),
+        "scene_seed": scene_seed,
+        "frame_offset": frame_offset,
+        "frames": frames,
+        "rates": [float(rate) for rate in rates],
+        "sha256": sha256_of(path),
+        "bytes": path.stat().st_size,
+    }
+
+
+def _atomic_write_json(path: Path, payload: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w") as handle:
+        json.dump(payload, handle, indent=1, sort_keys=True)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(tmp, path)
+
+
+def write_manifest(root: Path, config: dict, entries: list[dict], complete: bool) -> Path:
+    """Write ``root/manifest.json`` atomically: the dataset ``config`` (its JSON dict), the
+    finished shards' ``entries`` in dataset order and whether every shard is in."""
+    path = root / MANIFEST
+    _atomic_write_json(path, {
+        "format": MANIFEST_FORMAT, "format_version": MANIFEST_VERSION,
+        "config": config, "complete": complete, "shards": entries,
+    })
+    return path
+
+
+def read_manifest(root: str | Path) -> dict | None:
+    """The manifest of dataset ``root`` (None if it has none); errors name the file."""
+    path = Path(root) / MANIFEST
+    if not path.exists():
+        return None
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as error:  # UnicodeDecodeError and JSONDecodeError included
+        raise DatasetError(f"{path}: not a readable manifest ({error})") from error
+    except RecursionError:
+        raise DatasetError(f"{path}: not a readable manifest (nested too deeply)") from None
+    return check_manifest(manifest, path)
+
+
+def _show(value) -> str:
+    text = repr(value) if not isinstance(value, (dict, list)) else type(value).__name__
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+_ENTRY_FIELDS = (
+    ("path", lambda v: isinstance(v, str) and v != "", "a non-empty relative path"),
+    ("scene_seed", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+    ("frame_offset", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+    ("frames", lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
+    ("rates", lambda v: isinstance(v, list) and len(v) > 0 and all(
+        isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) for r in v),
+     "a non-empty list of rates"),
+    ("sha256", lambda v: isinstance(v, str) and _SHA256.fullmatch(v) is not None,
+     "64 lowercase hex digits"),
+    ("bytes", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+)
+
+
+def check_manifest(manifest, path: str | Path) -> dict:
+    """``manifest`` (parsed JSON) if it is a well-formed manifest; otherwise one-line
+    :class:`DatasetError` naming the file and the field. Shard paths must stay inside the dataset
+    directory (relative, no ``..``)."""
+    if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
+        raise DatasetError(f"{path}: not a rainbench manifest")
+    if manifest.get("format_version") != MANIFEST_VERSION:
+        raise DatasetError(f"{path}: unknown manifest format_version "
+                           f"{_show(manifest.get('format_version'))}")
+    if not isinstance(manifest.get("config"), dict):
+        raise DatasetError(f"{path}: \"config\" must be an object, got "
+                           f"{_show(manifest.get('config'))}")
+    if not isinstance(manifest.get("complete"), bool):
+        raise DatasetError(f"{path}: \"complete\" must be true or false, got "
+                           f"{_show(manifest.get('complete'))}")
+    shards = manifest.get("shards")
+    if not isinstance(shards, list):
+        raise DatasetError(f"{path}: \"shards\" must be a list of shard entries, got "
+                           f"{_show(shards)}")
+    seen = set()
+    for number, entry in enumerate(shards):
+        where = f"{path}: shards[{number}]"
+        if not isinstance(entry, dict):
+            raise DatasetError(f"{where}: expected an object, got {_show(entry)}")
+        for key, valid, expected in _ENTRY_FIELDS:
+            if key not in entry:
+                raise DatasetError(f"{where}: \"{key}\" is missing")
+            if not valid(entry[key]):
+                raise DatasetError(f"{where}: \"{key}\" must be {expected}, got "
+                                   f"{_show(entry[key])}")
+        relative = PurePosixPath(entry["path"])
+        if (relative.is_absolute() or ".." in relative.parts or not relative.parts
+                or "\\" in entry["path"]):
+            raise DatasetError(f"{where}: path {_show(entry['path'])} leaves the dataset "
+                               "directory; shard paths must be relative paths inside it")
+        if not entry["path"].isprintable():
+            raise DatasetError(f"{where}: path {_show(entry['path'])} holds control "
+                               "characters; shard paths must be printable")
+        if relative in seen:
+            raise DatasetError(f"{where}: {entry['path']} is listed twice")
+        seen.add(relative)
+    return manifest
+
+
+def list_shards(data: str | Path | Sequence[str | Path]) -> list[Path]:
+    """Shard paths of a dataset directory (manifest order; sorted names without a manifest),
+    of one shard file, or of a list of shard files (kept in the given order)."""
+    if isinstance(data, (list, tuple)):
+        paths = [Path(p) for p in data]
+    else:
+        root = Path(data)
+        if root.is_file():
+            paths = [root]
+        elif root.is_dir():
+            manifest = read_manifest(root)
+            if manifest is not None:
+                paths = [root / entry["path"] for entry in manifest["shards"]]
+            else:
+                paths = sorted(root.glob(SHARD_GLOB))
+        else:
+            raise DatasetError(f"{root}: no such dataset directory or shard")
+    if not paths:
+        raise DatasetError(f"{data}: no shards ({SHARD_GLOB}) found")
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        raise DatasetError(f"{missing[0]}: shard listed but missing")
+    return paths
+
+
+def verify_dataset(root: str | Path) -> list[str]:
+    """Problems of dataset ``root``, one line each, naming the file (empty list: all good)."""
+    root = Path(root)
+    manifest = read_manifest(root)
+    if manifest is None:
+        return [f"{root / MANIFEST}: missing"]
+    problems = []
+    if not manifest.get("complete"):
+        problems.append(f"{root / MANIFEST}: the dataset is incomplete (run the same command "
+                        "again to finish it)")
+    for entry in manifest["shards"]:
+        path = root / entry["path"]
+        if not path.is_file():
+            problems.append(f"{path}: missing")
+            continue
+        if path.stat().st_size != entry["bytes"]:
+            problems.append(f"{path}: {path.stat().st_size} bytes, manifest says {entry['bytes']}")
+            continue
+        if sha256_of(path) != entry["sha256"]:
+            problems.append(f"{path}: sha256 differs from the manifest")
+            continue
+        try:
+            with open_checked(path) as handle:
+                rgb = handle["rgb"].shape
+                offsets = handle["labels/offsets"].shape[0]
+                if rgb[:2] != (len(entry["rates"]), entry["frames"]) or offsets != rgb[1] + 1:
+                    problems.append(f"{path}: shapes disagree with the manifest (rgb {rgb})")
+        except ShardFormatError as error:
+            problems.append(str(error))
+    return problems
+
+
+def unlisted_shards(root: str | Path) -> list[Path]:
+    """``.h5`` files under dataset ``root`` that its manifest does not list (so not part of the
+    dataset: ``rainbench verify`` warns about them). Hidden temporary files are not counted."""
+    root = Path(root)
+    manifest = read_manifest(root)
+    listed = {root / entry["path"] for entry in manifest["shards"]} if manifest else set()
+    return sorted(path for path in root.rglob("*.h5")
+                  if not path.name.startswith(".") and path not in listed)

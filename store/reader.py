@@ -1,0 +1,116 @@
+"""Reading shards in training code: :class:`ShardReader`, numpy samples over :class:`Dataset`.
+
+The torch ``Dataset`` over it is :class:`rainbench.store.torch_dataset.ShardDataset`.
+
+Samples are (shard, frame, rate) triples in that order: shards in manifest order (sorted paths
+without a manifest), then frames, then the selected rates. Shard files are opened lazily, once
+per process, so both classes are safe with ``DataLoader(num_workers > 0)``. Every shard is
+checked when it is opened (:func:`rainbench.store.shard.check_labels`): NaN boxes or
+inconsistent ``/labels/offsets`` raise ``ShardFormatError`` naming the file and the frame.
+
+Target keys (numpy arrays from :class:`ShardReader`, tensors from ``ShardDataset``):
+
+- ``boxes`` (M, 4) float32 x1, y1, x2, y2 in pixel-edge coordinates (``x2 = last column + 1``)
+- ``labels`` (M,) int64 COCO-80 class ids (0 person, 1 bicycle, 2 car, 3 motorcycle, 5 bus, 7 truck)
+- ``instance_id`` (M,) int64, stable per actor within a scene
+- ``visible_fraction`` (M,) float32, ``truncation`` (M,) float32
+- ``rate`` float32 scalar, mm/h; ``image_id`` int (1-based, the numbering of exports and eval:
+  shard order, then frame order); ``shard`` str (file name); ``frame`` int
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .dataset import Dataset
+from .shard import open_checked, read_rgb
+
+_LABEL_KEYS = ("bbox", "class_id", "instance_id", "visible_fraction", "truncation")
+
+
+class ShardReader:
+    """Numpy access to the (image, target) samples of one or more shards.
+
+    ``data``: a dataset directory, one shard, or a list of shards. ``rates``: the rates to read
+    (mm/h, each present in every shard) or None for all. Optional filters drop labels with
+    ``visible_fraction < min_visible_fraction`` or a class not in ``classes``.
+    """
+
+    def __init__(self, data: str | Path | Sequence[str | Path], rates: Sequence[float] | None = None,
+                 *, min_visible_fraction: float = 0.0, classes: Sequence[int] | None = None) -> None:
+        self.dataset = Dataset(data, rates)
+        self.shards = self.dataset.shards
+        self.rates: tuple[float, ...] = self.dataset.rates
+        self.min_visible_fraction = float(min_visible_fraction)
+        self.classes = None if classes is None else np.asarray(sorted(set(classes)), np.int64)
+        self._rate_rows = [np.asarray([self.dataset.rate_row(rate, shard) for rate in self.rates])
+                           for shard in range(len(self.shards))]
+        frames = np.bincount([image.shard_index for image in self.dataset.images],
+                             minlength=len(self.shards))
+        self._first_image_id = np.concatenate([[1], 1 + np.cumsum(frames)[:-1]])
+        self._sample_starts = np.concatenate([[0], np.cumsum(frames * len(self.rates))])
+        self._pid = None
+        self._handles: dict[int, object] = {}
+        self._labels: dict[int, dict[str, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return int(self._sample_starts[-1])
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_handles"], state["_pid"] = {}, None  # handles never cross processes
+        return state
+
+    def locate(self, index: int) -> tuple[int, int, int]:
+        """(shard number, frame, rate number) of sample ``index``."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"sample index {index} out of range 0..{len(self) - 1}")
+        shard = int(np.searchsorted(self._sample_starts, index, side="right") - 1)
+        frame, rate = divmod(index - int(self._sample_starts[shard]), len(self.rates))
+        return shard, frame, rate
+
+    def _handle(self, shard: int):
+        if self._pid != os.getpid():  # a forked DataLoader worker: open its own handles
+            self._handles, self._pid = {}, os.getpid()
+        if shard not in self._handles:
+            self._handles[shard] = open_checked(self.shards[shard])
+        return self._handles[shard]
+
+    def _shard_labels(self, shard: int) -> dict[str, np.ndarray]:
+        if shard not in self._labels:
+            handle = self._handle(shard)
+            self._labels[shard] = {key: handle[f"labels/{key}"][()] for key in _LABEL_KEYS}
+            self._labels[shard]["offsets"] = handle["labels/offsets"][()]
+        return self._labels[shard]
+
+    def sample(self, index: int) -> tuple[np.ndarray, dict]:
+        """Image (H, W, 3) uint8 RGB and its target (numpy; keys in the module docstring)."""
+        shard, frame, rate_number = self.locate(index)
+        handle = self._handle(shard)
+        image = read_rgb(handle, int(self._rate_rows[shard][rate_number]), frame)
+        labels = self._shard_labels(shard)
+        rows = slice(int(labels["offsets"][frame]), int(labels["offsets"][frame + 1]))
+        keep = labels["visible_fraction"][rows] >= self.min_visible_fraction
+        if self.classes is not None:
+            keep &= np.isin(labels["class_id"][rows], self.classes)
+        target = {
+            "boxes": labels["bbox"][rows][keep].astype(np.float32),
+            "labels": labels["class_id"][rows][keep].astype(np.int64),
+            "instance_id": labels["instance_id"][rows][keep].astype(np.int64),
+            "visible_fraction": labels["visible_fraction"][rows][keep].astype(np.float32),
+            "truncation": labels["truncation"][rows][keep].astype(np.float32),
+            "rate": np.float32(self.rates[rate_number]),
+            "image_id": int(self._first_image_id[shard]) + frame,
+            "shard": self.shards[shard].name,
+            "frame": frame,
+        }
+        return image, target
+
+    def close(self) -> None:
+        for handle in self._handles.values():
+            handle.close()
+        self._handles = {}

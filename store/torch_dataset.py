@@ -1,0 +1,82 @@
+"""``ShardDataset``: a ``torch.utils.data.Dataset`` over :class:`~rainbench.store.reader.ShardReader`.
+
+Kept apart from the numpy reader so that ``import rainbench.store`` does not import torch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset as _TorchDataset
+
+from .reader import ShardReader
+
+
+class ShardDataset(_TorchDataset):
+    """``torch.utils.data.Dataset`` of (image, target) in torchvision detection style.
+
+    ``image`` is a (3, H, W) uint8 tensor: a channels-last view of the decoded (H, W, 3) RGB
+    memory (``image.contiguous()`` packs it; models take it as it is). ``target`` holds tensors
+    ``boxes`` (M, 4) float32 xyxy, ``labels`` (M,) int64, ``instance_id`` (M,) int64,
+    ``visible_fraction`` (M,), ``truncation`` (M,), ``rate`` (float32 scalar) and the plain
+    ``image_id``, ``shard``, ``frame``. Arguments as :class:`ShardReader`.
+
+    With ``DataLoader(num_workers > 0)`` use ``collate_fn=ShardDataset.collate_fn``: workers
+    hand targets over as numpy arrays (cheaper between processes), and the images of a batch
+    cross as one shared-memory block.
+    """
+
+    def __init__(self, data, rates=None, *, min_visible_fraction: float = 0.0,
+                 classes=None) -> None:
+        self.reader = ShardReader(data, rates, min_visible_fraction=min_visible_fraction,
+                                  classes=classes)
+
+    @property
+    def rates(self) -> tuple[float, ...]:
+        return self.reader.rates
+
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    def __getitem__(self, index: int):
+        image, target = self.reader.sample(index)
+        image = torch.from_numpy(image).permute(2, 0, 1)  # CHW view, no copy
+        if torch.utils.data.get_worker_info() is not None:
+            # In a DataLoader worker the target stays numpy: collate_fn makes one tensor block
+            # per key for the whole batch (each tensor costs a shared-memory segment).
+            return image, target
+        return image, _targets_to_tensors((target,))[0]
+
+    @staticmethod
+    def collate_fn(batch):
+        """Keep variable box counts: (tuple of (3, H, W) images, tuple of targets of tensors).
+
+        Runs in the DataLoader worker. Every tensor crossing to the main process costs a
+        shared-memory segment, so the batch's images of one size are packed into one
+        (B, H, W, 3) block and each target key into one block, and each sample gets views of
+        them (measured 2x more images/s through two workers than one tensor per array).
+        """
+        images, targets = zip(*batch)
+        if len({image.shape for image in images}) == 1:
+            block = torch.stack([image.permute(1, 2, 0) for image in images])
+            images = tuple(block.permute(0, 3, 1, 2))
+        return images, _targets_to_tensors(targets)
+
+
+def _targets_to_tensors(targets: Sequence[dict]) -> tuple[dict, ...]:
+    """Numpy targets of one batch as tensors that are views of one block per key."""
+    out = [dict(target) for target in targets]
+    for key, value in targets[0].items():
+        values = [target[key] for target in targets]
+        if isinstance(value, np.ndarray) and value.ndim >= 1:
+            parts = torch.split(torch.from_numpy(np.concatenate(values)),
+                                [len(v) for v in values])
+        elif isinstance(value, (np.ndarray, np.floating)):
+            parts = torch.from_numpy(np.stack(values))
+        else:  # already tensors (a DataLoader without workers) or plain values
+            continue
+        for target, part in zip(out, parts):
+            target[key] = part
+    return tuple(out)
