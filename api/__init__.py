@@ -1,8 +1,8 @@
 """rainbench: synthetic MuJoCo driving datasets with calibrated rain, and a YOLO evaluator.
 
 Importing rainbench chooses nothing and imports neither MuJoCo nor OpenGL: the offscreen GL
-backend is chosen (:mod:`rainbench.gl`) when the rendering packages :mod:`rainbench.mjcf` and
-:mod:`rainbench.gen` are first imported, before they import mujoco.
+backend is chosen (:mod:`rainbench.gl`) just before MuJoCo is first imported, by the modules that
+build or render scenes.
 """
 
 __version__ = "0.1.0"

@@ -8,15 +8,16 @@ import sys
 from pathlib import Path
 
 from rainbench import gl
+from rainbench.gen.config import (HFOV_DEG, MAX_FPS, MAX_FRAMES, MAX_SCENES, MAX_SEED, PAPER_CLIP,
+                                  SIDE_PX, DatasetConfig)
+from rainbench.rain.config import RAIN_MODELS
+from rainbench.rain.weather import SKIES, TIMES_OF_DAY
 
 EXIT_USAGE = 2
 
 
 class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2."""
-
-
-MAX_FRAMES = 100_000  # rainbench.gen.dataset.MAX_FRAMES (not imported here: it imports mujoco)
 
 
 def _shown(text) -> str:
@@ -59,8 +60,8 @@ def _seed(text: str) -> int:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"SEED: expected an integer, got {_shown(text)}") from None
-    if not 0 <= value <= 2**31 - 1:
-        raise argparse.ArgumentTypeError(f"SEED: expected 0..2147483647, got {_shown(value)}")
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"SEED: expected 0..{MAX_SEED}, got {_shown(value)}")
     return value
 
 
@@ -95,27 +96,20 @@ def _writable_dir(path: Path, what: str) -> Path:
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    from rainbench.rain import RAIN_MODELS, parse_rates
+    from rainbench.store.rates import parse_rates
 
-    rates = parse_rates(args.rates)
-    if args.rain_model not in RAIN_MODELS:
-        raise CliError(f"RAIN_MODEL: expected one of {', '.join(RAIN_MODELS)}, "
-                       f"got {args.rain_model!r}")
+    # the whole config is checked before anything is written or rendered
+    config = DatasetConfig(**_scene_fields(args), scenes=args.scenes,
+                           frames_per_shard=args.frames_per_shard, rates=parse_rates(args.rates),
+                           rain_model=args.rain_model, rain_seed=args.rain_seed, store=args.store,
+                           weather_follows_rate=args.weather_follows_rate)
     out = _writable_dir(Path(args.out), "OUT")
     _choose_gl(args.gl)
     from tqdm import tqdm
 
-    from rainbench.gen.dataset import DatasetConfig, run_dataset
+    from rainbench.gen.dataset import run_dataset
 
-    seed, sky = _seed_and_sky(args)
-    config = DatasetConfig(seed=seed, scenes=args.scenes, frames=args.frames,
-                           frames_per_shard=args.frames_per_shard, width=args.width,
-                           height=args.height, rates=rates, rain_model=args.rain_model,
-                           rain_seed=args.rain_seed, store=args.store, fps=args.fps, sky=sky,
-                           weather_follows_rate=args.weather_follows_rate, hfov_deg=args.hfov,
-                           **_layout_and_time(args))
-    shards = config.scenes * -(-config.frames // config.frames_per_shard)  # len(config.tasks())
-    workers = args.workers or min(os.cpu_count() or 1, shards)
+    workers = args.workers or min(os.cpu_count() or 1, config.shard_count)
     if args.threads is not None:
         import cv2  # noqa: PLC0415 -- OpenCV's own thread pool follows --threads as well
 
@@ -170,16 +164,13 @@ def cmd_scene(args: argparse.Namespace) -> int:
     if args.out is None:
         raise CliError("scene: expected --out DIR (or --list)")
     out = _writable_dir(Path(args.out), "OUT")
-    from rainbench.gen.generate import GenerateConfig
+    from rainbench.gen.config import GenerateConfig
     from rainbench.mjcf import layout as L
     from rainbench.mjcf.scene import build_spec, export_scene
 
     import numpy as np
 
-    seed, sky = _seed_and_sky(args)
-    config = GenerateConfig(seed=seed, frames=args.frames, width=args.width,
-                            height=args.height, fps=args.fps, sky=sky, hfov_deg=args.hfov,
-                            **_layout_and_time(args))
+    config = GenerateConfig(**_scene_fields(args))
     layout = L.sample_layout(config.seed, config.scenario_config(),
                              np.random.default_rng(config.seed))
     path = export_scene(build_spec(layout, config.width, config.height, config.hfov_deg), out)
@@ -190,7 +181,7 @@ def cmd_scene(args: argparse.Namespace) -> int:
 def _rate_list(text: str | None) -> list[float] | None:
     if text is None:
         return None
-    from rainbench.rain import parse_rates
+    from rainbench.store.rates import parse_rates
 
     return list(parse_rates(text))
 
@@ -272,9 +263,9 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_paper(args: argparse.Namespace) -> int:
-    from rainbench.rain import parse_rates
+    from rainbench.store.rates import parse_rates
 
-    rates = tuple(parse_rates(args.rates))
+    dataset = DatasetConfig(**_scene_fields(args), scenes=args.scenes, rates=parse_rates(args.rates))
     out = _writable_dir(Path(args.out), "--out")
     _choose_gl(None)
     import torch
@@ -282,9 +273,7 @@ def cmd_paper(args: argparse.Namespace) -> int:
     from rainbench.experiments.paper import PaperConfig, default_models, run_paper
 
     models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
-    seed, sky = _seed_and_sky(args)
-    config = PaperConfig(seed=seed, sky=sky, **_layout_and_time(args), scenes=args.scenes, frames=args.frames, width=args.width,
-                         height=args.height, rates=rates, rain_models=tuple(args.rain_models.split(",")),
+    config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device, classes=args.classes)
     print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
@@ -292,17 +281,24 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return 0
 
 
-PAPER_SKY = "cloudy"  # the seed paper's CARLA clip was cloudy
-PAPER_LAYOUT = "street"  # ... a straight drive (the street layout)
-PAPER_TIME_OF_DAY = "day"
+def _scene_fields(args: argparse.Namespace) -> dict:
+    """The config fields of the scene flags (:func:`_add_scene_args`, :func:`_add_layout_args`):
+    seed, sky, layout, time of day, frames, fps, image size and, where the command has --hfov,
+    the field of view."""
+    seed, sky = _seed_and_sky(args)
+    fields = dict(seed=seed, sky=sky, **_layout_and_time(args), frames=args.frames, fps=args.fps,
+                  width=args.width, height=args.height)
+    if "hfov" in vars(args):
+        fields["hfov_deg"] = args.hfov
+    return fields
 
 
 def _seed_and_sky(args: argparse.Namespace) -> tuple[int, str | None]:
     """(seed, sky): given none of --seed, --sky, --layout, --time, the paper's default clip
     (seed 0, cloudy); otherwise --sky, or the seed's own base weather when --sky is not given."""
     if _is_paper_clip(args):
-        return 0, PAPER_SKY
-    return (0 if args.seed is None else args.seed), args.sky
+        return PAPER_CLIP["seed"], PAPER_CLIP["sky"]
+    return (DatasetConfig.seed if args.seed is None else args.seed), args.sky
 
 
 def _is_paper_clip(args: argparse.Namespace) -> bool:
@@ -314,7 +310,7 @@ def _layout_and_time(args: argparse.Namespace) -> dict:
     """``layout`` and ``time_of_day`` of --layout and --time (the paper's clip: the street by
     day); None where the seed decides."""
     if _is_paper_clip(args):
-        return {"layout": PAPER_LAYOUT, "time_of_day": PAPER_TIME_OF_DAY}
+        return {"layout": PAPER_CLIP["layout"], "time_of_day": PAPER_CLIP["time_of_day"]}
     return {"layout": args.layout, "time_of_day": args.time}
 
 
@@ -331,13 +327,14 @@ def _add_layout_args(parser: argparse.ArgumentParser, hfov: bool = True) -> None
     parser.add_argument("--layout", type=_layout_name, default=None,
                         help="road scene: street, intersection, curved, highway, residential "
                              "(default: the seed decides; `rainbench scene --list`)")
-    parser.add_argument("--time", choices=("day", "dusk", "night"), default=None,
+    parser.add_argument("--time", choices=TIMES_OF_DAY, default=None,
                         help="time of day (default: the seed decides; the paper's clip: day)")
     if not hfov:
         return
-    parser.add_argument("--hfov", type=_number("HFOV", 10, 170), default=90.0,
-                        help="horizontal field of view of the ego camera in degrees, [10, 170] "
-                             "(default 90, the paper's)")
+    parser.add_argument("--hfov", type=_number("HFOV", *HFOV_DEG), default=DatasetConfig.hfov_deg,
+                        help="horizontal field of view of the ego camera in degrees, "
+                             f"[{HFOV_DEG[0]:g}, {HFOV_DEG[1]:g}] "
+                             f"(default {DatasetConfig.hfov_deg:g}, the paper's)")
 
 
 def _add_scene_args(parser: argparse.ArgumentParser) -> None:
@@ -345,16 +342,18 @@ def _add_scene_args(parser: argparse.ArgumentParser) -> None:
                         help="scene seed: road layout, time of day, actors, colours, speeds, sky, "
                              "sun, camera rig (default 0; given none of --seed, --sky, --layout, "
                              "--time: the paper's clip, the cloudy street by day)")
-    parser.add_argument("--sky", choices=("clear", "cloudy", "overcast"), default=None,
+    parser.add_argument("--sky", choices=SKIES, default=None,
                         help="base weather (default: the seed decides; the paper's clip: cloudy)")
-    parser.add_argument("--frames", type=_positive_int("FRAMES", MAX_FRAMES), default=200,
-                        help=f"frames per scene, 1..{MAX_FRAMES} (default 200)")
-    parser.add_argument("--fps", type=_number("FPS", 0, 1000, low_open=True), default=10.0,
-                        help="frames per second, (0, 1000] (default 10)")
-    parser.add_argument("--width", type=_positive_int("WIDTH", 8192, 16), default=800,
-                        help="image width in pixels, 16..8192 (default 800)")
-    parser.add_argument("--height", type=_positive_int("HEIGHT", 8192, 16), default=600,
-                        help="image height in pixels, 16..8192 (default 600)")
+    parser.add_argument("--frames", type=_positive_int("FRAMES", MAX_FRAMES), default=DatasetConfig.frames,
+                        help=f"frames per scene, 1..{MAX_FRAMES} (default {DatasetConfig.frames})")
+    parser.add_argument("--fps", type=_number("FPS", 0, MAX_FPS, low_open=True), default=DatasetConfig.fps,
+                        help=f"frames per second, (0, {MAX_FPS:g}] (default {DatasetConfig.fps:g})")
+    parser.add_argument("--width", type=_positive_int("WIDTH", SIDE_PX[1], SIDE_PX[0]),
+                        default=DatasetConfig.width,
+                        help=f"image width in pixels, {SIDE_PX[0]}..{SIDE_PX[1]} (default {DatasetConfig.width})")
+    parser.add_argument("--height", type=_positive_int("HEIGHT", SIDE_PX[1], SIDE_PX[0]),
+                        default=DatasetConfig.height,
+                        help=f"image height in pixels, {SIDE_PX[0]}..{SIDE_PX[1]} (default {DatasetConfig.height})")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -372,18 +371,20 @@ def build_parser() -> argparse.ArgumentParser:
     _add_layout_args(generate)
     generate.add_argument("--rates", default="0",
                           help="rain rates in mm/h: 0:100:10, 0,25,50 or 50 (default: 0)")
-    generate.add_argument("--rain-model", default="jeon2022")
-    generate.add_argument("--rain-seed", type=_seed, default=0)
+    generate.add_argument("--rain-model", default=DatasetConfig.rain_model,
+                          help=f"rain model: {', '.join(RAIN_MODELS)} (default {DatasetConfig.rain_model})")
+    generate.add_argument("--rain-seed", type=_seed, default=DatasetConfig.rain_seed)
     generate.add_argument("--weather-follows-rate", action=argparse.BooleanOptionalAction,
                           default=None,
                           help="sky, light, wet road, spray and camera follow the rain rate "
                                "(default: on for physical, off for jeon2022)")
     generate.add_argument("--store", type=_store, default=(),
                           help="extra per-frame arrays: depth,instance")
-    generate.add_argument("--scenes", type=_positive_int("SCENES", 100_000), default=1,
+    generate.add_argument("--scenes", type=_positive_int("SCENES", MAX_SCENES), default=DatasetConfig.scenes,
                           help="number of scenes; scene k uses seed SEED + k")
     generate.add_argument("--frames-per-shard", type=_positive_int("FRAMES_PER_SHARD"),
-                          default=200, help="split longer clips into shards of this many frames")
+                          default=DatasetConfig.frames_per_shard,
+                          help="split longer clips into shards of this many frames")
     generate.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=None,
                           help="parallel worker processes (default: cores, at most one per shard)")
     generate.add_argument("--render-threads", type=_positive_int("RENDER_THREADS", 1024), default=None,
@@ -478,10 +479,10 @@ def build_parser() -> argparse.ArgumentParser:
     paper = sub.add_parser("paper", help="the seed paper's experiment: generate, evaluate, report beside the paper")
     _add_scene_args(paper)
     _add_layout_args(paper, hfov=False)
-    paper.add_argument("--scenes", type=_positive_int("SCENES", 100_000), default=1)
+    paper.add_argument("--scenes", type=_positive_int("SCENES", MAX_SCENES), default=DatasetConfig.scenes)
     paper.add_argument("--rates", default="0:100:10", help="RATES spec (default 0:100:10, the paper's)")
-    paper.add_argument("--rain-models", default="jeon2022,physical",
-                       help="comma-separated rain models (default: jeon2022,physical)")
+    paper.add_argument("--rain-models", default=",".join(RAIN_MODELS),
+                       help=f"comma-separated rain models (default: {','.join(RAIN_MODELS)})")
     paper.add_argument("--model", action="append", default=None,
                        help="shipped model to evaluate (repeatable; default rainbench-yolo11n, plus "
                        "rainbench-yolo11s on a GPU)")

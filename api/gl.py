@@ -1,9 +1,10 @@
 """Choosing MuJoCo's offscreen OpenGL backend before ``mujoco`` is imported.
 
 MuJoCo reads ``MUJOCO_GL`` once, when it is first imported. rainbench therefore decides the
-backend when its rendering packages are first imported (``rainbench.mjcf`` and ``rainbench.gen``
-call :func:`configure` before any of their modules imports mujoco); importing ``rainbench``,
-``rainbench.store`` or ``rainbench.eval`` chooses nothing:
+backend just before MuJoCo is first imported: every rainbench module that needs MuJoCo writes
+``from rainbench.gl import mujoco`` (this module's ``__getattr__``), which calls :func:`configure`
+and then imports it. Importing ``rainbench``, ``rainbench.store``, ``rainbench.eval`` or the
+configs in ``rainbench.gen.config`` chooses nothing:
 
 - a ``MUJOCO_GL`` the user set is respected as it is (never overridden);
 - otherwise ``egl`` if the EGL library is found, else ``osmesa`` if OSMesa is found;
@@ -14,6 +15,7 @@ call :func:`configure` before any of their modules imports mujoco); importing ``
 from __future__ import annotations
 
 import ctypes.util
+import os
 import sys
 from collections.abc import Callable, MutableMapping
 from types import SimpleNamespace
@@ -99,3 +101,16 @@ def configure(
     environ["MUJOCO_GL"] = backend
     state.mujoco_imported_first = "mujoco" in sys.modules
     return backend
+
+
+def __getattr__(name: str):
+    """``from rainbench.gl import mujoco``: the ``mujoco`` module, imported after :func:`configure`
+    chose the backend from ``os.environ``. Every rainbench module that needs MuJoCo imports it
+    this way, so the backend is chosen when MuJoCo is first needed (a scene is built or rendered),
+    never by ``import rainbench``."""
+    if name == "mujoco":
+        configure(os.environ)
+        import mujoco  # noqa: PLC0415
+
+        return mujoco
+    raise AttributeError(f"module 'rainbench.gl' has no attribute {name!r}")

@@ -29,14 +29,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import rainbench  # noqa: F401  -- chooses MUJOCO_GL before mujoco is imported
-
 import cv2
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.gen import sim
-from rainbench.gen.generate import GenerateConfig, build_scene
+from rainbench.gen.config import GenerateConfig
+from rainbench.gen.generate import build_scene
 
 
 def bare_render_seconds(frames: int, width: int, height: int, images_per_frame: int = 1) -> float:

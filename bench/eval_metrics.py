@@ -6,13 +6,15 @@ noisy detections per frame whose recall and localisation degrade with the rate.
 
 Timed, per full sweep of the 11 rates (best of --repeats sweeps):
 
-- ours: ``metrics.evaluate`` (COCO indexing, one COCOeval over all classes with area range
-  "all" and maxDets 100, AP50/AP75/AP50-95 and the YOLO precision/recall/F1 part);
+- ours: ``rainbench.eval.metrics.evaluation.evaluate`` (COCO indexing, one COCOeval over all
+  classes with area range "all" and maxDets 100, AP50/AP75/AP50-95 and the YOLO
+  precision/recall/F1 part);
 - direct: the textbook pycocotools run on the same data: ``COCO`` from the dict, ``loadRes``,
   ``COCOeval(..., "bbox")`` with default params, ``evaluate(); accumulate(); summarize()``;
 - same params (reference point, not the target): pycocotools with our params (area "all" only,
   maxDets [100]), evaluate + accumulate, no F1 -- shows what our F1 / indexing part costs;
-- bootstrap: ``metrics.bootstrap_ci`` (AP50, --n-boot resamples per rate), timed separately.
+- bootstrap: ``rainbench.eval.metrics.bootstrap.bootstrap_ci`` (AP50, --n-boot resamples per
+  rate), timed separately.
 
 Usage: ``python bench/eval_metrics.py [--json OUT] [--repeats 3] [--n-boot 1000] [--seed 0]``
 """
@@ -34,7 +36,9 @@ import pycocotools
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-from rainbench.eval import metrics as M
+from rainbench.eval.metrics.bootstrap import bootstrap_ci
+from rainbench.eval.metrics.coco import AREA_ALL, MAX_DETECTIONS, coco_ground_truth
+from rainbench.eval.metrics.evaluation import evaluate
 
 RATES = tuple(float(r) for r in range(0, 101, 10))
 N_FRAMES = 200
@@ -55,7 +59,7 @@ def make_ground_truth(rng: np.random.Generator) -> tuple[dict, list[tuple[np.nda
         )
         xy = rng.uniform(0, [WIDTH - 230, HEIGHT - 230], (len(classes), 2))
         frames.append((np.concatenate([xy, xy + size], axis=1).astype(np.float32), classes.astype(np.int64)))
-    gt = M.coco_ground_truth([(i + 1, WIDTH, HEIGHT, boxes, classes) for i, (boxes, classes) in enumerate(frames)])
+    gt = coco_ground_truth([(i + 1, WIDTH, HEIGHT, boxes, classes) for i, (boxes, classes) in enumerate(frames)])
     return gt, frames
 
 
@@ -105,9 +109,9 @@ def run_direct(gt: dict, detections: list[dict], *, matched_params: bool = False
         coco_dt = coco_gt.loadRes(detections)
         evaluator = COCOeval(coco_gt, coco_dt, "bbox")
         if matched_params:
-            evaluator.params.areaRng = [list(M.AREA_ALL)]
+            evaluator.params.areaRng = [list(AREA_ALL)]
             evaluator.params.areaRngLbl = ["all"]
-            evaluator.params.maxDets = [M.MAX_DETECTIONS]
+            evaluator.params.maxDets = [MAX_DETECTIONS]
         evaluator.evaluate()
         evaluator.accumulate()
         if not matched_params:
@@ -133,7 +137,7 @@ def main(argv: list[str] | None = None) -> dict:
     max_ap_difference = 0.0
     for _ in range(args.repeats):
         start = time.perf_counter()
-        ours = {rate: M.evaluate(gt, detections) for rate, detections in detections_by_rate.items()}
+        ours = {rate: evaluate(gt, detections) for rate, detections in detections_by_rate.items()}
         ours_times.append(time.perf_counter() - start)
 
         inputs = {
@@ -161,7 +165,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     boot_rng = np.random.default_rng(args.seed + 1)
     start = time.perf_counter()
-    intervals = {rate: M.bootstrap_ci(gt, d, args.n_boot, rng=boot_rng) for rate, d in detections_by_rate.items()}
+    intervals = {rate: bootstrap_ci(gt, d, args.n_boot, rng=boot_rng) for rate, d in detections_by_rate.items()}
     bootstrap_seconds = time.perf_counter() - start
 
     result = {

@@ -9,7 +9,7 @@ Timed (best of ``--repeats``):
 - baseline: ``ultralytics.YOLO(weights).predict(frames, imgsz=IMGSZ, conf=0.001)`` directly;
 - ultralytics backend: ``load_detector(weights).predict`` (the same model through rainbench:
   BGR conversion, class filtering, clipping);
-- onnx backend: the same model exported to ONNX (``backends.export_onnx``, dynamic input), run by
+- onnx backend: the same model exported to ONNX (``rainbench.eval.weights.export_onnx``, dynamic input), run by
   onnxruntime: what a shipped model runs on CPU;
 - darknet backend: a YOLOv4-tiny-sized Darknet network (random weights, built here: no download)
   through OpenCV DNN at 416x416 (its cfg size), for scale only: not the same network.
@@ -35,9 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
-from rainbench.eval import backends
+from rainbench.eval import backends, weights as registry
+from rainbench.eval.backends.ultralytics import preload_torch
 
-backends.preload_torch()  # before Mesa renders the frames
+preload_torch()  # before Mesa renders the frames
 import torch  # noqa: E402
 
 YOLOV4_TINY_BODY = [  # (filters, size, stride) of the yolov4-tiny backbone's plain convolutions
@@ -46,7 +47,8 @@ YOLOV4_TINY_BODY = [  # (filters, size, stride) of the yolov4-tiny backbone's pl
 
 
 def frames(count: int) -> list[np.ndarray]:
-    from rainbench.gen.generate import GenerateConfig, render_clip
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import render_clip
 
     config = GenerateConfig(seed=0, frames=count, fps=count / 20.0, rates=(0.0,), layout="street",
                             time_of_day="day")
@@ -102,8 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = dict(imgsz=args.imgsz, conf=0.001, iou=0.7, max_det=300)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        if args.weights in backends.shipped_models():
-            weights, label = str(backends.WEIGHTS_DIR / f"{args.weights}.pt"), args.weights
+        if args.weights in registry.shipped_models():
+            weights, label = str(registry.WEIGHTS_DIR / f"{args.weights}.pt"), args.weights
         else:
             from ultralytics.nn.tasks import DetectionModel
 
@@ -119,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         detector = backends.load_detector(weights, device="cpu")  # a .pt path: the ultralytics backend
         rates["ultralytics backend"] = best_rate(lambda chunk: detector.predict(chunk, **settings), images,
                                                  args.batch, args.repeats)
-        onnx_detector = backends.load_detector(backends.export_onnx(weights, folder / "model.onnx"))
+        onnx_detector = backends.load_detector(registry.export_onnx(weights, folder / "model.onnx"))
         rates["onnx backend"] = best_rate(lambda chunk: onnx_detector.predict(chunk, **settings), images,
                                           args.batch, args.repeats)
         darknet = backends.load_detector(darknet_files(folder))

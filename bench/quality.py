@@ -22,9 +22,9 @@ import sys
 import time
 from pathlib import Path
 
-from rainbench.eval import backends
+from rainbench.eval.backends.ultralytics import preload_torch
 
-backends.preload_torch()  # before Mesa renders the frames
+preload_torch()  # before Mesa renders the frames
 
 QUALITY_BAR = {"car": 0.80, "person": 0.80, "bicycle": 0.60, "motorcycle": 0.60}
 CLIP_SECONDS = 20.0
@@ -50,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--seed/--scenes: the check must use evaluation seeds (below 1000000)")
 
     from rainbench.eval.pipeline import run_eval
-    from rainbench.gen.dataset import DatasetConfig, run_dataset
+    from rainbench.gen.config import DatasetConfig
+    from rainbench.gen.dataset import run_dataset
 
     weights = args.weights or ["rainbench-yolo11n"]
     rows, seconds = [], {}

@@ -18,13 +18,12 @@ import os
 import platform
 import time
 
-import rainbench  # noqa: F401  -- chooses MUJOCO_GL before mujoco is imported
-
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.gen import sim
-from rainbench.gen.generate import GenerateConfig, build_scene, render_frame
+from rainbench.gen.config import GenerateConfig
+from rainbench.gen.generate import build_scene, render_frame
 from rainbench.gen.render import FrameRenderer
 
 

@@ -29,8 +29,14 @@ from rainbench.store import SHARD_GLOB, Dataset, DatasetError, Image, read_frame
 from rainbench.store.rates import rate_token
 
 from rainbench.store.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES, class_list, parse_classes
-from .metrics import bootstrap_ci, coco_ground_truth, evaluate, metric_records
-from .report import PAPER_TABLES, plot_detection_strip, plot_metric_vs_rate, render_report_md, write_metrics
+from .metrics.bootstrap import bootstrap_ci
+from .metrics.coco import coco_detections, coco_ground_truth
+from .metrics.evaluation import evaluate
+from .report.figures import plot_detection_strip
+from .report.markdown import render_report_md
+from .report.paper import PAPER_TABLES
+from .report.plots import plot_metric_vs_rate
+from .report.records import metric_records, write_metrics
 
 BOOTSTRAP_SEED = 0
 """Seed of the bootstrap generator (``np.random.default_rng(BOOTSTRAP_SEED)`` per model and rate)."""
@@ -204,8 +210,6 @@ def _infer(detector, dataset: Dataset, rate: float, *, batch, imgsz, conf, iou, 
            classes: Sequence[int]) -> list[dict]:
     """COCO results records of ``detector`` on ``images`` at one rate, of the rainbench ids
     ``classes`` only."""
-    from .metrics import coco_detections
-
     records: list[dict] = []
     for image_ids, arrays in _read_rgb(dataset, rate, batch):
         outputs = detector.predict(arrays, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det)
@@ -234,12 +238,12 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     weights file and settings unless ``force``.
 
     ``imgsz``: letterbox size of every model; None gives each model its own
-    (:func:`rainbench.eval.backends.model_imgsz`: a shipped model's card, else 640).
+    (:func:`rainbench.eval.weights.model_imgsz`: a shipped model's card, else 640).
     ``trust_pickle``: load ``.pt`` files that ultralytics' safe loading refuses with Python's
     full unpickler (see :func:`rainbench.eval.backends.load_detector`).
 
     ``classes``: the classes to score, names or ids (``"person,car,bus,truck"``, ``[2, 5, 7]``;
-    :func:`rainbench.eval.metrics.parse_classes`); None scores the paper's four (0..3). Only
+    :func:`rainbench.store.classes.parse_classes`); None scores the paper's four (0..3). Only
     they appear in the records, tables and plots, and detectors keep only them. Given
     explicitly, every model must be able to predict every one of them (a model that cannot:
     one-line error naming the model and the class).
@@ -300,11 +304,13 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
     from tqdm import tqdm
 
     from . import backends
+    from . import weights as registry
+    from .backends.classes import parse_class_map
 
     rates = list(dataset.rates)
-    resolved = [backends.resolve_weights(w, device) for w in specs]
+    resolved = [registry.resolve_weights(w, device) for w in specs]
     if class_map is not None:
-        backends.parse_class_map(class_map)  # fail early on a bad spec
+        parse_class_map(class_map)  # fail early on a bad spec
     models = [name for _, name in resolved]
     duplicates = sorted({m for m in models if models.count(m) > 1})
     if duplicates:
@@ -314,7 +320,7 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
     # cannot predict a requested class fails the run before any inference.
     plans = []
     for spec, (path, model) in zip(specs, resolved, strict=True):
-        model_imgsz = backends.model_imgsz(spec) if imgsz is None else imgsz
+        model_imgsz = registry.model_imgsz(spec) if imgsz is None else imgsz
         settings = _cache_settings(path, imgsz=model_imgsz, conf=conf, iou=iou, max_det=max_det,
                                    class_map=class_map, classes=class_ids)
         meta_path = cache_root / model / "settings.json"
@@ -359,7 +365,7 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
 
 def _score(gt: dict, detections: dict, models: Sequence[str], rates: Sequence[float], *,
            class_ids: Sequence[int], report_conf: float, n_boot: int, progress: bool) -> list[dict[str, Any]]:
-    """Metric records (:func:`rainbench.eval.metrics.metric_records`) of every model and rate,
+    """Metric records (:func:`rainbench.eval.report.records.metric_records`) of every model and rate,
     with bootstrap intervals of AP50 and AP50:95."""
     from tqdm import tqdm
 

@@ -1,7 +1,7 @@
 """``rainbench paper`` / ``make paper``: the seed paper's experiment on rainbench data, end to end.
 
-Defaults equal the paper's: one clip of 200 frames of 800x600 (seed 0), rates 0..100 mm/h in
-steps of 10, the four classes (``PaperConfig.classes`` adds bus and truck: ``--classes``). For each rain model (``jeon2022``, the paper's calibrated law, and
+Defaults equal the paper's: one clip of 200 frames of 800x600 (seed 0, the cloudy street by day:
+:data:`~rainbench.gen.config.PAPER_CLIP`), rates 0..100 mm/h in steps of 10, the four classes (``PaperConfig.classes`` adds bus and truck: ``--classes``). For each rain model (``jeon2022``, the paper's calibrated law, and
 ``physical``) a dataset is generated (or finished: it resumes), every model is evaluated with
 ``run_eval`` into ``OUT/<rain model>/``, and ``OUT/report.md`` sets our Tables I, III and IV beside
 the paper's, with the analyses beyond it (half-AP rates, the two rain models side by side, AP by
@@ -14,39 +14,38 @@ import math
 import platform
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from rainbench.gen.dataset import DatasetConfig, run_dataset
+from rainbench.gen.config import PAPER_CLIP, RAIN_MODELS, DatasetConfig
+from rainbench.gen.dataset import run_dataset
 from rainbench.store import Dataset, read_frame_labels
 
 from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES, parse_classes
-from rainbench.eval.metrics import ap_by_size, ap_by_visibility, half_value_rate
+from rainbench.eval.metrics.breakdown import ap_by_size, ap_by_visibility
+from rainbench.eval.metrics.robustness import half_value_rate
 from rainbench.eval.pipeline import EvalError, ground_truth, load_predictions_file, open_dataset, predictions_path, run_eval
-from rainbench.eval.report import render_paper_md
+from rainbench.eval.report.markdown import render_paper_md
 
-RAIN_MODELS = ("jeon2022", "physical")
+PAPER_RATES = tuple(float(r) for r in range(0, 101, 10))
+"""The seed paper's rain rates in mm/h: 0 (Normal) to 100 in steps of 10."""
 VISIBILITY_BINS = (0.1, 0.25, 0.5, 0.75, 1.0)  # labels start at visible_fraction 0.10
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class PaperConfig:
-    """What ``make paper`` runs; defaults are the paper's experiment with the shipped nano model."""
+    """What ``make paper`` runs; defaults are the paper's experiment with the shipped nano model.
 
-    seed: int = 0
-    sky: str | None = "cloudy"  # the paper's clip was cloudy; None: each seed's own weather
-    layout: str | None = "street"  # the paper's straight drive; None: each seed's own layout
-    time_of_day: str | None = "day"  # None: each seed's own
-    scenes: int = 1
-    frames: int = 200
-    width: int = 800
-    height: int = 600
-    rates: tuple[float, ...] = tuple(float(r) for r in range(0, 101, 10))
+    ``dataset`` is the data of every condition (:func:`conditions`), which sets its
+    ``rain_model`` and ``weather_follows_rate``; the other fields say what is evaluated and how.
+    """
+
+    dataset: DatasetConfig = field(default_factory=lambda: DatasetConfig(**PAPER_CLIP, rates=PAPER_RATES))
     rain_models: tuple[str, ...] = RAIN_MODELS
     weights: tuple[str, ...] = ("rainbench-yolo11n",)
-    imgsz: int | None = None  # None: each model's own (backends.model_imgsz)
+    imgsz: int | None = None  # None: each model's own (rainbench.eval.weights.model_imgsz)
     batch: int = 32
     n_boot: int = 1000
     device: str | None = None
@@ -64,8 +63,10 @@ class PaperConfig:
         unknown = sorted(set(self.rain_models) - set(RAIN_MODELS))
         if unknown or not self.rain_models:
             raise EvalError(f"rain models: expected some of {', '.join(RAIN_MODELS)}, got {list(self.rain_models)}")
-        if 0.0 not in self.rates:
-            raise EvalError(f"RATES: the paper's comparison needs rate 0 (Normal), got {list(self.rates)}")
+        if not isinstance(self.dataset, DatasetConfig):
+            raise EvalError(f"dataset: expected a DatasetConfig, got {type(self.dataset).__name__}")
+        if 0.0 not in self.dataset.rates:
+            raise EvalError(f"RATES: the paper's comparison needs rate 0 (Normal), got {list(self.dataset.rates)}")
 
 
 FIXED_WEATHER = "-fixed-weather"
@@ -91,7 +92,7 @@ detector of the paper's strength."""
 def default_models(cuda: bool) -> tuple[str, ...]:
     """The shipped models ``make paper`` evaluates: the nano one, the small one (when shipped) on
     a GPU, and the weak control (when shipped)."""
-    from rainbench.eval.backends import shipped_models
+    from rainbench.eval.weights import shipped_models
 
     wanted = ("rainbench-yolo11n", "rainbench-yolo11s") if cuda else ("rainbench-yolo11n",)
     wanted += (CONTROL_MODEL,)
@@ -141,7 +142,9 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
               force: bool = False, progress: bool = True) -> Path:
     """Generate, evaluate and report; returns ``OUT/report.md``. Datasets go to
     ``data_root/<rain model>/`` and are reused (resumed) by later runs with the same config."""
-    from rainbench.eval.backends import check_model_classes, load_detector, model_imgsz, preload_torch, resolve_weights
+    from rainbench.eval.backends import check_model_classes, load_detector
+    from rainbench.eval.backends.ultralytics import preload_torch
+    from rainbench.eval.weights import model_imgsz, resolve_weights
 
     preload_torch()  # before generating: triton after Mesa rendering crashes
     out_dir, data_root = Path(out_dir), Path(data_root)
@@ -151,17 +154,14 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
             detector = load_detector(spec, device=config.device, classes=class_ids)
             check_model_classes(detector, resolve_weights(spec, config.device)[1], class_ids)
             del detector
+    data = config.dataset
     records_by_rain: dict[str, list] = {}
     timings: dict[str, float] = {}
     skies = set()
     for name, rain_model, follows in conditions(config.rain_models):
         data_dir = data_root / name
-        dataset = DatasetConfig(seed=config.seed, scenes=config.scenes, frames=config.frames,
-                                width=config.width, height=config.height, rates=config.rates,
-                                rain_model=rain_model, sky=config.sky, weather_follows_rate=follows,
-                                layout=config.layout, time_of_day=config.time_of_day)
         start = time.perf_counter()
-        run_dataset(dataset, data_dir, workers=workers)
+        run_dataset(replace(data, rain_model=rain_model, weather_follows_rate=follows), data_dir, workers=workers)
         timings[f"generate {name}"] = time.perf_counter() - start
         written = Dataset(data_dir)
         for shard in range(len(written.shards)):
@@ -182,16 +182,16 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
                           if r["model"] == model and r["class"] == class_name}
                 half_rates[(rain_model, model, class_name)] = half_value_rate(values) if values else math.nan
     paper_rain = "jeon2022" if "jeon2022" in config.rain_models else config.rain_models[0]
-    breakdown_rates = [r for r in config.breakdown_rates if r in config.rates]
+    breakdown_rates = [r for r in config.breakdown_rates if r in data.rates]
     tables = breakdowns(data_root / paper_rain, out_dir / paper_rain, models[0], breakdown_rates, class_ids)
     counts = table_one(data_root / paper_rain, class_ids)
-    paper_clip = (config.sky, config.seed, config.layout, config.time_of_day) == ("cloudy", 0, "street", "day")
+    paper_clip = all(getattr(data, name) == value for name, value in PAPER_CLIP.items())
     setup = [
-        f"Data: {config.scenes} scene(s) from seed {config.seed}, {config.frames} frames of "
-        f"{config.width}x{config.height} each, rates {', '.join(f'{r:g}' for r in config.rates)} mm/h, "
+        f"Data: {data.scenes} scene(s) from seed {data.seed}, {data.frames} frames of "
+        f"{data.width}x{data.height} each, rates {', '.join(f'{r:g}' for r in data.rates)} mm/h, "
         f"rain models {', '.join(config.rain_models)}. Classes: {', '.join(CLASS_NAMES[c] for c in class_ids)}. "
-        f"Road layout: {config.layout or 'each seed its own'}; time of day: "
-        f"{config.time_of_day or 'each seed its own'}. Base weather: {', '.join(sorted(skies))} "
+        f"Road layout: {data.layout or 'each seed its own'}; time of day: "
+        f"{data.time_of_day or 'each seed its own'}. Base weather: {', '.join(sorted(skies))} "
         f"({'the paper clip' if paper_clip else 'as chosen'}). "
         "Weather following the rate (sky, light, wet road, puddles, spray, exposure, noise): "
         + ", ".join(f"{name} {'yes' if follows else 'no'}" for name, _, follows in conditions(config.rain_models))

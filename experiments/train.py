@@ -5,9 +5,10 @@ training run depends on:
 
 - ``name``: the weights' name (``<name>.pt``);
 - ``architecture``: an ultralytics model yaml (``yolo11n.yaml``): no pretrained weights are used;
-- ``train_data`` / ``val_data``: :class:`~rainbench.gen.dataset.DatasetConfig` fields of the clean
+- ``train_data`` / ``val_data``: :class:`~rainbench.gen.config.DatasetConfig` fields of the clean
   (0 mm/h) training and validation datasets, ``scenario`` as
-  :class:`~rainbench.mjcf.layout.ScenarioConfig` fields;
+  :class:`~rainbench.mjcf.layout.ScenarioConfig` fields (its ``duration_s`` defaults to the
+  clip's length); every field is checked when the recipe is loaded;
 - ``train``: ultralytics ``train()`` arguments; ``cpu``: overrides of ``train`` used when no CUDA
   device is present (smaller images, fewer epochs).
 - ``restarts`` (optional, in ``train`` or ``cpu``; the ``cpu`` one wins on CPU): a list of argument
@@ -44,12 +45,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rainbench.gen.dataset import DatasetConfig, run_dataset
+from rainbench.gen.config import DatasetConfig
+from rainbench.gen.dataset import run_dataset
 from rainbench.store.export import yolo_names
 from rainbench.store.classes import PAPER_CLASSES, parse_classes
+from rainbench.store.manifest import is_int
 from rainbench.mjcf.layout import ScenarioConfig
 
-from rainbench.eval.backends import DEFAULT_IMGSZ
+from rainbench.eval.weights import DEFAULT_IMGSZ
 from rainbench.experiments.tiles import TileConfig, TileError, export_tiles
 
 TRAIN_CLASSES: tuple[int, ...] = PAPER_CLASSES
@@ -140,15 +143,13 @@ def _dataset_config(section: Any, key: str, source: str) -> DatasetConfig:
     if unknown:
         raise TrainError(f"{source}: `{key}.{unknown[0]}` is not a dataset setting "
                          f"(expected some of {', '.join(sorted(known))})")
+    if scenario is not None and not isinstance(scenario, dict):
+        raise TrainError(f"{source}: `{key}.scenario` must be a mapping of ScenarioConfig fields")
     try:
+        config = DatasetConfig(**fields, rates=(0.0,))
         if scenario is not None:
-            if not isinstance(scenario, dict):
-                raise TrainError(f"{source}: `{key}.scenario` must be a mapping of ScenarioConfig fields")
-            duration = fields.get("frames", 200) / fields.get("fps", 10.0)
-            scenario = ScenarioConfig(**{"duration_s": duration, **scenario})
-        config = DatasetConfig(**fields, rates=(0.0,), scenario=scenario)
-    except TrainError:
-        raise
+            config = dataclasses.replace(config, scenario=ScenarioConfig(
+                **{"duration_s": config.duration_s, **scenario}))
     except (TypeError, ValueError) as error:
         raise TrainError(f"{source}: `{key}`: {' '.join(str(error).split())}") from None
     if config.seed < TRAIN_SEED_START:
@@ -195,7 +196,7 @@ def load_recipe(recipe: str | Path) -> Recipe:
             where = key if number == 0 else f"{key}.restarts[{number}]"
             _stage_tiles(arguments, f"{source}: `{where}")
     eval_imgsz = raw.get("eval_imgsz", DEFAULT_IMGSZ)
-    if not (isinstance(eval_imgsz, int) and not isinstance(eval_imgsz, bool) and eval_imgsz >= 32):
+    if not (is_int(eval_imgsz) and eval_imgsz >= 32):
         raise TrainError(f"{source}: `eval_imgsz` must be an integer >= 32 (px), got {eval_imgsz!r}")
     try:
         classes = parse_classes(raw.get("classes", list(TRAIN_CLASSES)))
@@ -294,7 +295,7 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     cut-off one resumes from its ``last.pt``, and a restart starts from the previous stage's
     ``best.pt``.
     """
-    from rainbench.eval.backends import preload_torch
+    from rainbench.eval.backends.ultralytics import preload_torch
 
     ultralytics = preload_torch()  # before generating: triton after Mesa rendering crashes
     import torch
@@ -337,10 +338,10 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
 
 def write_companions(weights: Path, eval_imgsz: int) -> tuple[Path, Path]:
     """Beside ``<name>.pt``, write what a shipped model needs besides its checkpoint: ``<name>.onnx``
-    (:func:`~rainbench.eval.backends.export_onnx`, run on CPU) and the card ``<name>.json``
+    (:func:`~rainbench.eval.weights.export_onnx`, run on CPU) and the card ``<name>.json``
     (``{"imgsz": eval_imgsz}``). Shipping a model is copying the three files to
     ``eval/weights/`` (docs/models.md). Returns ``(onnx path, card path)``."""
-    from rainbench.eval.backends import export_onnx
+    from rainbench.eval.weights import export_onnx
 
     onnx = export_onnx(weights, weights.with_suffix(".onnx"))
     card = weights.with_suffix(".json")

@@ -1,7 +1,8 @@
 """Writing datasets: many scenes as many shards, the manifest, resume, parallel workers.
 
 A dataset directory holds shards (docs/format.md) and ``manifest.json``
-(:mod:`rainbench.store.manifest`); reading it is :mod:`rainbench.store`'s job. Here:
+(:mod:`rainbench.store.manifest`); reading it is :mod:`rainbench.store`'s job, and the dataset
+config (:class:`~rainbench.gen.config.DatasetConfig`) is checked when it is built. Here:
 
 - scene k of a dataset uses seed ``seed + k``; a clip longer than ``frames_per_shard`` is split
   into shards of at most that many frames (the layout is planned for the whole clip);
@@ -26,10 +27,8 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import dataclasses
 import fcntl
 import json
-import math
 import multiprocessing
 import os
 import queue
@@ -39,106 +38,18 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from rainbench import __version__
-from rainbench.mjcf.layout import ScenarioConfig
-from rainbench.store.manifest import (MANIFEST, SHARD_GLOB, DatasetError, read_manifest, sha256_of,
-                                      shard_entry, write_manifest)
+from rainbench.store.manifest import (MANIFEST, SHARD_GLOB, DatasetError, is_int, read_manifest,
+                                      sha256_of, shard_entry, write_manifest)
 from rainbench.store.shard import ShardFormatError, open_checked, read_rgb, shard_name
 
-from . import labels as lb
-from .generate import GenerateConfig, _json_default, generate_shard
+from .config import DatasetConfig, GenerateConfig
+from .generate import generate_shard
 
 EXECUTORS = ("local", "ray")
 LOCK = ".rainbench-generate.lock"
-MAX_FRAMES = 100_000
-"""Most frames of one clip (``--frames``): 10 000 s of driving at 10 frames/s."""
-MAX_SHARDS = 100_000
-"""Most shards of one dataset (scenes x shards per scene)."""
-MAX_PIXELS = 4096 * 4096
-"""Most pixels of one image: its framebuffer (the image plus the truncation margins, 2.25 times
-the pixels) is what Mesa's llvmpipe still allocates (measured: 4096 x 4096 and 8192 x 2048
-render; 8192 x 4096 and 5461 x 5461 do not)."""
-
-
-@dataclass(frozen=True)
-class DatasetConfig:
-    """A dataset: ``scenes`` clips of ``frames`` frames, seeds ``seed .. seed + scenes - 1``."""
-
-    seed: int = 0
-    scenes: int = 1
-    frames: int = 200
-    frames_per_shard: int = 200
-    fps: float = 10.0
-    width: int = 800
-    height: int = 600
-    hfov_deg: float = 90.0
-    rates: tuple[float, ...] = (0.0,)
-    rain_model: str = "jeon2022"
-    rain_seed: int = 0
-    rain_options: dict = field(default_factory=dict)
-    store: tuple[str, ...] = ()
-    label_filter: lb.LabelFilter = field(default_factory=lb.LabelFilter)
-    scenario: ScenarioConfig | None = None  # None: the paper's actor mix over frames / fps seconds
-    sky: str | None = None  # base weather of every scene; None: each seed decides
-    layout: str | None = None  # road layout of every scene; None: each seed decides
-    time_of_day: str | None = None  # day, dusk or night for every scene; None: each seed decides
-    weather_follows_rate: bool | None = None  # None: on for physical, off for jeon2022
-
-    def __post_init__(self) -> None:
-        if self.scenario is not None and abs(self.scenario.duration_s - self.frames / self.fps) > 1e-9:
-            raise DatasetError(f"scenario.duration_s: expected frames / fps = {self.frames / self.fps:g} s "
-                               f"(the clip's length), got {self.scenario.duration_s:g}")
-        if not (_is_int(self.scenes) and 1 <= self.scenes <= 100_000):
-            raise DatasetError(f"SCENES: expected an integer in 1..100000, got {self.scenes!r}")
-        if not (_is_int(self.frames) and 1 <= self.frames <= MAX_FRAMES):
-            raise DatasetError(f"FRAMES: expected an integer in 1..{MAX_FRAMES}, got {self.frames!r}")
-        if not (_is_int(self.frames_per_shard) and self.frames_per_shard >= 1):
-            raise DatasetError(
-                f"frames-per-shard: expected an integer >= 1, got {self.frames_per_shard!r}")
-        if _is_int(self.width) and _is_int(self.height) and self.width * self.height > MAX_PIXELS:
-            raise DatasetError(f"WIDTH x HEIGHT: {self.width}x{self.height} = "
-                               f"{self.width * self.height} pixels; at most {MAX_PIXELS} "
-                               "(4096x4096): larger framebuffers do not render")
-        shards = self.scenes * math.ceil(self.frames / self.frames_per_shard)
-        if shards > MAX_SHARDS:
-            raise DatasetError(f"SCENES x ceil(FRAMES / FRAMES_PER_SHARD) = {shards} shards; at "
-                               f"most {MAX_SHARDS} (raise --frames-per-shard)")
-        if self.seed + self.scenes - 1 > 2**31 - 1:
-            raise DatasetError(f"SEED: seed + scenes - 1 must be <= 2147483647, got "
-                               f"{self.seed + self.scenes - 1}")
-        self.tasks()  # validates every shard's GenerateConfig
-
-    def tasks(self) -> list[GenerateConfig]:
-        """One GenerateConfig per shard, in manifest order (scene, then frame offset)."""
-        tasks = []
-        for scene in range(self.scenes):
-            for offset in range(0, self.frames, self.frames_per_shard):
-                tasks.append(GenerateConfig(
-                    seed=self.seed + scene, frames=min(self.frames_per_shard, self.frames - offset),
-                    frame_offset=offset, clip_frames=self.frames, fps=self.fps, width=self.width,
-                    height=self.height, hfov_deg=self.hfov_deg, rates=tuple(self.rates),
-                    rain_model=self.rain_model, rain_seed=self.rain_seed,
-                    rain_options=dict(self.rain_options), store=tuple(self.store),
-                    label_filter=self.label_filter, scenario=self.scenario, sky=self.sky,
-                    layout=self.layout, time_of_day=self.time_of_day,
-                    weather_follows_rate=self.weather_follows_rate))
-        return tasks
-
-    def to_dict(self) -> dict:
-        config = dataclasses.asdict(self)
-        config["rates"] = [float(rate) for rate in self.rates]
-        config["store"] = list(self.store)
-        return config
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-# -- generation --------------------------------------------------------------------------------
 
 _progress_queue = None
 
@@ -262,7 +173,7 @@ def _adoptable(path: Path, task: GenerateConfig) -> bool:
     killed between the rename and the manifest update), is a complete shard of ``task``: it
     opens, its labels check, its generator version and config are this task's, and every RGB
     chunk inflates (zlib checksums)."""
-    expected = json.loads(json.dumps(task.to_dict(), sort_keys=True, default=_json_default))
+    expected = json.loads(task.to_json())
     try:
         with open_checked(path) as handle:
             if handle.attrs.get("generator_version") != __version__ \
@@ -297,9 +208,9 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
     """
     if executor not in EXECUTORS:
         raise DatasetError(f"executor: expected one of {', '.join(EXECUTORS)}, got {executor!r}")
-    if not (_is_int(workers) and workers >= 1):
+    if not (is_int(workers) and workers >= 1):
         raise DatasetError(f"WORKERS: expected an integer >= 1, got {workers!r}")
-    if threads is not None and not (_is_int(threads) and threads >= 1):
+    if threads is not None and not (is_int(threads) and threads >= 1):
         raise DatasetError(f"THREADS: expected an integer >= 1, got {threads!r}")
     local_threads = threads or max(1, (os.cpu_count() or 1) // workers)
     root = Path(out)

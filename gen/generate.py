@@ -1,7 +1,8 @@
 """Scene -> render -> labels -> rain -> shard: the generator's main loop.
 
 :func:`generate_shard` is the one entry point; the CLI (`rainbench generate`) and the tests
-call it. Its result depends only on the :class:`GenerateConfig` (and the GL backend).
+call it. Its result depends only on the :class:`~rainbench.gen.config.GenerateConfig` (and the
+GL backend).
 """
 
 from __future__ import annotations
@@ -10,111 +11,26 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import json
-import math
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench import __version__
 from rainbench.mjcf import layout as L
 from rainbench.mjcf.scene import build_spec, geom_instance_table
-from rainbench.rain.weather import Weather, check_sky, check_time_of_day, weather_at
+from rainbench.rain.weather import Weather, weather_at
+from rainbench.store.shard import ShardWriter, shard_name
 
 from . import labels as lb
 from . import sim
+from .config import GenerateConfig
 from .render import FrameRenderer, camera_pose
-from rainbench.store.shard import STORABLE, ShardWriter, shard_name
 from .weather import render_key
-
-MAX_SEED = 2**31 - 1
-
-
-@dataclass(frozen=True)
-class GenerateConfig:
-    """Everything one shard depends on. Defaults are the paper's clip (seed paper, Sec. III)."""
-
-    seed: int = 0
-    frames: int = 200
-    frame_offset: int = 0
-    clip_frames: int | None = None  # frames of the whole clip; None: frame_offset + frames
-    fps: float = 10.0
-    width: int = 800
-    height: int = 600
-    hfov_deg: float = 90.0
-    rates: tuple[float, ...] = (0.0,)
-    rain_model: str = "jeon2022"
-    rain_seed: int = 0
-    rain_options: dict = field(default_factory=dict)
-    store: tuple[str, ...] = ()
-    label_filter: lb.LabelFilter = field(default_factory=lb.LabelFilter)
-    scenario: L.ScenarioConfig | None = None  # None: the paper's mix over frames / fps seconds
-    sky: str | None = None  # base weather (clear, cloudy, overcast); None: the seed decides
-    layout: str | None = None  # road layout (mjcf.layout.LAYOUTS); None: the seed decides
-    time_of_day: str | None = None  # day, dusk, night; None: the seed decides
-    # Whether sky, light, wet road, spray and camera follow the rain rate; None: the rain
-    # model's default (on for physical, off for jeon2022: the seed paper's method).
-    weather_follows_rate: bool | None = None
-
-    def __post_init__(self) -> None:
-        for name, low, high in (("seed", 0, MAX_SEED), ("rain_seed", 0, MAX_SEED),
-                                ("frames", 1, 100_000), ("frame_offset", 0, 10_000_000),
-                                ("width", 16, 8192), ("height", 16, 8192)):
-            value = getattr(self, name)
-            if not (isinstance(value, int) and not isinstance(value, bool) and low <= value <= high):
-                raise ValueError(f"{name}: expected an integer in {low}..{high}, got {value!r}")
-        if not (0 < self.fps <= 1000):
-            raise ValueError(f"fps: expected 0 < fps <= 1000, got {self.fps}")
-        if not (10 <= self.hfov_deg <= 170):
-            raise ValueError(f"hfov_deg: expected 10..170 degrees, got {self.hfov_deg}")
-        unknown = sorted(set(self.store) - set(STORABLE))
-        if unknown:
-            raise ValueError(f"store: expected a subset of {','.join(STORABLE)}, got "
-                             f"{','.join(unknown)}")
-        if self.clip_frames is not None and self.clip_frames < self.frame_offset + self.frames:
-            raise ValueError(f"clip_frames: expected >= frame_offset + frames = "
-                             f"{self.frame_offset + self.frames}, got {self.clip_frames}")
-        rates = tuple(float(r) for r in self.rates)
-        if not rates or list(rates) != sorted(set(rates)) or rates[0] < 0:
-            raise ValueError(f"rates: expected ascending distinct values >= 0, got {self.rates}")
-        if self.sky is not None:
-            check_sky(self.sky)
-        if self.layout is not None:
-            L.check_layout(self.layout)
-        if self.time_of_day is not None:
-            check_time_of_day(self.time_of_day)
-        if self.weather_follows_rate not in (None, True, False):
-            raise ValueError(f"weather_follows_rate: expected True, False or None, got "
-                             f"{self.weather_follows_rate!r}")
-
-    @property
-    def follows_rate(self) -> bool:
-        """Whether the weather follows the rate (resolving None by the rain model)."""
-        if self.weather_follows_rate is not None:
-            return self.weather_follows_rate
-        return self.rain_model == "physical"
-
-    @property
-    def duration_s(self) -> float:
-        """Length of the whole clip the layout is planned for (all shards of a scene share it)."""
-        clip = self.clip_frames if self.clip_frames is not None else self.frame_offset + self.frames
-        return clip / self.fps
-
-    def scenario_config(self) -> L.ScenarioConfig:
-        scenario = self.scenario if self.scenario is not None else L.ScenarioConfig(
-            duration_s=self.duration_s)
-        chosen = {name: getattr(self, name) for name in ("sky", "layout", "time_of_day")
-                  if getattr(self, name) is not None}
-        return dataclasses.replace(scenario, **chosen) if chosen else scenario
-
-    def to_dict(self) -> dict:
-        config = dataclasses.asdict(self)
-        config["scenario"] = dataclasses.asdict(self.scenario_config())
-        return config
 
 
 @dataclass(frozen=True)
@@ -261,7 +177,7 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
         return images, drop_count, ssim, psnr, coverage, contrast
     from rainbench import rain  # noqa: PLC0415 -- only needed when it rains
 
-    rain_config = rain.RainConfig(model=config.rain_model, **config.rain_options)
+    rain_config = config.rain_config()
     # lens water persists over the clip: seeded by the clip, placed by the frame's time
     clock = rain.LensClock(np.random.SeedSequence([config.rain_seed, config.seed]), global_frame,
                            config.fps)
@@ -372,7 +288,7 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
         "frame_offset": config.frame_offset, "fps": config.fps,
         "class_names": json.dumps(list(L.CLASS_NAMES)), "rain_model": config.rain_model,
         "gl_backend": os.environ.get("MUJOCO_GL", ""), "generator_version": __version__,
-        "config": json.dumps(config.to_dict(), sort_keys=True, default=_json_default),
+        "config": config.to_json(),
     }
     writer = None
     pending = None
@@ -418,12 +334,3 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
             if writer is not None and not writer.committed:
                 writer.abort()
 
-
-def _json_default(value):
-    if isinstance(value, float) and math.isinf(value):
-        return "inf"
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (np.floating,)):
-        return float(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

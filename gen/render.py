@@ -12,7 +12,7 @@ import math
 import os
 
 import cv2
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported

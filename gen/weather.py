@@ -13,7 +13,7 @@ render, the lights that matter most to the camera: OpenGL lights only the first 
 
 from __future__ import annotations
 
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.mjcf import lights as tod

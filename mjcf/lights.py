@@ -24,7 +24,7 @@ import math
 import re
 from typing import Sequence
 
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.rain.weather import DUSK_SUN_ELEVATION_DEG, check_time_of_day, weather_at

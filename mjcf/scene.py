@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.rain.weather import sky_colours, weather_at

@@ -27,7 +27,7 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from . import layout as L

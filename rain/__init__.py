@@ -1,4 +1,5 @@
-"""Rain for rainbench: rates in mm/h, two rain models, image-quality statistics.
+"""Rain for rainbench: two rain models, lens water, image-quality statistics (rates in mm/h are
+parsed and named by :mod:`rainbench.store.rates`).
 
 Pure numpy/OpenCV; no MuJoCo. Models (docs/rain.md):
 
@@ -17,11 +18,9 @@ from rainbench.rain.config import RAIN_MODELS, RainConfig
 from rainbench.rain.lens import LensClock, LensDrops, jeon2022_drop_count
 from rainbench.rain.metrics import SsimReference, box_rain_labels, image_quality, luma, psnr, ssim_gray
 from rainbench.rain.physical import AirDrops, extinction_coefficient, marshall_palmer_slope, terminal_velocity, visibility_km
-from rainbench.store.rates import MAX_RATE_MM_H, RatesError, parse_rates
 from rainbench.rain.render import Drops, RainFrame, render_rain, render_rain_sweep, sample_drops
 
 __all__ = [
-    "MAX_RATE_MM_H",
     "RAIN_MODELS",
     "AirDrops",
     "Drops",
@@ -29,7 +28,6 @@ __all__ = [
     "LensDrops",
     "RainConfig",
     "RainFrame",
-    "RatesError",
     "SsimReference",
     "box_rain_labels",
     "extinction_coefficient",
@@ -37,7 +35,6 @@ __all__ = [
     "jeon2022_drop_count",
     "luma",
     "marshall_palmer_slope",
-    "parse_rates",
     "psnr",
     "render_rain",
     "render_rain_sweep",

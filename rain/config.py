@@ -159,7 +159,10 @@ class RainConfig:
         if not isinstance(self.lens_drops, bool):
             raise ValueError(f"RainConfig.lens_drops must be a bool, got {self.lens_drops!r}")
         if self.airlight_rgb is not None:
-            airlight = tuple(self.airlight_rgb)
+            try:
+                airlight = tuple(self.airlight_rgb)
+            except TypeError:  # not a sequence: refused below
+                airlight = ()
             if len(airlight) != 3 or not all(isinstance(c, (int, float)) and 0.0 <= c <= 255.0 for c in airlight):
                 raise ValueError(f"RainConfig.airlight_rgb must be None or three numbers in [0, 255], got {self.airlight_rgb!r}")
             object.__setattr__(self, "airlight_rgb", tuple(float(c) for c in airlight))
@@ -182,3 +185,8 @@ class RainConfig:
         if values.get("airlight_rgb") is not None:
             values["airlight_rgb"] = tuple(values["airlight_rgb"])
         return cls(**values)
+
+
+RAIN_OPTIONS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(RainConfig) if f.name != "model")
+"""The rain parameters a dataset config's ``rain_options`` may set: every :class:`RainConfig` field
+but ``model`` (the config's ``rain_model``), in declaration order."""

@@ -24,7 +24,7 @@ CLASS_COLOURS: tuple[tuple[int, int, int], ...] = (
 """RGB box colour per class id 0..7 (person, bicycle, car, motorcycle, (airplane), bus, (train),
 truck): previews, videos and the evaluator's detection strip draw every class in its colour."""
 PAPER_CLASS_NAMES: tuple[str, ...] = tuple(CLASS_NAMES[i] for i in PAPER_CLASSES)
-"""Names of the paper's four classes, ids 0..3 (the default categories of :func:`coco_ground_truth`)."""
+"""Names of the paper's four classes, ids 0..3 (the default categories of :func:`rainbench.eval.metrics.coco.coco_ground_truth`)."""
 
 def class_list(class_ids: Sequence[int]) -> str:
     """``"person (0), car (2), bus (5)"``: class ids with their names, for messages."""

@@ -30,7 +30,9 @@ class DatasetError(ValueError):
     """A dataset request or directory that cannot be honoured; the message is one line."""
 
 
-def _is_int(value) -> bool:
+def is_int(value) -> bool:
+    """Whether ``value`` is an integer (``bool`` is not one): the check of every integer field
+    of a manifest and of the generator's configs."""
     return isinstance(value, int) and not isinstance(value, bool)
 
 
@@ -97,15 +99,15 @@ def _show(value) -> str:
 
 _ENTRY_FIELDS = (
     ("path", lambda v: isinstance(v, str) and v != "", "a non-empty relative path"),
-    ("scene_seed", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
-    ("frame_offset", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
-    ("frames", lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
+    ("scene_seed", lambda v: is_int(v) and v >= 0, "an integer >= 0"),
+    ("frame_offset", lambda v: is_int(v) and v >= 0, "an integer >= 0"),
+    ("frames", lambda v: is_int(v) and v >= 1, "an integer >= 1"),
     ("rates", lambda v: isinstance(v, list) and len(v) > 0 and all(
         isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) for r in v),
      "a non-empty list of rates"),
     ("sha256", lambda v: isinstance(v, str) and _SHA256.fullmatch(v) is not None,
      "64 lowercase hex digits"),
-    ("bytes", lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+    ("bytes", lambda v: is_int(v) and v >= 0, "an integer >= 0"),
 )
 
 

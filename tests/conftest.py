@@ -1,8 +1,7 @@
-"""Shared fixtures. Importing rainbench.gen first chooses MuJoCo's GL backend (MUJOCO_GL)."""
+"""Shared fixtures. MuJoCo comes from ``rainbench.gl``, which chooses its GL backend (MUJOCO_GL)
+before importing it."""
 
-import rainbench.gen  # noqa: F401  -- must precede any mujoco import
-
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
 

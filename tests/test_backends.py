@@ -8,10 +8,14 @@ import numpy as np
 import pytest
 
 from rainbench.eval import backends
+from rainbench.eval import weights as registry
+from rainbench.eval.backends.darknet import decode_darknet
+from rainbench.eval.backends.letterbox import LETTERBOX_FILL, letterbox, rect_shape, unletterbox
+from rainbench.eval.backends.ultralytics import _offline_ultralytics
 from conftest import assert_same_detections
 
 # Import torch's lazy modules before anything renders in this process (see test_eval_pipeline).
-backends._offline_ultralytics()
+_offline_ultralytics()
 import onnx  # noqa: E402
 import torch  # noqa: E402
 import torch._dynamo  # noqa: E402,F401
@@ -69,15 +73,15 @@ def _image():
 
 def test_letterbox_maps_points_exactly():
     image = _image()
-    canvas, gain, pad = backends.letterbox(image, (640, 640))
+    canvas, gain, pad = letterbox(image, (640, 640))
     assert canvas.shape == (640, 640, 3) and gain == pytest.approx(0.8) and pad == (0.0, 80.0)
-    assert (canvas[:80] == backends.LETTERBOX_FILL).all() and (canvas[560:] == backends.LETTERBOX_FILL).all()
-    assert backends.rect_shape(600, 800, 640) == (480, 640)
-    assert backends.rect_shape(72, 96, 96) == (96, 96)
+    assert (canvas[:80] == LETTERBOX_FILL).all() and (canvas[560:] == LETTERBOX_FILL).all()
+    assert rect_shape(600, 800, 640) == (480, 640)
+    assert rect_shape(72, 96, 96) == (96, 96)
     moved = ORIGINAL_BOXES * gain + np.array([0, 80, 0, 80], np.float32)
-    np.testing.assert_allclose(backends.unletterbox(moved, gain, pad, 800, 600), ORIGINAL_BOXES, atol=1e-4)
+    np.testing.assert_allclose(unletterbox(moved, gain, pad, 800, 600), ORIGINAL_BOXES, atol=1e-4)
     # Clipping to the original image.
-    assert backends.unletterbox(np.array([[-10, 0, 700, 700]]), gain, pad, 800, 600).tolist() == [[0, 0, 800, 600]]
+    assert unletterbox(np.array([[-10, 0, 700, 700]]), gain, pad, 800, 600).tolist() == [[0, 0, 800, 600]]
 
 
 @pytest.mark.parametrize("layout,dynamic", [("v8", True), ("v8", False), ("v5", True), ("v5", False)])
@@ -147,7 +151,7 @@ def test_onnx_export_of_an_ultralytics_model_matches_its_checkpoint(tmp_path):
                 tensor.copy_(tensor.half().float())
     pt_path = tmp_path / "net.pt"
     model.save(str(pt_path))
-    onnx_path = backends.export_onnx(pt_path, tmp_path / "net.onnx")  # traced at 640x480
+    onnx_path = registry.export_onnx(pt_path, tmp_path / "net.onnx")  # traced at 640x480
     # Batch norms unfused, so every weight is stored as the checkpoint's fp16 value.
     proto = onnx.load(str(onnx_path))
     stored = {init.name: onnx.numpy_helper.to_array(init) for init in proto.graph.initializer}
@@ -192,7 +196,7 @@ def test_store_exact_halves_keeps_the_graph_bit_exact():
         return session.run(None, {"x": x})[0]
 
     before = run(model)
-    halved = backends._store_exact_halves(model)
+    halved = registry._store_exact_halves(model)
     onnx.checker.check_model(halved)
     stored = {init.name: numpy_helper.to_array(init) for init in halved.graph.initializer}
     assert stored.keys() == {"w__fp16", "b"}
@@ -254,7 +258,7 @@ def test_darknet_backend_runs_through_opencv(tmp_path):
 
 def test_darknet_decode_is_exact():
     rows = np.array([[0.5, 0.25, 0.1, 0.2, 0.9, 0.1, 0.7]], np.float32)
-    boxes, scores = backends.decode_darknet(rows, (416, 608))
+    boxes, scores = decode_darknet(rows, (416, 608))
     np.testing.assert_allclose(boxes, [[0.45 * 608, 0.15 * 416, 0.55 * 608, 0.35 * 416]], rtol=1e-6)
     np.testing.assert_allclose(scores, [[0.1, 0.7]])
 
@@ -283,34 +287,35 @@ def test_weights_errors_are_one_line(tmp_path):
 
 
 def test_shipped_names_resolve_by_device_and_carry_their_imgsz(tmp_path, monkeypatch):
-    monkeypatch.setattr(backends, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setattr(registry, "WEIGHTS_DIR", tmp_path)
     (tmp_path / "m.pt").write_bytes(b"pt")
     # Without a shipped ONNX copy, CPU runs the copy built on first use (cached_onnx); CUDA the
     # checkpoint; without a card, 640.
-    monkeypatch.setattr(backends, "cached_onnx", lambda checkpoint: tmp_path / f"{checkpoint.stem}-cache.onnx")
-    assert backends.resolve_weights("m", "cpu") == (tmp_path / "m-cache.onnx", "m")
-    assert backends.resolve_weights("m", "cuda:0") == (tmp_path / "m.pt", "m")
-    assert backends.model_imgsz("m") == backends.DEFAULT_IMGSZ == 640
+    monkeypatch.setattr(registry, "cached_onnx", lambda checkpoint: tmp_path / f"{checkpoint.stem}-cache.onnx")
+    assert registry.resolve_weights("m", "cpu") == (tmp_path / "m-cache.onnx", "m")
+    assert registry.resolve_weights("m", "cuda:0") == (tmp_path / "m.pt", "m")
+    assert registry.model_imgsz("m") == registry.DEFAULT_IMGSZ == 640
     (tmp_path / "m.onnx").write_bytes(b"onnx")
     (tmp_path / "m.json").write_text('{"imgsz": 960}')
-    assert backends.resolve_weights("m", "cpu") == (tmp_path / "m.onnx", "m")
-    assert backends.resolve_weights("m", "0") == (tmp_path / "m.pt", "m")
-    assert backends.resolve_weights("m", "cuda:0") == (tmp_path / "m.pt", "m")
-    assert backends.resolve_weights("m", None)[0].suffix == (".pt" if torch.cuda.is_available() else ".onnx")
-    assert backends.model_imgsz("m") == 960
-    assert backends.model_imgsz(tmp_path / "m.pt") == 640  # a file path is not a shipped name
-    assert backends.model_imgsz("other") == 640
+    assert registry.resolve_weights("m", "cpu") == (tmp_path / "m.onnx", "m")
+    assert registry.resolve_weights("m", "0") == (tmp_path / "m.pt", "m")
+    assert registry.resolve_weights("m", "cuda:0") == (tmp_path / "m.pt", "m")
+    assert registry.resolve_weights("m", None)[0].suffix == (".pt" if torch.cuda.is_available() else ".onnx")
+    assert registry.model_imgsz("m") == 960
+    assert registry.model_imgsz(tmp_path / "m.pt") == 640  # a file path is not a shipped name
+    assert registry.model_imgsz("other") == 640
     (tmp_path / "m.json").write_text('{"imgsz": "big"}')
     with pytest.raises(backends.BackendError, match=r"m\.json: imgsz: expected an integer >= 32, got 'big'"):
-        backends.model_imgsz("m")
+        registry.model_imgsz("m")
     (tmp_path / "m.json").write_text("[]")
     with pytest.raises(backends.BackendError, match=r"m\.json: expected a JSON object with an integer `imgsz`"):
-        backends.model_imgsz("m")
+        registry.model_imgsz("m")
 
 
 def test_onnx_and_darknet_backends_through_run_eval_on_a_tiny_shard(tmp_path):
     from rainbench.eval import pipeline
-    from rainbench.gen.generate import GenerateConfig, generate_shard
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import generate_shard
 
     data = tmp_path / "data"
     generate_shard(GenerateConfig(frames=2, width=96, height=72, rates=(0.0, 50.0)), data)

@@ -14,6 +14,8 @@ from pycocotools.cocoeval import COCOeval
 
 from rainbench import cli
 from rainbench.eval import backends, pipeline
+from rainbench.eval.backends.classes import class_lookup, index_names, parse_class_map
+from rainbench.eval.backends.ultralytics import _offline_ultralytics
 from rainbench.store.shard import open_checked
 from rainbench.store.export import export_coco, export_yolo, read_yolo_labels
 from rainbench.store.shard import ShardFormatError
@@ -22,7 +24,7 @@ from rainbench.store.classes import CLASS_NAMES, parse_classes
 
 # torch's triton segfaults when first loaded after Mesa rendered in the same process (see
 # tests/test_eval_pipeline.py); `rainbench paper` below loads it, so load it at collection.
-backends._offline_ultralytics()
+_offline_ultralytics()
 import torch._dynamo  # noqa: E402,F401
 
 PERSON, BICYCLE, CAR, MOTORCYCLE, BUS, TRUCK = 0, 1, 2, 3, 5, 7
@@ -205,7 +207,7 @@ def test_paper_refuses_a_model_without_a_requested_class_before_generating(tmp_p
 
 
 def test_paper_report_shows_the_requested_classes():
-    from rainbench.eval.report import render_paper_md  # noqa: PLC0415
+    from rainbench.eval.report.markdown import render_paper_md  # noqa: PLC0415
 
     records = [{"model": "coco", "rate": rate, "class": name, "ap50": ap, "f1": ap}
                for rate, scale in ((0.0, 1.0), (100.0, 0.5)) for name, ap in (("car", 0.8 * scale), ("bus", 0.6 * scale))]
@@ -221,17 +223,17 @@ def test_paper_report_shows_the_requested_classes():
 
 def test_class_tables_of_coco_and_four_class_models():
     coco = ["person", "bicycle", "car", "motorcycle", "airplane", "bus", "train", "truck", "boat"]
-    assert backends.class_lookup(coco, None, "m").tolist() == [0, 1, 2, 3, -1, -1, -1, -1, -1]
-    assert backends.class_lookup(coco, None, "m", (CAR, BUS, TRUCK)).tolist() == [-1, -1, 2, -1, -1, 5, -1, 7, -1]
-    darknet80 = backends.class_lookup(backends.index_names(80), None, "m", (BUS, TRUCK))  # no names: COCO-80
+    assert class_lookup(coco, None, "m").tolist() == [0, 1, 2, 3, -1, -1, -1, -1, -1]
+    assert class_lookup(coco, None, "m", (CAR, BUS, TRUCK)).tolist() == [-1, -1, 2, -1, -1, 5, -1, 7, -1]
+    darknet80 = class_lookup(index_names(80), None, "m", (BUS, TRUCK))  # no names: COCO-80
     assert np.flatnonzero(darknet80 >= 0).tolist() == [5, 7] and darknet80[[5, 7]].tolist() == [5, 7]
-    four = backends.class_lookup(coco[:4], None, "m", (CAR, BUS, TRUCK))
+    four = class_lookup(coco[:4], None, "m", (CAR, BUS, TRUCK))
     assert four.tolist() == [-1, -1, 2, -1]  # nothing to map bus and truck to
-    assert backends.class_lookup(["lkw", "auto"], "lkw=7,auto=2", "m", (TRUCK,)).tolist() == [7, -1]
-    assert backends.parse_class_map("lkw=7,omnibus=5") == {"lkw": 7, "omnibus": 5}
+    assert class_lookup(["lkw", "auto"], "lkw=7,auto=2", "m", (TRUCK,)).tolist() == [7, -1]
+    assert parse_class_map("lkw=7,omnibus=5") == {"lkw": 7, "omnibus": 5}
     with pytest.raises(backends.BackendError, match=r"--class-map: expected NAME=ID pairs with ID a rainbench "
                                                     r"class id \(person \(0\), .*truck \(7\)\), got 'plane=4'"):
-        backends.parse_class_map("plane=4")
+        parse_class_map("plane=4")
 
 
 def test_exports_keep_coco_ids_for_bus_and_truck(dataset, tmp_path):

@@ -16,6 +16,7 @@ from torch.utils.data import DataLoader
 
 from rainbench import ShardDataset, cli, store
 from rainbench.gen import dataset as ds
+from rainbench.gen.config import DatasetConfig
 from rainbench.store.reader import ShardReader
 from rainbench.store.shard import ShardFormatError, ShardWriter, read_frame_labels, read_rgb
 
@@ -30,7 +31,7 @@ def _hashes(root):
 @pytest.fixture(scope="module")
 def dataset_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("ds")
-    ds.run_dataset(ds.DatasetConfig(**SMALL), root, workers=1)
+    ds.run_dataset(DatasetConfig(**SMALL), root, workers=1)
     return root
 
 
@@ -63,7 +64,7 @@ def test_walk_opens_each_shard_once_and_closes_it(dataset_dir):
 def test_split_shards_continue_one_clip(dataset_dir, tmp_path):
     """Frames 2..3 of scene 0 equal frames 2..3 of the same scene rendered as one shard."""
     whole = dict(SMALL, scenes=1, frames_per_shard=4)
-    ds.run_dataset(ds.DatasetConfig(**whole), tmp_path, workers=1)
+    ds.run_dataset(DatasetConfig(**whole), tmp_path, workers=1)
     with h5py.File(tmp_path / "scene000000_f00000.h5") as one, \
             h5py.File(dataset_dir / "scene000000_f00002.h5") as part:
         np.testing.assert_array_equal(one["rgb"][:, 2:4], part["rgb"][()])
@@ -72,19 +73,19 @@ def test_split_shards_continue_one_clip(dataset_dir, tmp_path):
 
 def test_worker_and_thread_counts_give_the_same_bytes(dataset_dir, tmp_path):
     # dataset_dir: 1 worker with the default threads (one per core, frames pipelined)
-    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path / "two", workers=2, threads=1)
+    ds.run_dataset(DatasetConfig(**SMALL), tmp_path / "two", workers=2, threads=1)
     assert _hashes(tmp_path / "two") == _hashes(dataset_dir)
-    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path / "serial", workers=1, threads=1)
+    ds.run_dataset(DatasetConfig(**SMALL), tmp_path / "serial", workers=1, threads=1)
     assert _hashes(tmp_path / "serial") == _hashes(dataset_dir)
     with pytest.raises(ds.DatasetError, match="THREADS: expected an integer >= 1, got 0"):
-        ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path / "bad", threads=0)
+        ds.run_dataset(DatasetConfig(**SMALL), tmp_path / "bad", threads=0)
 
 
 def test_ray_executor_on_a_local_cluster(dataset_dir, tmp_path):
     import ray  # the ray extra, installed by the Makefile
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, executor="ray")
+        ds.run_dataset(DatasetConfig(**SMALL), tmp_path, executor="ray")
     finally:
         ray.shutdown()
     assert _hashes(tmp_path) == _hashes(dataset_dir)
@@ -99,12 +100,12 @@ def test_resume_after_an_interrupted_run(dataset_dir, tmp_path):
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1, progress=crash)
+        ds.run_dataset(DatasetConfig(**SMALL), tmp_path, workers=1, progress=crash)
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["manifest.json", "scene000000_f00000.h5"]  # nothing partial, no temp file
     assert json.loads((tmp_path / store.MANIFEST).read_text())["complete"] is False
     (tmp_path / ".scene000000_f00002.h5.tmp-99999").write_bytes(b"left by kill -9")
-    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1)
+    ds.run_dataset(DatasetConfig(**SMALL), tmp_path, workers=1)
     assert _hashes(tmp_path) == _hashes(dataset_dir)
     assert not list(tmp_path.glob(".*tmp*"))
 
@@ -130,11 +131,11 @@ def test_kill_9_mid_run_then_resume(tmp_path):
 
 
 def test_other_config_is_refused_unless_overwrite(dataset_dir, tmp_path, capsys):
-    ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1)
+    ds.run_dataset(DatasetConfig(**SMALL), tmp_path, workers=1)
     other = dict(SMALL, rates=(0.0,))
     with pytest.raises(ds.DatasetError, match="holds a dataset of another config"):
-        ds.run_dataset(ds.DatasetConfig(**other), tmp_path, workers=1)
-    ds.run_dataset(ds.DatasetConfig(**other), tmp_path, workers=1, overwrite=True)
+        ds.run_dataset(DatasetConfig(**other), tmp_path, workers=1)
+    ds.run_dataset(DatasetConfig(**other), tmp_path, workers=1, overwrite=True)
     assert store.verify_dataset(tmp_path) == []
     stranger = tmp_path / "stranger"
     stranger.mkdir()

@@ -9,14 +9,17 @@ import pytest
 
 from rainbench import cli
 from rainbench.eval import backends, pipeline
+from rainbench.eval.backends.classes import class_lookup, parse_class_map
+from rainbench.eval.backends.ultralytics import _offline_ultralytics
 from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES, PAPER_CLASS_NAMES
-from rainbench.gen.generate import GenerateConfig, generate_shard
+from rainbench.gen.config import GenerateConfig
+from rainbench.gen.generate import generate_shard
 from rainbench.store.shard import open_shard, read_frame_labels
 
 # torch (through torch._dynamo) loads triton, whose bundled LLVM segfaults when it is loaded
 # after Mesa's llvmpipe has rendered in the same process (seen here: generate a shard, then
 # import triton -> SIGSEGV). Loaded at collection, before any fixture renders, it is fine.
-backends._offline_ultralytics()
+_offline_ultralytics()
 import torch._dynamo  # noqa: E402,F401
 import ultralytics  # noqa: E402,F401
 
@@ -217,24 +220,24 @@ def test_backend_detections_are_cached_and_reused(data_dir, tmp_path, monkeypatc
 
 def test_class_map_logic_with_fake_names():
     coco = {i: n for i, n in enumerate(["person", "bicycle", "car", "motorcycle", "airplane", "bus"])}
-    assert backends.class_lookup(coco, None, "m").tolist() == [0, 1, 2, 3, -1, -1]
+    assert class_lookup(coco, None, "m").tolist() == [0, 1, 2, 3, -1, -1]
     other = {0: "pedestrian", 1: "car", 2: "truck"}
     with pytest.raises(backends.BackendError, match="not COCO-80; pass --class-map"):
-        backends.class_lookup(other, None, "m")
-    assert backends.class_lookup(other, "car=2,pedestrian=0", "m").tolist() == [0, 2, -1]
-    assert backends.class_lookup(["a", "b"], "b=3", "m").tolist() == [-1, 3]
+        class_lookup(other, None, "m")
+    assert class_lookup(other, "car=2,pedestrian=0", "m").tolist() == [0, 2, -1]
+    assert class_lookup(["a", "b"], "b=3", "m").tolist() == [-1, 3]
     with pytest.raises(backends.BackendError, match="no class named 'bus'"):
-        backends.class_lookup(other, "bus=2", "m")
-    assert backends.parse_class_map(" car = 2 , pedestrian=0") == {"car": 2, "pedestrian": 0}
+        class_lookup(other, "bus=2", "m")
+    assert parse_class_map(" car = 2 , pedestrian=0") == {"car": 2, "pedestrian": 0}
     for spec in ("car", "car=9", "car=x", "=2", "", "car=2,car=1"):
         with pytest.raises(backends.BackendError, match="--class-map"):
-            backends.parse_class_map(spec)
+            parse_class_map(spec)
 
 
 @pytest.fixture(scope="module")
 def tiny_yolo(tmp_path_factory):
     """A yolo11n with random weights and COCO-80 names, saved as a .pt (no download)."""
-    backends._offline_ultralytics()
+    _offline_ultralytics()
     from ultralytics import YOLO
 
     path = tmp_path_factory.mktemp("weights") / "tiny11n.pt"
@@ -268,7 +271,7 @@ def test_ultralytics_backend_end_to_end(data_dir, tiny_yolo, tmp_path):
     assert {r["model"] for r in result.records} == {"tiny11n"}
     # Non-COCO names need a class map.
     with pytest.raises(backends.BackendError, match="not COCO-80"):
-        backends.class_lookup(detector.model.names | {0: "ped"}, None, "x")
+        class_lookup(detector.model.names | {0: "ped"}, None, "x")
 
 
 def test_cli_one_line_errors(data_dir, tmp_path, capsys):

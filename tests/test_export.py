@@ -1,7 +1,5 @@
 """YOLO / COCO exports and preview videos round-trip against the shards they came from."""
 
-import rainbench.gen  # noqa: F401  -- must precede any mujoco import
-
 import json
 
 import cv2
@@ -9,7 +7,8 @@ import numpy as np
 import pytest
 
 from rainbench.store import video as video_module
-from rainbench.gen.dataset import DatasetConfig, run_dataset
+from rainbench.gen.config import DatasetConfig
+from rainbench.gen.dataset import run_dataset
 from rainbench.store import Dataset, list_shards
 from rainbench.store.rates import rate_token
 from rainbench.store.export import (ExportError, export_coco, export_yolo,

@@ -31,16 +31,19 @@ from hypothesis import strategies as st
 
 from rainbench import ShardDataset, cli
 from rainbench.eval import backends, pipeline
+from rainbench.eval.backends.classes import class_lookup, parse_class_map
+from rainbench.eval.backends.ultralytics import _offline_ultralytics
 from rainbench import store
 from rainbench.gen import dataset as ds
-from rainbench.gen.generate import GenerateConfig, generate_shard
+from rainbench.gen.config import MAX_FRAMES, MAX_PIXELS, MAX_SHARDS, DatasetConfig, GenerateConfig
+from rainbench.gen.generate import generate_shard
 from rainbench.store.shard import ShardFormatError
-from rainbench.rain import parse_rates
+from rainbench.store.rates import parse_rates
 from rainbench.store.rates import MAX_RATE_COUNT, MAX_RATE_MM_H, RatesError
 
 # torch's triton segfaults when first loaded after Mesa's llvmpipe rendered in this process
 # (tests/test_eval_pipeline.py): load it at collection, before any fixture renders.
-backends._offline_ultralytics()
+_offline_ultralytics()
 import torch._dynamo  # noqa: E402,F401
 
 _HEALTH = [HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large,
@@ -104,7 +107,7 @@ def shard_bytes(tmp_path_factory):
 @pytest.fixture(scope="module")
 def dataset_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("fuzz-dataset")
-    ds.run_dataset(ds.DatasetConfig(frames=4, frames_per_shard=2, width=96, height=72,
+    ds.run_dataset(DatasetConfig(frames=4, frames_per_shard=2, width=96, height=72,
                                     rates=(0.0, 50.0)), root)
     return root
 
@@ -188,11 +191,11 @@ NUMBERS = st.one_of(
 
 
 def _check_config(config):
-    assert 1 <= config.frames <= ds.MAX_FRAMES and 1 <= config.scenes <= 100_000
+    assert 1 <= config.frames <= MAX_FRAMES and 1 <= config.scenes <= 100_000
     assert 16 <= config.width <= 8192 and 16 <= config.height <= 8192
-    assert config.width * config.height <= ds.MAX_PIXELS
+    assert config.width * config.height <= MAX_PIXELS
     assert 0 < config.fps <= 1000 and 0 <= config.seed and config.seed + config.scenes - 1 < 2 ** 31
-    assert config.scenes * math.ceil(config.frames / config.frames_per_shard) <= ds.MAX_SHARDS
+    assert config.scenes * math.ceil(config.frames / config.frames_per_shard) <= MAX_SHARDS
 
 
 @FUZZ
@@ -260,7 +263,7 @@ _NAME = st.text(alphabet=st.characters(blacklist_characters=",=", blacklist_cate
 @example("car=-0")
 def test_class_map_parser(spec):
     try:
-        mapping = backends.parse_class_map(spec)
+        mapping = parse_class_map(spec)
     except backends.BackendError as error:
         message = str(error)
         assert "\n" not in message and message.startswith("--class-map: ")
@@ -273,9 +276,9 @@ def test_class_map_parser(spec):
 @given(st.dictionaries(_NAME, st.integers(0, 3), min_size=1, max_size=6))
 def test_class_map_round_trip(mapping):
     spec = ",".join(f" {name} = {value} " for name, value in mapping.items())
-    assert backends.parse_class_map(spec) == mapping
+    assert parse_class_map(spec) == mapping
     names = list(mapping) + ["other"] if "other" not in mapping else list(mapping)
-    table = backends.class_lookup(names, spec, "model")
+    table = class_lookup(names, spec, "model")
     assert table.tolist() == [mapping.get(name, -1) for name in names]
 
 
@@ -283,7 +286,7 @@ def test_class_map_round_trip(mapping):
 @given(st.lists(st.text(max_size=6), max_size=6), st.one_of(st.none(), st.text(max_size=20)))
 def test_class_lookup(names, class_map):
     try:
-        table = backends.class_lookup(names, class_map, "model")
+        table = class_lookup(names, class_map, "model")
     except backends.BackendError as error:
         assert "\n" not in str(error)
         return

@@ -5,13 +5,14 @@ import json
 import math
 
 import h5py
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
 
 from rainbench.gen import labels as lb
 from rainbench.gen import sim
-from rainbench.gen.generate import GenerateConfig, build_scene, frame_labels, generate_shard
+from rainbench.gen.config import GenerateConfig
+from rainbench.gen.generate import build_scene, frame_labels, generate_shard
 from rainbench.gen.render import FrameRenderer
 from rainbench.store.shard import ShardFormatError, ShardWriter, open_shard, read_frame_labels
 from rainbench.mjcf import layout as L

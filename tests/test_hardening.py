@@ -22,9 +22,10 @@ import pytest
 from rainbench import ShardDataset, cli
 from rainbench import store
 from rainbench.gen import dataset as ds
+from rainbench.gen.config import MAX_FRAMES, DatasetConfig, GenerateConfig
 from rainbench.store import export as ex
 from rainbench import gl
-from rainbench.gen.generate import GenerateConfig, build_scene, generate_shard
+from rainbench.gen.generate import build_scene, generate_shard
 from rainbench.gen.render import FrameRenderer, padded_size
 from rainbench.store.shard import ShardFormatError
 from rainbench.mjcf.scene import build_spec
@@ -32,8 +33,10 @@ from rainbench.mjcf.scene import build_spec
 # torch's triton segfaults when first loaded after Mesa's llvmpipe rendered in this process
 # (tests/test_eval_pipeline.py): load it at collection, before any fixture renders.
 from rainbench.eval import backends  # noqa: E402
+from rainbench.eval import weights as registry  # noqa: E402
+from rainbench.eval.backends.ultralytics import TRUST_PICKLE_ENV, _offline_ultralytics  # noqa: E402
 
-backends._offline_ultralytics()
+_offline_ultralytics()
 import torch._dynamo  # noqa: E402,F401
 
 SMALL = dict(scenes=1, frames=4, frames_per_shard=2, width=96, height=72, rates=(0.0, 50.0))
@@ -73,7 +76,7 @@ def _copy_tree(source, target):
 def small(tmp_path_factory):
     """A complete small dataset: 2 shards of 2 frames, 96 x 72, 0 and 50 mm/h."""
     root = tmp_path_factory.mktemp("small")
-    ds.run_dataset(ds.DatasetConfig(**SMALL), root, workers=1)
+    ds.run_dataset(DatasetConfig(**SMALL), root, workers=1)
     return root
 
 
@@ -240,7 +243,7 @@ def test_the_manifest_exists_before_the_first_shard(tmp_path):
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        ds.run_dataset(ds.DatasetConfig(**SMALL), tmp_path, workers=1, progress=interrupt)
+        ds.run_dataset(DatasetConfig(**SMALL), tmp_path, workers=1, progress=interrupt)
     assert seen and "manifest.json" in seen[0]  # a kill -9 here leaves a manifest to resume
     assert list(tmp_path.iterdir()) == []  # a caught failure with nothing done leaves nothing
 
@@ -256,7 +259,7 @@ def test_a_complete_shard_missing_from_the_manifest_is_adopted(small, tmp_path, 
         raise AssertionError("the shard should have been adopted, not rendered")
 
     monkeypatch.setattr(ds, "generate_shard", no_render)
-    ds.run_dataset(ds.DatasetConfig(**SMALL), out, workers=1)
+    ds.run_dataset(DatasetConfig(**SMALL), out, workers=1)
     assert _hashes(out) == _hashes(small) and store.verify_dataset(out) == []
 
 
@@ -271,7 +274,7 @@ def test_a_corrupt_unlisted_shard_is_rendered_again(small, tmp_path, monkeypatch
     data = bytearray(corrupt.read_bytes())
     data[info.byte_offset + info.size // 2] ^= 0x55  # inside an RGB chunk: h5py still opens it
     corrupt.write_bytes(bytes(data))
-    task = ds.DatasetConfig(**SMALL).tasks()[1]
+    task = DatasetConfig(**SMALL).tasks()[1]
     assert not ds._adoptable(corrupt, task)
     assert ds._adoptable(small / corrupt.name, task)
     rendered = []
@@ -282,7 +285,7 @@ def test_a_corrupt_unlisted_shard_is_rendered_again(small, tmp_path, monkeypatch
         return real(task, out_dir, **kwargs)
 
     monkeypatch.setattr(ds, "generate_shard", spy)
-    ds.run_dataset(ds.DatasetConfig(**SMALL), out, workers=1)
+    ds.run_dataset(DatasetConfig(**SMALL), out, workers=1)
     assert rendered == [2] and _hashes(out) == _hashes(small)
 
 
@@ -636,15 +639,15 @@ def test_frames_is_bounded_up_front(tmp_path, capsys, value):
         value, f"<= 100000, got {value}")
     line = _one_line_error(capsys, code, r"argument --frames: FRAMES: expected " + re.escape(expected))
     assert "frame_offset" not in line and not (tmp_path / "o").exists()
-    assert cli.MAX_FRAMES == ds.MAX_FRAMES
+    assert cli.MAX_FRAMES == MAX_FRAMES
     with pytest.raises(ds.DatasetError, match=r"^FRAMES: expected an integer in 1\.\.100000, got 100001$"):
-        ds.DatasetConfig(frames=100_001)
+        DatasetConfig(frames=100_001)
 
 
 def test_too_many_shards_are_refused_up_front():
     with pytest.raises(ds.DatasetError, match=r"SCENES x ceil\(FRAMES / FRAMES_PER_SHARD\) = "
                                               r"10000000 shards; at most 100000"):
-        ds.DatasetConfig(scenes=100, frames=100_000, frames_per_shard=1)
+        DatasetConfig(scenes=100, frames=100_000, frames_per_shard=1)
 
 
 def test_deeply_nested_predictions_name_the_file(tmp_path):
@@ -758,7 +761,7 @@ def test_pt_files_load_safely_and_an_unsafe_one_needs_trust(tmp_path, monkeypatc
     import torch
 
     monkeypatch.setenv("YOLO_CONFIG_DIR", str(tmp_path / "ultralytics"))
-    monkeypatch.delenv(backends.TRUST_PICKLE_ENV, raising=False)
+    monkeypatch.delenv(TRUST_PICKLE_ENV, raising=False)
     marker = tmp_path / "ran"
     evil = tmp_path / "evil.pt"
     torch.save({"model": _Evil(marker)}, evil)
@@ -779,7 +782,7 @@ def test_pt_files_load_safely_and_an_unsafe_one_needs_trust(tmp_path, monkeypatc
         return real(weight, safe_only=safe_only)
 
     monkeypatch.setattr(tasks, "torch_safe_load", spy)
-    detector = backends.load_detector(backends.WEIGHTS_DIR / "rainbench-yolo11n.pt", device="cpu")
+    detector = backends.load_detector(registry.WEIGHTS_DIR / "rainbench-yolo11n.pt", device="cpu")
     assert seen == [True] and detector.name == "rainbench-yolo11n"
     assert tasks.torch_safe_load is spy  # restored
     boxes, scores, ids = detector.predict([np.zeros((72, 96, 3), np.uint8)], imgsz=96, conf=0.5,

@@ -4,13 +4,14 @@ import argparse
 import math
 
 import h5py
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
 
 from rainbench import cli
 from rainbench.gen import sim
-from rainbench.gen.generate import GenerateConfig, build_scene, generate_shard, render_clip
+from rainbench.gen.config import GenerateConfig
+from rainbench.gen.generate import build_scene, generate_shard, render_clip
 from rainbench.mjcf import layout as L
 from rainbench.store.classes import BUS, CAR, PERSON, TRUCK
 from rainbench.mjcf.scene import build_spec, export_scene

@@ -259,7 +259,8 @@ PAPER_FRAMES = (20, 70, 120, 170)
 @pytest.fixture(scope="module")
 def paper_frames():
     """Four clean 800x600 frames of the paper's default clip (seed 0, 200 frames), with K."""
-    from rainbench.gen.generate import GenerateConfig, build_scene, render_clip
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import build_scene, render_clip
 
     setup = build_scene(GenerateConfig(frames=1, clip_frames=200))
     frames = {}

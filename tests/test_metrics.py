@@ -12,7 +12,12 @@ import pytest
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-from rainbench.eval import metrics as M
+from rainbench.eval.metrics.bootstrap import bootstrap_ci, bootstrap_weights, interpolated_ap, resample_images
+from rainbench.eval.metrics.breakdown import SIZE_RANGES, ap_by_size, ap_by_visibility
+from rainbench.eval.metrics.coco import coco_detections, coco_ground_truth, match_table
+from rainbench.eval.metrics.evaluation import evaluate
+from rainbench.eval.metrics.f1 import pr_confidence_curves
+from rainbench.eval.metrics.robustness import half_value_rate, mpc, percent_drop, rpc
 from rainbench.store.classes import PAPER_CLASS_NAMES, PAPER_CLASSES
 
 PERSON, BICYCLE, CAR, MOTORCYCLE = 0, 1, 2, 3
@@ -80,7 +85,7 @@ def synthetic_set(rng, n_images, mean_objects=6.0, recall=0.8, n_false=4, with_i
             x, y = rng.uniform(0, 700, 2)
             w, h = rng.uniform(5, 90, 2)
             detections.append(det(image_id, int(rng.integers(4)), [x, y, x + w, y + h], float(rng.uniform(0.0, 0.8))))
-    return M.coco_ground_truth(images), detections
+    return coco_ground_truth(images), detections
 
 
 # --------------------------------------------------------------------------------------------
@@ -89,7 +94,7 @@ def synthetic_set(rng, n_images, mean_objects=6.0, recall=0.8, n_false=4, with_i
 
 
 def test_coco_ground_truth_layout():
-    gt = M.coco_ground_truth(
+    gt = coco_ground_truth(
         [
             (
                 1,
@@ -119,9 +124,9 @@ def test_coco_ground_truth_layout():
 
 
 def test_coco_detections_converts_xyxy_to_xywh():
-    records = M.coco_detections(3, np.array([[10, 20, 40, 60]], np.float32), np.array([0.5]), np.array([CAR]))
+    records = coco_detections(3, np.array([[10, 20, 40, 60]], np.float32), np.array([0.5]), np.array([CAR]))
     assert records == [{"image_id": 3, "category_id": CAR, "bbox": [10.0, 20.0, 30.0, 40.0], "score": 0.5}]
-    assert M.coco_detections(3, np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64)) == []
+    assert coco_detections(3, np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64)) == []
 
 
 # --------------------------------------------------------------------------------------------
@@ -132,11 +137,11 @@ def test_coco_detections_converts_xyxy_to_xywh():
 def test_perfect_predictions_give_ap_one():
     boxes = np.array([box_row(i) for i in range(4)], np.float32)
     classes = np.array([PERSON, BICYCLE, CAR, MOTORCYCLE])
-    gt = M.coco_ground_truth([(1, 100, 100, boxes, classes), (2, 100, 100, boxes, classes[::-1].copy())])
-    detections = M.coco_detections(1, boxes, np.full(4, 0.9), classes) + M.coco_detections(
+    gt = coco_ground_truth([(1, 100, 100, boxes, classes), (2, 100, 100, boxes, classes[::-1].copy())])
+    detections = coco_detections(1, boxes, np.full(4, 0.9), classes) + coco_detections(
         2, boxes, np.full(4, 0.8), classes[::-1].copy()
     )
-    result = M.evaluate(gt, detections)
+    result = evaluate(gt, detections)
     for class_id in PAPER_CLASSES:
         metrics = result[class_id]
         assert (metrics.n_gt, metrics.n_det) == (2, 2)
@@ -157,7 +162,7 @@ def test_perfect_predictions_give_ap_one():
     [(("tp", "fp", "tp", "fp"), 56 / 101), (("tp", "fp", "tp", "fp", "tp"), 76.4 / 101), (("fp", "fp"), 0.0)],
 )
 def test_hand_made_pr_curve(outcomes, expected):
-    gt = M.coco_ground_truth(
+    gt = coco_ground_truth(
         [
             (1, 200, 100, np.array([box_row(0), box_row(1)], np.float32), np.array([CAR, CAR])),
             (2, 200, 100, np.array([box_row(0)], np.float32), np.array([CAR])),
@@ -173,7 +178,7 @@ def test_hand_made_pr_curve(outcomes, expected):
         else:
             image_id, box = 1 + rank % 3, box_row(5 + rank)
         detections.append(det(image_id, CAR, box, score))
-    metrics = M.evaluate(gt, detections)[CAR]
+    metrics = evaluate(gt, detections)[CAR]
     assert metrics.ap50 == pytest.approx(expected, abs=1e-12)
     assert metrics.ap50_95 == pytest.approx(expected, abs=1e-12)  # TPs are exact boxes, FPs miss entirely
     assert metrics.n_gt == 3
@@ -181,8 +186,8 @@ def test_hand_made_pr_curve(outcomes, expected):
 
 def test_ap_over_iou_thresholds_with_known_iou():
     # IoU = 72 / 100 = 0.72: a TP at 0.50..0.70 (5 thresholds), a miss at 0.75..0.95 (5).
-    gt = M.coco_ground_truth([(1, 100, 100, np.array([[0, 0, 10, 10]], np.float32), np.array([PERSON]))])
-    metrics = M.evaluate(gt, [det(1, PERSON, [0, 0, 10, 7.2], 0.7)])[PERSON]
+    gt = coco_ground_truth([(1, 100, 100, np.array([[0, 0, 10, 10]], np.float32), np.array([PERSON]))])
+    metrics = evaluate(gt, [det(1, PERSON, [0, 0, 10, 7.2], 0.7)])[PERSON]
     assert (metrics.ap50, metrics.ap75) == pytest.approx((1.0, 0.0), abs=1e-12)
     assert metrics.ap50_95 == pytest.approx(0.5, abs=1e-12)
 
@@ -191,7 +196,7 @@ def test_ap_over_iou_thresholds_with_known_iou():
 def test_matches_pycocotools_on_noisy_predictions(with_ignore):
     gt, detections = synthetic_set(np.random.default_rng(7), 120, with_ignore=with_ignore)
     reference = direct_cocoeval(gt, detections)
-    result = M.evaluate(gt, detections)
+    result = evaluate(gt, detections)
     for class_id in PAPER_CLASSES:
         ap50, ap50_95 = direct_ap(reference, class_id)
         assert result[class_id].ap50 == pytest.approx(ap50, abs=1e-4)
@@ -206,13 +211,13 @@ def test_max_detections_per_image_is_100():
     boxes = np.array(
         [[20.0 * (i % 40), 20.0 * (i // 40), 20.0 * (i % 40) + 10, 20.0 * (i // 40) + 10] for i in range(n)], np.float32
     )
-    gt = M.coco_ground_truth([(1, 1000, 1000, boxes, np.full(n, CAR))])
+    gt = coco_ground_truth([(1, 1000, 1000, boxes, np.full(n, CAR))])
     false_positives = [
         det(1, CAR, [900.0, 900.0 + 0.5 * i, 905.0, 901.0 + 0.5 * i], 0.99 - 0.001 * i) for i in range(50)
     ]
     true_positives = [det(1, CAR, box.tolist(), 0.5 - 0.001 * i) for i, box in enumerate(boxes)]
     detections = false_positives + true_positives
-    result = M.evaluate(gt, detections)[CAR]
+    result = evaluate(gt, detections)[CAR]
     assert result.n_det == 100
     assert result.ap50 == pytest.approx(direct_ap(direct_cocoeval(gt, detections), CAR)[0], abs=1e-12)
     assert result.recall_at_conf == pytest.approx(0.5)
@@ -225,7 +230,7 @@ def test_image_subset_matches_pycocotools_restricted():
     sub_gt["annotations"] = [ann for ann in gt["annotations"] if ann["image_id"] in subset]
     sub_dets = [d for d in detections if d["image_id"] in subset]
     reference = direct_cocoeval(sub_gt, sub_dets)
-    result = M.evaluate(gt, detections, image_ids=subset)
+    result = evaluate(gt, detections, image_ids=subset)
     for class_id in (PERSON, CAR):
         assert result[class_id].ap50 == pytest.approx(direct_ap(reference, class_id)[0], abs=1e-12)
 
@@ -235,38 +240,38 @@ def test_category_zero_goes_through_load_res():
     gt, detections = synthetic_set(np.random.default_rng(9), 40)
     person_only = [d for d in detections if d["category_id"] == PERSON]
     reference = direct_cocoeval(gt, person_only)
-    result = M.evaluate(gt, person_only)
+    result = evaluate(gt, person_only)
     assert result[PERSON].ap50 == pytest.approx(direct_ap(reference, PERSON)[0], abs=1e-12)
     assert result[PERSON].ap50 > 0.3
     assert result[CAR].ap50 == 0.0 and result[CAR].n_det == 0
 
 
 def test_empty_detections_and_class_without_ground_truth():
-    gt = M.coco_ground_truth(
+    gt = coco_ground_truth(
         [
             (1, 100, 100, np.array([box_row(0), box_row(1)], np.float32), np.array([CAR, PERSON])),
             (2, 100, 100, np.zeros((0, 4)), np.zeros(0, int)),
         ]
     )
-    result = M.evaluate(gt, [])
+    result = evaluate(gt, [])
     assert (result[CAR].ap50, result[CAR].ap50_95, result[CAR].n_det) == (0.0, 0.0, 0)
     assert (result[CAR].precision, result[CAR].recall, result[CAR].f1) == (0.0, 0.0, 0.0)
     assert (result[CAR].precision_at_conf, result[CAR].recall_at_conf, result[CAR].f1_at_conf) == (0.0, 0.0, 0.0)
     assert math.isnan(result[BICYCLE].ap50) and math.isnan(result[BICYCLE].f1) and result[BICYCLE].n_gt == 0
     # A class without ground truth but with (false) detections stays nan; others unaffected.
-    with_fp = M.evaluate(gt, [det(2, BICYCLE, box_row(3), 0.9), det(1, CAR, box_row(0), 0.8)])
+    with_fp = evaluate(gt, [det(2, BICYCLE, box_row(3), 0.9), det(1, CAR, box_row(0), 0.8)])
     assert math.isnan(with_fp[BICYCLE].ap50) and with_fp[BICYCLE].n_det == 1
     assert with_fp[CAR].ap50 == pytest.approx(1.0, abs=1e-12)
 
 
 def test_ignored_ground_truth_is_neither_false_negative_nor_false_positive():
     boxes = np.array([box_row(0), [40, 0, 44, 4]], np.float32)
-    gt = M.coco_ground_truth([(1, 100, 100, boxes, np.array([CAR, CAR]), np.array([False, True]))])
-    only_real = M.evaluate(gt, [det(1, CAR, box_row(0), 0.5)])[CAR]
+    gt = coco_ground_truth([(1, 100, 100, boxes, np.array([CAR, CAR]), np.array([False, True]))])
+    only_real = evaluate(gt, [det(1, CAR, box_row(0), 0.5)])[CAR]
     assert (only_real.n_gt, only_real.recall_at_conf) == (1, 1.0)
     assert only_real.ap50 == pytest.approx(1.0, abs=1e-12)
     # A higher-scored detection on the ignored box would be an FP ranked first (AP 0.5) if counted.
-    both = M.evaluate(gt, [det(1, CAR, box_row(0), 0.5), det(1, CAR, [40, 0, 44, 4], 0.9)])[CAR]
+    both = evaluate(gt, [det(1, CAR, box_row(0), 0.5), det(1, CAR, [40, 0, 44, 4], 0.9)])[CAR]
     assert both.precision_at_conf == 1.0
     assert both.ap50 == pytest.approx(1.0, abs=1e-12)
 
@@ -274,8 +279,8 @@ def test_ignored_ground_truth_is_neither_false_negative_nor_false_positive():
 def test_inputs_are_not_mutated():
     gt, detections = synthetic_set(np.random.default_rng(10), 10)
     gt_before, detections_before = copy.deepcopy(gt), copy.deepcopy(detections)
-    M.evaluate(gt, detections)
-    M.bootstrap_ci(gt, detections, 5, rng=np.random.default_rng(0))
+    evaluate(gt, detections)
+    bootstrap_ci(gt, detections, 5, rng=np.random.default_rng(0))
     assert gt == gt_before and detections == detections_before
 
 
@@ -287,7 +292,7 @@ def test_inputs_are_not_mutated():
 def test_f1_best_confidence_flat_optimum():
     # car: 2 GT found at 0.9 and 0.6; person: 2 GT, one found at 0.7; bicycle: 1 GT never found.
     # Every curve is at its best for conf <= 0.6, so the smoothed mean-F1 argmax is grid point 0.
-    gt = M.coco_ground_truth(
+    gt = coco_ground_truth(
         [
             (
                 1,
@@ -299,7 +304,7 @@ def test_f1_best_confidence_flat_optimum():
         ]
     )
     detections = [det(1, CAR, box_row(0), 0.9), det(1, CAR, box_row(1), 0.6), det(1, PERSON, box_row(2), 0.7)]
-    result = M.evaluate(gt, detections, class_ids=(CAR, PERSON, BICYCLE))
+    result = evaluate(gt, detections, class_ids=(CAR, PERSON, BICYCLE))
     assert result[CAR].best_conf == 0.0
     assert (result[CAR].precision, result[CAR].recall, result[CAR].f1) == pytest.approx((1.0, 1.0, 1.0))
     assert (result[PERSON].precision, result[PERSON].recall, result[PERSON].f1) == pytest.approx((1.0, 0.5, 2 / 3))
@@ -310,8 +315,8 @@ def test_f1_best_confidence_interior_optimum():
     # One GT, a TP at 0.9 and an FP at 0.1. Recall is 1 up to 0.9 and 0 above; precision rises
     # linearly from 0.5 (conf 0.1) to 1 (conf 0.9). F1 rises up to grid point 899 (0.8999) and is
     # 0 from 900 on, so the 101-tap box filter peaks with its right edge on 899: centre 849.
-    gt = M.coco_ground_truth([(1, 100, 100, np.array([box_row(0)], np.float32), np.array([CAR]))])
-    metrics = M.evaluate(gt, [det(1, CAR, box_row(0), 0.9), det(1, CAR, box_row(3), 0.1)], class_ids=(CAR,))[CAR]
+    gt = coco_ground_truth([(1, 100, 100, np.array([box_row(0)], np.float32), np.array([CAR]))])
+    metrics = evaluate(gt, [det(1, CAR, box_row(0), 0.9), det(1, CAR, box_row(3), 0.1)], class_ids=(CAR,))[CAR]
     best = 849 / 999
     expected_precision = 1 - 0.5 * (0.9 - best) / 0.8
     assert metrics.best_conf == pytest.approx(best, abs=1e-12)
@@ -321,16 +326,16 @@ def test_f1_best_confidence_interior_optimum():
 
 
 def test_f1_at_fixed_confidence_counts():
-    gt = M.coco_ground_truth([(1, 200, 100, np.array([box_row(i) for i in range(3)], np.float32), np.array([CAR] * 3))])
+    gt = coco_ground_truth([(1, 200, 100, np.array([box_row(i) for i in range(3)], np.float32), np.array([CAR] * 3))])
     detections = [
         det(1, CAR, box_row(0), 0.9),
         det(1, CAR, box_row(7), 0.8),
         det(1, CAR, box_row(1), 0.3),
         det(1, CAR, box_row(2), 0.2),
     ]
-    at_025 = M.evaluate(gt, detections, conf=0.25)[CAR]
+    at_025 = evaluate(gt, detections, conf=0.25)[CAR]
     assert (at_025.precision_at_conf, at_025.recall_at_conf, at_025.f1_at_conf) == pytest.approx((2 / 3, 2 / 3, 2 / 3))
-    at_085 = M.evaluate(gt, detections, conf=0.85)[CAR]
+    at_085 = evaluate(gt, detections, conf=0.85)[CAR]
     assert (at_085.precision_at_conf, at_085.recall_at_conf, at_085.f1_at_conf) == pytest.approx((1.0, 1 / 3, 0.5))
     assert at_085.conf == 0.85
 
@@ -340,8 +345,8 @@ def test_f1_matches_ultralytics_ap_per_class(monkeypatch, tmp_path):
     monkeypatch.setenv("YOLO_OFFLINE", "1")
     ultralytics_metrics = pytest.importorskip("ultralytics.utils.metrics")
     gt, detections = synthetic_set(np.random.default_rng(11), 80)
-    result = M.evaluate(gt, detections)
-    matches = M.match_table(gt, detections)
+    result = evaluate(gt, detections)
+    matches = match_table(gt, detections)
     tp, conf, pred_cls, target_cls = [], [], [], []
     for class_id, match in matches.items():
         kept = ~match.ignored[0]
@@ -367,23 +372,23 @@ def test_f1_matches_ultralytics_ap_per_class(monkeypatch, tmp_path):
 def test_ap_by_size_matches_pycocotools_area_ranges():
     gt, detections = synthetic_set(np.random.default_rng(12), 100)
     reference = direct_cocoeval(gt, detections)
-    result = M.ap_by_size(gt, detections)
+    result = ap_by_size(gt, detections)
     for area_index, size in enumerate(("small", "medium", "large"), start=1):
         for class_id in (PERSON, CAR):
             ap50, ap50_95 = direct_ap(reference, class_id, area_index)
             assert result[size][class_id].ap50 == pytest.approx(ap50, abs=1e-12)
             assert result[size][class_id].ap50_95 == pytest.approx(ap50_95, abs=1e-12)
     n_cars = sum(1 for ann in gt["annotations"] if ann["category_id"] == CAR)
-    assert sum(result[size][CAR].n_gt for size in M.SIZE_RANGES) == n_cars
+    assert sum(result[size][CAR].n_gt for size in SIZE_RANGES) == n_cars
 
 
 @pytest.mark.parametrize(("unmatched", "expected"), [("fp", 0.5), ("ignore", 1.0)])
 def test_ap_by_visibility_hand_made(unmatched, expected):
     # Car A visible 0.9, car B visible 0.1. Detections: background FP 0.95, A 0.9, B 0.5.
     # Per bin, the other car's detection is ignored; the FP ranks first when it counts.
-    gt = M.coco_ground_truth([(1, 200, 100, np.array([box_row(0), box_row(1)], np.float32), np.array([CAR, CAR]))])
+    gt = coco_ground_truth([(1, 200, 100, np.array([box_row(0), box_row(1)], np.float32), np.array([CAR, CAR]))])
     detections = [det(1, CAR, box_row(6), 0.95), det(1, CAR, box_row(0), 0.9), det(1, CAR, box_row(1), 0.5)]
-    result = M.ap_by_visibility(
+    result = ap_by_visibility(
         gt, detections, np.array([0.9, 0.1]), bins=(0.0, 0.5, 1.0), unmatched=unmatched, class_ids=(CAR,)
     )
     assert list(result) == ["0.00-0.50", "0.50-1.00"]
@@ -393,8 +398,8 @@ def test_ap_by_visibility_hand_made(unmatched, expected):
 
 
 def test_ap_by_visibility_edges_and_nan():
-    gt = M.coco_ground_truth([(1, 200, 100, np.array([box_row(i) for i in range(4)], np.float32), np.array([CAR] * 4))])
-    result = M.ap_by_visibility(gt, [], np.array([0.0, 0.5, 1.0, np.nan]), bins=(0.0, 0.5, 1.0), class_ids=(CAR,))
+    gt = coco_ground_truth([(1, 200, 100, np.array([box_row(i) for i in range(4)], np.float32), np.array([CAR] * 4))])
+    result = ap_by_visibility(gt, [], np.array([0.0, 0.5, 1.0, np.nan]), bins=(0.0, 0.5, 1.0), class_ids=(CAR,))
     assert [result[label][CAR].n_gt for label in result] == [1, 2]  # 0.5 -> upper bin, 1.0 -> last bin, nan -> none
 
 
@@ -407,42 +412,30 @@ def test_ap_by_visibility_edges_and_nan():
     ("clean", "rainy", "drop"), [(0.669, 0.46, 31.24), (0.652, 0.452, 30.67), (0.64, 0.424, 33.75)]
 )
 def test_percent_drop_reproduces_paper_numbers(clean, rainy, drop):
-    assert M.percent_drop(clean, rainy) == pytest.approx(drop, abs=0.005)
+    assert percent_drop(clean, rainy) == pytest.approx(drop, abs=0.005)
 
 
 def test_percent_drop_edge_cases():
-    assert M.percent_drop(0.5, 0.25) == 50.0
-    assert M.percent_drop(0.5, 0.75) == -50.0
-    assert math.isnan(M.percent_drop(0.0, 0.1))
-    assert math.isnan(M.percent_drop(float("nan"), 0.1))
+    assert percent_drop(0.5, 0.25) == 50.0
+    assert percent_drop(0.5, 0.75) == -50.0
+    assert math.isnan(percent_drop(0.0, 0.1))
+    assert math.isnan(percent_drop(float("nan"), 0.1))
     np.testing.assert_array_equal(
-        M.percent_drop(np.array([1.0, 0.0, 0.8]), np.array([0.5, 0.0, 0.2])), [50.0, np.nan, 75.0]
+        percent_drop(np.array([1.0, 0.0, 0.8]), np.array([0.5, 0.0, 0.2])), [50.0, np.nan, 75.0]
     )
 
 
 def test_mpc_and_rpc():
     values = {0.0: 0.8, 10.0: 0.6, 20.0: 0.4, 30.0: 0.5}
-    assert M.mpc(values) == pytest.approx(0.5)
-    assert M.rpc(values) == pytest.approx(0.625)
-    assert math.isnan(M.rpc({0.0: 0.0, 10.0: 0.3}))
+    assert mpc(values) == pytest.approx(0.5)
+    assert rpc(values) == pytest.approx(0.625)
+    assert math.isnan(rpc({0.0: 0.0, 10.0: 0.3}))
     with pytest.raises(ValueError, match=r"expected at least one rate > 0 mm/h, got \[0.0\]"):
-        M.mpc({0.0: 0.8})
+        mpc({0.0: 0.8})
     with pytest.raises(ValueError, match=r"expected exactly one rate 0 \(clean\), got rates \[10.0, 20.0\]"):
-        M.rpc({10.0: 0.6, 20.0: 0.4})
+        rpc({10.0: 0.6, 20.0: 0.4})
     with pytest.raises(ValueError, match=r"expected finite rates >= 0 mm/h, got \[-10.0, 0.0\]"):
-        M.mpc({-10.0: 0.6, 0.0: 0.4})
-
-
-def test_robustness_records():
-    records = [
-        {"model": "m", "class": "car", "rate": rate, "ap50": value, "f1": None}
-        for rate, value in ((0.0, 0.8), (10.0, 0.6), (20.0, 0.4))
-    ]
-    ap50, f1 = M.robustness_records(records)
-    assert ap50["clean"] == 0.8 and ap50["worst_rate"] == 20.0 and ap50["at_worst_rate"] == 0.4
-    assert ap50["drop_pct"] == pytest.approx(50.0)
-    assert ap50["mpc"] == pytest.approx(0.5) and ap50["rpc"] == pytest.approx(0.625)
-    assert math.isnan(f1["clean"]) and math.isnan(f1["rpc"])
+        mpc({-10.0: 0.6, 0.0: 0.4})
 
 
 # --------------------------------------------------------------------------------------------
@@ -453,9 +446,9 @@ def test_robustness_records():
 def test_fast_ap_equals_cocoeval_on_original_data():
     gt, detections = synthetic_set(np.random.default_rng(13), 100, with_ignore=True)
     reference = direct_cocoeval(gt, detections)
-    matches = M.match_table(gt, detections)
+    matches = match_table(gt, detections)
     for class_id, match in matches.items():
-        fast = M.interpolated_ap(
+        fast = interpolated_ap(
             match.true_positive,
             match.ignored,
             np.ones((1, len(match.scores))),
@@ -469,16 +462,16 @@ def test_fast_ap_equals_cocoeval_on_original_data():
 def test_fast_ap_on_resample_with_duplicates_equals_cocoeval_on_reidentified_copies():
     rng = np.random.default_rng(14)
     gt, detections = synthetic_set(rng, 60)
-    matches = M.match_table(gt, detections)
+    matches = match_table(gt, detections)
     image_ids = next(iter(matches.values())).image_ids
     for _ in range(3):
-        weights = M.bootstrap_weights(len(image_ids), 1, rng)[0]
+        weights = bootstrap_weights(len(image_ids), 1, rng)[0]
         assert weights.max() >= 2  # duplicates present
         sample = np.repeat(image_ids, weights).tolist()
-        resampled_gt, resampled_dets = M.resample_images(gt, detections, sample)
+        resampled_gt, resampled_dets = resample_images(gt, detections, sample)
         reference = direct_cocoeval(resampled_gt, resampled_dets)
         for class_id, match in matches.items():
-            fast = M.interpolated_ap(
+            fast = interpolated_ap(
                 match.true_positive,
                 match.ignored,
                 weights[match.image_index][None, :].astype(float),
@@ -491,30 +484,30 @@ def test_fast_ap_on_resample_with_duplicates_equals_cocoeval_on_reidentified_cop
 
 
 def test_resample_images_reidentifies_copies():
-    gt = M.coco_ground_truth(
+    gt = coco_ground_truth(
         [
             (5, 100, 100, np.array([box_row(0)], np.float32), np.array([CAR])),
             (9, 100, 100, np.zeros((0, 4)), np.zeros(0, int)),
         ]
     )
-    new_gt, new_dets = M.resample_images(gt, [det(5, CAR, box_row(0), 0.5)], [5, 5, 9])
+    new_gt, new_dets = resample_images(gt, [det(5, CAR, box_row(0), 0.5)], [5, 5, 9])
     assert [img["id"] for img in new_gt["images"]] == [1, 2, 3]
     assert [(ann["id"], ann["image_id"]) for ann in new_gt["annotations"]] == [(1, 1), (2, 2)]
     assert [d["image_id"] for d in new_dets] == [1, 2]
 
 
 def test_bootstrap_weights_rows_are_resamples():
-    weights = M.bootstrap_weights(7, 50, np.random.default_rng(0))
+    weights = bootstrap_weights(7, 50, np.random.default_rng(0))
     assert weights.shape == (50, 7) and weights.dtype == np.int64
     assert np.all(weights.sum(axis=1) == 7)
 
 
 def test_bootstrap_ci_contains_point_and_is_deterministic():
     gt, detections = synthetic_set(np.random.default_rng(15), 100)
-    first = M.bootstrap_ci(gt, detections, 200, rng=np.random.default_rng(3))
-    again = M.bootstrap_ci(gt, detections, 200, rng=np.random.default_rng(3))
-    other = M.bootstrap_ci(gt, detections, 200, rng=np.random.default_rng(4))
-    evaluated = M.evaluate(gt, detections)
+    first = bootstrap_ci(gt, detections, 200, rng=np.random.default_rng(3))
+    again = bootstrap_ci(gt, detections, 200, rng=np.random.default_rng(3))
+    other = bootstrap_ci(gt, detections, 200, rng=np.random.default_rng(4))
+    evaluated = evaluate(gt, detections)
     assert first == again
     assert first[CAR] != other[CAR]
     for class_id in (PERSON, CAR):
@@ -522,7 +515,7 @@ def test_bootstrap_ci_contains_point_and_is_deterministic():
         assert interval.point == pytest.approx(evaluated[class_id].ap50, abs=1e-12)
         assert interval.low < interval.point < interval.high
         assert interval.n_valid == 200 and interval.metric == "ap50"
-    wide = M.bootstrap_ci(gt, detections, 200, rng=np.random.default_rng(3), metric="ap50_95")
+    wide = bootstrap_ci(gt, detections, 200, rng=np.random.default_rng(3), metric="ap50_95")
     assert wide[CAR].point == pytest.approx(evaluated[CAR].ap50_95, abs=1e-12)
     assert wide[CAR].low < wide[CAR].point < wide[CAR].high
 
@@ -531,45 +524,18 @@ def test_bootstrap_ci_narrows_with_more_frames():
     rng = np.random.default_rng(16)
     small_gt, small_dets = synthetic_set(rng, 40)
     large_gt, large_dets = synthetic_set(rng, 400)
-    small = M.bootstrap_ci(small_gt, small_dets, 300, rng=np.random.default_rng(0), class_ids=(CAR,))[CAR]
-    large = M.bootstrap_ci(large_gt, large_dets, 300, rng=np.random.default_rng(0), class_ids=(CAR,))[CAR]
+    small = bootstrap_ci(small_gt, small_dets, 300, rng=np.random.default_rng(0), class_ids=(CAR,))[CAR]
+    large = bootstrap_ci(large_gt, large_dets, 300, rng=np.random.default_rng(0), class_ids=(CAR,))[CAR]
     assert (large.high - large.low) < 0.6 * (small.high - small.low)
 
 
 def test_bootstrap_ci_class_without_ground_truth_is_nan():
-    gt = M.coco_ground_truth([(1, 100, 100, np.array([box_row(0)], np.float32), np.array([CAR]))])
-    result = M.bootstrap_ci(
+    gt = coco_ground_truth([(1, 100, 100, np.array([box_row(0)], np.float32), np.array([CAR]))])
+    result = bootstrap_ci(
         gt, [det(1, CAR, box_row(0), 0.5)], 20, rng=np.random.default_rng(0), class_ids=(CAR, BICYCLE)
     )
     assert (result[CAR].point, result[CAR].low, result[CAR].high) == pytest.approx((1.0, 1.0, 1.0), abs=1e-12)
     assert math.isnan(result[BICYCLE].point) and math.isnan(result[BICYCLE].low) and result[BICYCLE].n_valid == 0
-
-
-# --------------------------------------------------------------------------------------------
-# records
-# --------------------------------------------------------------------------------------------
-
-
-def _metrics(class_id, ap50, f1):
-    return M.ClassMetrics(class_id, 10, 12, ap50, ap50 / 2, ap50 / 2, 0.8, 0.7, f1, 0.3, 0.8, 0.6, f1, 0.25)
-
-
-def test_metric_records_layout_drops_and_cis():
-    results = {
-        ("yolo", 100.0): {CAR: _metrics(CAR, 0.4, 0.5)},
-        ("yolo", 0.0): {CAR: _metrics(CAR, 0.8, 0.6), PERSON: _metrics(PERSON, 0.5, 0.5)},
-    }
-    cis = {("yolo", 0.0): {CAR: M.BootstrapCI(CAR, "ap50", 0.8, 0.7, 0.9, 0.05, 100, 100)}}
-    records = M.metric_records(results, cis)
-    assert [(r["rate"], r["class"]) for r in records] == [(0.0, "car"), (0.0, "person"), (100.0, "car")]
-    assert all(tuple(r) == M.RECORD_FIELDS for r in records)
-    clean_car, _, rainy_car = records
-    assert (clean_car["ap50_ci_low"], clean_car["ap50_ci_high"]) == (0.7, 0.9)
-    assert math.isnan(rainy_car["ap50_ci_low"])
-    assert clean_car["ap50_drop_pct"] == 0.0
-    assert rainy_car["ap50_drop_pct"] == pytest.approx(50.0)
-    assert rainy_car["f1_drop_pct"] == pytest.approx(100 * (0.6 - 0.5) / 0.6)
-    assert (rainy_car["model"], rainy_car["class_id"], rainy_car["n_gt"]) == ("yolo", CAR, 10)
 
 
 # --------------------------------------------------------------------------------------------
@@ -615,99 +581,99 @@ _GOOD_BOXES = np.array([box_row(0)], np.float32)
 )
 def test_bad_ground_truth_inputs(images, message):
     with pytest.raises(ValueError, match=message) as error:
-        M.coco_ground_truth(images)
+        coco_ground_truth(images)
     assert "\n" not in str(error.value)
 
 
-_GT = M.coco_ground_truth([(1, 100, 100, _GOOD_BOXES, np.array([CAR]))])
+_GT = coco_ground_truth([(1, 100, 100, _GOOD_BOXES, np.array([CAR]))])
 
 
 @pytest.mark.parametrize(
     ("call", "message"),
     [
         (
-            lambda: M.evaluate(_GT, [det(2, CAR, box_row(0), 0.5)]),
+            lambda: evaluate(_GT, [det(2, CAR, box_row(0), 0.5)]),
             r"detections\[0\]: image_id 2 is not in the ground truth",
         ),
         (
-            lambda: M.evaluate(_GT, [det(1, 9, box_row(0), 0.5)]),
+            lambda: evaluate(_GT, [det(1, 9, box_row(0), 0.5)]),
             r"detections\[0\]: unknown category_id 9, expected one of \[0, 1, 2, 3\]",
         ),
         (
-            lambda: M.evaluate(_GT, [{"image_id": 1, "category_id": CAR, "bbox": [0, 0, -1, 5], "score": 0.5}]),
+            lambda: evaluate(_GT, [{"image_id": 1, "category_id": CAR, "bbox": [0, 0, -1, 5], "score": 0.5}]),
             r"detections\[0\] bbox: expected finite \[x, y, w, h\] with w, h >= 0, got \[0, 0, -1, 5\]",
         ),
         (
-            lambda: M.evaluate(_GT, [det(1, CAR, box_row(0), 1.5)]),
+            lambda: evaluate(_GT, [det(1, CAR, box_row(0), 1.5)]),
             r"detections\[0\] score: expected a confidence in \[0, 1\], got 1.5",
         ),
         (
-            lambda: M.evaluate(_GT, [{"image_id": 1, "bbox": [0, 0, 1, 1]}]),
+            lambda: evaluate(_GT, [{"image_id": 1, "bbox": [0, 0, 1, 1]}]),
             r"detections\[0\]: expected a dict with image_id, category_id, bbox, score, got",
         ),
         (
-            lambda: M.evaluate(_GT, [], class_ids=(2, 5)),
+            lambda: evaluate(_GT, [], class_ids=(2, 5)),
             r"class_ids: unknown class id\(s\) \[5\], expected ids in \[0, 1, 2, 3\]",
         ),
-        (lambda: M.evaluate(_GT, [], image_ids=[1, 4]), r"image_ids: \[4\] not in the ground truth"),
-        (lambda: M.evaluate(_GT, [], conf=2.0), r"conf: expected a confidence in \[0, 1\], got 2.0"),
+        (lambda: evaluate(_GT, [], image_ids=[1, 4]), r"image_ids: \[4\] not in the ground truth"),
+        (lambda: evaluate(_GT, [], conf=2.0), r"conf: expected a confidence in \[0, 1\], got 2.0"),
         (
-            lambda: M.evaluate({"images": []}, []),
+            lambda: evaluate({"images": []}, []),
             r"gt_dict: expected keys images/annotations/categories, missing 'annotations'",
         ),
         (
-            lambda: M.evaluate({**_GT, "annotations": [{**_GT["annotations"][0], "id": 0}]}, []),
+            lambda: evaluate({**_GT, "annotations": [{**_GT["annotations"][0], "id": 0}]}, []),
             r"gt_dict annotations: expected int ids >= 1 \(COCOeval reads id 0 as unmatched\), got others",
         ),
         (
-            lambda: M.evaluate(
+            lambda: evaluate(
                 {**_GT, "annotations": [{"id": 1, "image_id": 1, "category_id": 2, "bbox": [0, 0, 1, 1]}]}, []
             ),
             r"gt_dict annotations\[0\]: expected keys \('id', 'image_id', 'category_id', 'bbox', 'area', 'iscrowd'\), missing \['area', 'iscrowd'\]",
         ),
         (
-            lambda: M.coco_detections(1, np.array([[5, 5, 1, 9]]), np.array([0.5]), np.array([CAR])),
+            lambda: coco_detections(1, np.array([[5, 5, 1, 9]]), np.array([0.5]), np.array([CAR])),
             r"boxes: expected x1 <= x2 and y1 <= y2 \(xyxy\), got a box with x2 < x1",
         ),
         (
-            lambda: M.coco_detections(1, np.array([[0, 0, 1, 1]]), np.array([0.5, 0.4]), np.array([CAR])),
+            lambda: coco_detections(1, np.array([[0, 0, 1, 1]]), np.array([0.5, 0.4]), np.array([CAR])),
             r"scores/class_ids: expected shape \(1,\) to match boxes, got \(2,\) and \(1,\)",
         ),
         (
-            lambda: M.bootstrap_ci(_GT, [], 10, rng=np.random.RandomState(0)),
+            lambda: bootstrap_ci(_GT, [], 10, rng=np.random.RandomState(0)),
             r"rng: expected a numpy.random.Generator, got RandomState",
         ),
-        (lambda: M.bootstrap_ci(_GT, [], 0, rng=np.random.default_rng(0)), r"n_boot: expected an int >= 1, got 0"),
+        (lambda: bootstrap_ci(_GT, [], 0, rng=np.random.default_rng(0)), r"n_boot: expected an int >= 1, got 0"),
         (
-            lambda: M.bootstrap_ci(_GT, [], 10, rng=np.random.default_rng(0), metric="f1"),
+            lambda: bootstrap_ci(_GT, [], 10, rng=np.random.default_rng(0), metric="f1"),
             r"metric: expected one of \('ap50', 'ap50_95'\), got 'f1'",
         ),
         (
-            lambda: M.bootstrap_ci(_GT, [], 10, rng=np.random.default_rng(0), alpha=1.5),
+            lambda: bootstrap_ci(_GT, [], 10, rng=np.random.default_rng(0), alpha=1.5),
             r"alpha: expected a value in \(0, 1\), got 1.5",
         ),
         (
-            lambda: M.ap_by_visibility(_GT, [], np.array([0.5, 0.5])),
+            lambda: ap_by_visibility(_GT, [], np.array([0.5, 0.5])),
             r"visible_fraction: expected shape \(1,\) aligned with the annotations, got \(2,\)",
         ),
         (
-            lambda: M.ap_by_visibility(_GT, [], np.array([1.5])),
+            lambda: ap_by_visibility(_GT, [], np.array([1.5])),
             r"visible_fraction: expected values in \[0, 1\] or nan, got values outside",
         ),
         (
-            lambda: M.ap_by_visibility(_GT, [], np.array([0.5]), bins=(0.5, 0.2)),
+            lambda: ap_by_visibility(_GT, [], np.array([0.5]), bins=(0.5, 0.2)),
             r"bins: expected at least two increasing edges, got \[0.5, 0.2\]",
         ),
         (
-            lambda: M.ap_by_visibility(_GT, [], np.array([0.5]), unmatched="drop"),
+            lambda: ap_by_visibility(_GT, [], np.array([0.5]), unmatched="drop"),
             r"unmatched: expected 'fp' or 'ignore', got 'drop'",
         ),
         (
-            lambda: M.pr_confidence_curves(np.zeros(3), np.zeros(2, bool), 1),
+            lambda: pr_confidence_curves(np.zeros(3), np.zeros(2, bool), 1),
             r"scores/true_positive: expected matching \(D,\) shapes, got \(3,\) and \(2,\)",
         ),
         (
-            lambda: M.interpolated_ap(np.zeros((1, 3), bool), np.zeros((1, 3), bool), np.ones((2, 4)), np.ones(2)),
+            lambda: interpolated_ap(np.zeros((1, 3), bool), np.zeros((1, 3), bool), np.ones((2, 4)), np.ones(2)),
             r"det_weights: expected shape \(B, 3\), got \(2, 4\)",
         ),
     ],
@@ -720,13 +686,13 @@ def test_bad_inputs_give_one_line_errors(call, message):
 
 def test_half_value_rate_interpolates_the_crossing():
     # 0.8 -> 0.6 -> 0.2: half of 0.8 (0.4) is crossed halfway between 10 and 20 mm/h.
-    assert M.half_value_rate({0.0: 0.8, 10.0: 0.6, 20.0: 0.2}) == pytest.approx(15.0)
-    assert M.half_value_rate({0.0: 0.8, 10.0: 0.4}) == pytest.approx(10.0)  # exactly half
-    assert M.half_value_rate({20.0: 0.1, 0.0: 0.8, 10.0: 0.7}) == pytest.approx(10 + 10 * 0.3 / 0.6)  # unsorted
-    assert math.isinf(M.half_value_rate({0.0: 0.8, 100.0: 0.5}))
-    assert math.isnan(M.half_value_rate({0.0: 0.0, 100.0: 0.0}))
-    assert M.half_value_rate({0.0: 1.0, 50.0: 0.8, 100.0: 0.7}, fraction=0.75) == pytest.approx(50 + 50 * 0.05 / 0.1)
+    assert half_value_rate({0.0: 0.8, 10.0: 0.6, 20.0: 0.2}) == pytest.approx(15.0)
+    assert half_value_rate({0.0: 0.8, 10.0: 0.4}) == pytest.approx(10.0)  # exactly half
+    assert half_value_rate({20.0: 0.1, 0.0: 0.8, 10.0: 0.7}) == pytest.approx(10 + 10 * 0.3 / 0.6)  # unsorted
+    assert math.isinf(half_value_rate({0.0: 0.8, 100.0: 0.5}))
+    assert math.isnan(half_value_rate({0.0: 0.0, 100.0: 0.0}))
+    assert half_value_rate({0.0: 1.0, 50.0: 0.8, 100.0: 0.7}, fraction=0.75) == pytest.approx(50 + 50 * 0.05 / 0.1)
     with pytest.raises(ValueError, match="expected rate 0"):
-        M.half_value_rate({10.0: 0.5, 20.0: 0.1})
+        half_value_rate({10.0: 0.5, 20.0: 0.1})
     with pytest.raises(ValueError, match="fraction"):
-        M.half_value_rate({0.0: 0.5}, fraction=1.0)
+        half_value_rate({0.0: 0.5}, fraction=1.0)

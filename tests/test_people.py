@@ -3,7 +3,7 @@ answers follow from the builds and the projection."""
 
 import math
 
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
 

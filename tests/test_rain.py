@@ -13,10 +13,8 @@ import pytest
 from rainbench.rain import (
     RAIN_MODELS,
     RainConfig,
-    RatesError,
     box_rain_labels,
     image_quality,
-    parse_rates,
     render_rain,
     render_rain_sweep,
     sample_drops,
@@ -24,6 +22,7 @@ from rainbench.rain import (
 from rainbench.rain import lens as lens_mod
 from rainbench.rain import physical as phys
 from rainbench.rain.metrics import luma, psnr
+from rainbench.store.rates import RatesError, parse_rates
 from testframe import intrinsics, street_frame
 
 RAIN_DIR = pathlib.Path(__file__).resolve().parents[1] / "rain"

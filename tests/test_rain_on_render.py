@@ -1,12 +1,13 @@
 """Rain on a real rendered frame: SSIM falls monotonically with rate, for both models."""
 
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
 
 from rainbench import rain
 from rainbench.gen import sim
-from rainbench.gen.generate import GenerateConfig, build_scene
+from rainbench.gen.config import GenerateConfig
+from rainbench.gen.generate import build_scene
 from rainbench.gen.render import FrameRenderer
 
 RATES = [10.0, 20.0, 40.0, 60.0, 80.0, 100.0]

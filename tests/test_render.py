@@ -1,6 +1,6 @@
 """Rendering and labels on tiny inline scenes whose answers are known from projection math."""
 
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
 

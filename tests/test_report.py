@@ -1,4 +1,4 @@
-"""Tests of rainbench.eval.report: metrics.json/csv, report.md tables, PNG plots."""
+"""Tests of rainbench.eval.report: metric records, metrics.json/csv, report.md tables, PNG plots."""
 
 from __future__ import annotations
 
@@ -9,16 +9,23 @@ import cv2
 import numpy as np
 import pytest
 
-from rainbench.eval import metrics as M
-from rainbench.store.classes import PAPER_CLASS_NAMES, PAPER_CLASSES
-from rainbench.eval import report as R
+from rainbench.eval.metrics.bootstrap import BootstrapCI
+from rainbench.eval.metrics.evaluation import ClassMetrics
+from rainbench.eval.metrics.robustness import percent_drop
+from rainbench.eval.report.figures import plot_detection_strip
+from rainbench.eval.report.markdown import render_report_md
+from rainbench.eval.report.paper import PAPER_TABLES, TABLE_CLASS_ORDER
+from rainbench.eval.report.plots import plot_metric_vs_rate
+from rainbench.eval.report.records import RECORD_FIELDS, metric_records, read_metrics, robustness_records, write_metrics
+from rainbench.store.classes import CLASS_COLOURS, PAPER_CLASSES
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+PERSON, CAR = 0, 2
 RATES = (0.0, 50.0, 100.0)
 
 
 def _class_metrics(class_id, ap50, f1, n_gt=10):
-    return M.ClassMetrics(
+    return ClassMetrics(
         class_id=class_id,
         n_gt=n_gt,
         n_det=12,
@@ -51,22 +58,22 @@ def _records(with_ci=True):
             )
             results[(model, rate)] = per_class
             cis[(model, rate)] = {
-                c: M.BootstrapCI(c, "ap50", m.ap50, m.ap50 - 0.05, m.ap50 + 0.05, 0.05, 100, 100)
+                c: BootstrapCI(c, "ap50", m.ap50, m.ap50 - 0.05, m.ap50 + 0.05, 0.05, 100, 100)
                 for c, m in per_class.items()
             }
-    return M.metric_records(results, cis if with_ci else None)
+    return metric_records(results, cis if with_ci else None)
 
 
 def test_metrics_json_and_csv_round_trip(tmp_path):
     records = _records()
-    json_path, csv_path = R.write_metrics(records, tmp_path / "out")
+    json_path, csv_path = write_metrics(records, tmp_path / "out")
     assert (json_path.name, csv_path.name) == ("metrics.json", "metrics.csv")
     text = json_path.read_text()
     assert "NaN" not in text and "null" in text
     assert isinstance(json.loads(text), list) and len(json.loads(text)) == len(records) == 24
-    assert csv_path.read_text().splitlines()[0] == ",".join(M.RECORD_FIELDS)
+    assert csv_path.read_text().splitlines()[0] == ",".join(RECORD_FIELDS)
     for path in (json_path, csv_path):
-        back = R.read_metrics(path)
+        back = read_metrics(path)
         assert len(back) == len(records)
         for original, loaded in zip(records, back, strict=True):
             assert list(loaded) == list(original)
@@ -79,11 +86,11 @@ def test_metrics_json_and_csv_round_trip(tmp_path):
 
 def test_read_metrics_rejects_other_suffix(tmp_path):
     with pytest.raises(ValueError, match=r"expected a .json or .csv metrics file, got suffix '.txt'"):
-        R.read_metrics(tmp_path / "metrics.txt")
+        read_metrics(tmp_path / "metrics.txt")
 
 
 def test_report_md_has_paper_tables():
-    text = R.render_report_md(_records())
+    text = render_report_md(_records())
     assert "## Table III. AP@0.5 degradation, Normal vs 100mm/h" in text
     assert "## Table IV. F1 degradation, Normal vs 100mm/h" in text
     assert "| Model | Condition | Car | Person | Bicycle | Motorcycle |" in text
@@ -106,7 +113,7 @@ def test_report_md_has_paper_tables():
 
 
 def test_report_md_paper_columns_beside_ours():
-    text = R.render_report_md(_records(with_ci=False), paper=R.PAPER_TABLES, paper_models={"mine": "YOLOv7x"})
+    text = render_report_md(_records(with_ci=False), paper=PAPER_TABLES, paper_models={"mine": "YOLOv7x"})
     assert "| Model | Condition | Car | Car (paper) | Person | Person (paper) |" in text
     # YOLOv4 matched by name; paper values from Table III / IV and their % drop.
     assert "| YOLOv4 | Normal | 0.600 | 0.640 | 0.400 | 0.771 | 0.500 | 0.913 | 0.700 | 0.263 |" in text
@@ -118,24 +125,24 @@ def test_report_md_paper_columns_beside_ours():
 
 
 def test_paper_tables_transcription():
-    assert set(R.PAPER_TABLES) == {"ap50", "f1"}
-    for metric in R.PAPER_TABLES.values():
+    assert set(PAPER_TABLES) == {"ap50", "f1"}
+    for metric in PAPER_TABLES.values():
         assert set(metric) == {"YOLOv4", "YOLOv5x", "YOLOv7x"}
         for by_rate in metric.values():
             assert set(by_rate) == {0.0, 100.0}
-            assert all(set(values) == set(R.TABLE_CLASS_ORDER) for values in by_rate.values())
+            assert all(set(values) == set(TABLE_CLASS_ORDER) for values in by_rate.values())
     # The paper's text: car AP drops 31.24 % (v7x), 30.67 % (v5x), 33.75 % (v4).
-    drops = {m: M.percent_drop(v[0.0]["car"], v[100.0]["car"]) for m, v in R.PAPER_TABLES["ap50"].items()}
+    drops = {m: percent_drop(v[0.0]["car"], v[100.0]["car"]) for m, v in PAPER_TABLES["ap50"].items()}
     assert drops == pytest.approx({"YOLOv7x": 31.24, "YOLOv5x": 30.67, "YOLOv4": 33.75}, abs=0.005)
 
 
 def test_report_md_errors():
     with pytest.raises(ValueError, match="records: expected at least one metric record, got none"):
-        R.render_report_md([])
+        render_report_md([])
     with pytest.raises(
         ValueError, match=r"expected rates present in the records \[0.0, 50.0, 100.0\], got 0.0 and 30.0"
     ):
-        R.render_report_md(_records(), heavy_rate=30.0)
+        render_report_md(_records(), heavy_rate=30.0)
 
 
 def _assert_png(path, min_height, min_width):
@@ -148,12 +155,12 @@ def _assert_png(path, min_height, min_width):
 
 def test_plot_metric_vs_rate_writes_png(tmp_path):
     records = _records()
-    path = R.plot_metric_vs_rate(records, "ap50", tmp_path / "plots" / "ap50.png")
+    path = plot_metric_vs_rate(records, "ap50", tmp_path / "plots" / "ap50.png")
     _assert_png(path, 200, 800)
-    path_f1 = R.plot_metric_vs_rate(records, "f1", tmp_path / "f1.png", ci=False)
+    path_f1 = plot_metric_vs_rate(records, "f1", tmp_path / "f1.png", ci=False)
     _assert_png(path_f1, 200, 800)
     with pytest.raises(ValueError, match=r"metric: expected a record key such as 'ap50' or 'f1', got 'map'"):
-        R.plot_metric_vs_rate(records, "map", tmp_path / "x.png")
+        plot_metric_vs_rate(records, "map", tmp_path / "x.png")
 
 
 def test_plot_detection_strip_draws_boxes(tmp_path):
@@ -163,18 +170,57 @@ def test_plot_detection_strip_draws_boxes(tmp_path):
         0.0: [{"image_id": 1, "category_id": 2, "bbox": [10, 10, 30, 30], "score": 0.9}],
         10.0: [{"image_id": 1, "category_id": 0, "bbox": [5, 5, 20, 40], "score": 0.1}],  # below min_score
     }
-    path = R.plot_detection_strip(frames, detections, tmp_path / "strip.png", columns=3)
+    path = plot_detection_strip(frames, detections, tmp_path / "strip.png", columns=3)
     image = _assert_png(path, 1, 1)
     banner, gap = 28, 4
     assert image.shape == (2 * (60 + banner) + gap, 3 * 80 + 2 * gap, 3)
-    car_bgr = np.array(R._BOX_COLORS_BGR[2])
+    car_bgr = np.array(CLASS_COLOURS[2][::-1])
     first_tile = image[: 60 + banner, :80]
     second_tile = image[: 60 + banner, 80 + gap : 160 + gap]
-    person_bgr = np.array(R._BOX_COLORS_BGR[0])
+    person_bgr = np.array(CLASS_COLOURS[0][::-1])
     assert np.any(np.all(first_tile == car_bgr, axis=-1))
     assert not np.any(np.all(second_tile == person_bgr, axis=-1))
     with pytest.raises(
         ValueError,
         match=r"images_by_rate\[10.0\]: expected uint8 \(60, 80, 3\) like the first image, got uint8 \(10, 10, 3\)",
     ):
-        R.plot_detection_strip({0.0: frames[0.0], 10.0: np.zeros((10, 10, 3), np.uint8)}, {}, tmp_path / "bad.png")
+        plot_detection_strip({0.0: frames[0.0], 10.0: np.zeros((10, 10, 3), np.uint8)}, {}, tmp_path / "bad.png")
+
+
+# --------------------------------------------------------------------------------------------
+# records (moved with the record schema from the metrics tests)
+# --------------------------------------------------------------------------------------------
+
+
+def _metrics(class_id, ap50, f1):
+    return ClassMetrics(class_id, 10, 12, ap50, ap50 / 2, ap50 / 2, 0.8, 0.7, f1, 0.3, 0.8, 0.6, f1, 0.25)
+
+
+def test_metric_records_layout_drops_and_cis():
+    results = {
+        ("yolo", 100.0): {CAR: _metrics(CAR, 0.4, 0.5)},
+        ("yolo", 0.0): {CAR: _metrics(CAR, 0.8, 0.6), PERSON: _metrics(PERSON, 0.5, 0.5)},
+    }
+    cis = {("yolo", 0.0): {CAR: BootstrapCI(CAR, "ap50", 0.8, 0.7, 0.9, 0.05, 100, 100)}}
+    records = metric_records(results, cis)
+    assert [(r["rate"], r["class"]) for r in records] == [(0.0, "car"), (0.0, "person"), (100.0, "car")]
+    assert all(tuple(r) == RECORD_FIELDS for r in records)
+    clean_car, _, rainy_car = records
+    assert (clean_car["ap50_ci_low"], clean_car["ap50_ci_high"]) == (0.7, 0.9)
+    assert math.isnan(rainy_car["ap50_ci_low"])
+    assert clean_car["ap50_drop_pct"] == 0.0
+    assert rainy_car["ap50_drop_pct"] == pytest.approx(50.0)
+    assert rainy_car["f1_drop_pct"] == pytest.approx(100 * (0.6 - 0.5) / 0.6)
+    assert (rainy_car["model"], rainy_car["class_id"], rainy_car["n_gt"]) == ("yolo", CAR, 10)
+
+
+def test_robustness_records():
+    records = [
+        {"model": "m", "class": "car", "rate": rate, "ap50": value, "f1": None}
+        for rate, value in ((0.0, 0.8), (10.0, 0.6), (20.0, 0.4))
+    ]
+    ap50, f1 = robustness_records(records)
+    assert ap50["clean"] == 0.8 and ap50["worst_rate"] == 20.0 and ap50["at_worst_rate"] == 0.4
+    assert ap50["drop_pct"] == pytest.approx(50.0)
+    assert ap50["mpc"] == pytest.approx(0.5) and ap50["rpc"] == pytest.approx(0.625)
+    assert math.isnan(f1["clean"]) and math.isnan(f1["rpc"])

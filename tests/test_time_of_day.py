@@ -4,7 +4,7 @@ import math
 
 import cv2
 import h5py
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
 
@@ -355,7 +355,8 @@ def test_wet_night_road_mirrors_the_strip_the_camera_sees(night_scene):
 def test_a_night_clip_stores_its_clean_image_with_the_cameras_noise(tmp_path):
     """Rate 0 of a night shard is the render through the night camera (gain ~30: noise); the
     same render by day is stored as rendered."""
-    from rainbench.gen.generate import GenerateConfig, generate_shard, render_clip
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import generate_shard, render_clip
 
     for time_of_day in ("night", "day"):
         config = GenerateConfig(seed=SEED, frames=1, frame_offset=80, clip_frames=200, width=160,

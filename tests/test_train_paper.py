@@ -10,11 +10,14 @@ import pytest
 
 from rainbench import cli
 from rainbench.eval import backends
+from rainbench.eval import weights as registry
+from rainbench.eval.backends.onnx import OnnxDetector
+from rainbench.eval.backends.ultralytics import _offline_ultralytics
 from rainbench.experiments import train
 from rainbench.store.classes import CLASS_NAMES
 
 # Load torch's lazy modules before anything renders in this process (see test_eval_pipeline).
-backends._offline_ultralytics()
+_offline_ultralytics()
 import torch._dynamo  # noqa: E402,F401
 import ultralytics  # noqa: E402,F401
 
@@ -227,9 +230,10 @@ def test_shipped_weights_load_by_name_and_find_cars(tmp_path, name):
     """A guard against shipping broken or older weights: an unseen clean scene, car and person
     AP@0.5 above each model's floor."""
     from rainbench.eval import pipeline
-    from rainbench.gen.generate import GenerateConfig, generate_shard
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import generate_shard
 
-    assert name in backends.shipped_models()
+    assert name in registry.shipped_models()
     detector = backends.load_detector(name, device="cpu")
     assert detector.name == name
     data = tmp_path / "data"
@@ -239,7 +243,7 @@ def test_shipped_weights_load_by_name_and_find_cars(tmp_path, name):
                                   layout="street", time_of_day="day"), data)
     result = pipeline.run_eval(data, tmp_path / "out", weights=[name], n_boot=1, device="cpu", progress=False)
     # On CPU the shipped name runs its ONNX copy, at the card's letterbox size.
-    card = json.loads((backends.WEIGHTS_DIR / f"{name}.json").read_text())
+    card = json.loads((registry.WEIGHTS_DIR / f"{name}.json").read_text())
     assert card["imgsz"] == train.load_recipe(name).eval_imgsz
     settings = json.loads((tmp_path / "out" / "predictions" / name / "settings.json").read_text())
     # ... its ONNX copy built from the shipped .pt into the user cache
@@ -257,15 +261,16 @@ def test_shipped_weights_load_by_name_and_find_cars(tmp_path, name):
 def test_shipped_onnx_copy_matches_the_shipped_checkpoint(tmp_path, name):
     """The ONNX copy that CPU evaluation runs is the shipped checkpoint's network (not a stale
     export): the same detections on a rendered frame at the card's letterbox size."""
-    from rainbench.gen.generate import GenerateConfig, render_clip
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import render_clip
     from conftest import assert_same_detections
 
     config = GenerateConfig(seed=7, frames=1, fps=1.0, width=800, height=600, rates=(0.0,))
     image = [frame.rgb.copy() for _, frame, _ in render_clip(config)][0]
-    settings = dict(imgsz=backends.model_imgsz(name), conf=0.001, iou=0.7, max_det=300)
-    checkpoint = backends.load_detector(backends.WEIGHTS_DIR / f"{name}.pt", device="cpu")
+    settings = dict(imgsz=registry.model_imgsz(name), conf=0.001, iou=0.7, max_det=300)
+    checkpoint = backends.load_detector(registry.WEIGHTS_DIR / f"{name}.pt", device="cpu")
     onnx_copy = backends.load_detector(name, device="cpu")
-    assert isinstance(onnx_copy, backends.OnnxDetector) and onnx_copy.name == name
+    assert isinstance(onnx_copy, OnnxDetector) and onnx_copy.name == name
     assert_same_detections(checkpoint.predict([image], **settings)[0], onnx_copy.predict([image], **settings)[0],
                            top=10)
 
@@ -308,23 +313,24 @@ def test_shipped_model_without_onnx_builds_its_copy_once_into_the_cache(tmp_path
     """Shipped models ship their .pt only: the ONNX copy is exported on first use into the user
     cache, reused after, and detects what the checkpoint detects."""
     name = "rainbench-yolo11n-weak"
-    assert name in backends.shipped_models() and not list(backends.WEIGHTS_DIR.glob("*.onnx"))
+    assert name in registry.shipped_models() and not list(registry.WEIGHTS_DIR.glob("*.onnx"))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    path, resolved = backends.resolve_weights(name, device="cpu")
+    path, resolved = registry.resolve_weights(name, device="cpu")
     assert resolved == name and path.suffix == ".onnx"
     assert path.parent == tmp_path / "cache" / "rainbench" / "onnx"
     stamp = path.stat().st_mtime_ns
-    assert backends.resolve_weights(name, device="cpu")[0] == path and path.stat().st_mtime_ns == stamp
+    assert registry.resolve_weights(name, device="cpu")[0] == path and path.stat().st_mtime_ns == stamp
     assert not list(path.parent.glob(".*tmp*"))  # no partial file left behind
     from conftest import assert_same_detections
 
-    from rainbench.gen.generate import GenerateConfig, render_clip
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import render_clip
 
     config = GenerateConfig(seed=7, frames=1, fps=1.0, width=800, height=600, rates=(0.0,))
     image = [frame.rgb.copy() for _, frame, _ in render_clip(config)][0]
-    settings = dict(imgsz=backends.model_imgsz(name), conf=0.001, iou=0.7, max_det=300)
-    checkpoint = backends.load_detector(backends.WEIGHTS_DIR / f"{name}.pt", device="cpu")
+    settings = dict(imgsz=registry.model_imgsz(name), conf=0.001, iou=0.7, max_det=300)
+    checkpoint = backends.load_detector(registry.WEIGHTS_DIR / f"{name}.pt", device="cpu")
     onnx_copy = backends.load_detector(name, device="cpu")
-    assert isinstance(onnx_copy, backends.OnnxDetector)
+    assert isinstance(onnx_copy, OnnxDetector)
     assert_same_detections(checkpoint.predict([image], **settings)[0],
                            onnx_copy.predict([image], **settings)[0], top=5)

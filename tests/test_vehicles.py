@@ -3,7 +3,7 @@
 import dataclasses
 import math
 
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
 

@@ -5,13 +5,14 @@ import math
 
 import cv2
 import h5py
-import mujoco
+from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
 
 from rainbench import rain
 from rainbench.cli import _seed_and_sky
-from rainbench.gen.generate import GenerateConfig, build_scene, generate_shard
+from rainbench.gen.config import GenerateConfig
+from rainbench.gen.generate import build_scene, generate_shard
 from rainbench.gen.render import FrameRenderer
 from rainbench.mjcf.scene import _camera_quat, horizontal_to_vertical_fov
 from rainbench.rain import weather as wx

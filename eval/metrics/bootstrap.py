@@ -1,0 +1,247 @@
+"""Percentile bootstrap confidence intervals of per-class COCO AP over frames.
+
+COCOeval matches detections once (:func:`rainbench.eval.metrics.coco.match_table`); each resample
+re-computes COCO's 101-point interpolated AP from those matches with the detections weighted by
+their image's multiplicity (:func:`interpolated_ap`, verified against COCOeval in the tests).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rainbench.store.classes import PAPER_CLASSES
+
+from .coco import IOU_THRESHOLDS, RECALL_THRESHOLDS, match_table, validate_gt_dict
+
+BOOTSTRAP_METRICS = ("ap50", "ap50_95")
+"""Metrics :func:`bootstrap_ci` can resample."""
+
+
+@dataclass(frozen=True)
+class BootstrapCI:
+    """Percentile bootstrap confidence interval of one metric of one class.
+
+    Attributes:
+        class_id (int): COCO-80 class id.
+        metric (str): "ap50" or "ap50_95".
+        point (float): Metric on the original (non-resampled) images; equals COCOeval's value.
+        low (float): Lower bound (``alpha / 2`` quantile of the resampled values).
+        high (float): Upper bound (``1 - alpha / 2`` quantile).
+        alpha (float): 1 - confidence level.
+        n_boot (int): Resamples drawn.
+        n_valid (int): Resamples in which the class had ground truth (the others are nan and
+            left out of the quantiles).
+    """
+
+    class_id: int
+    metric: str
+    point: float
+    low: float
+    high: float
+    alpha: float
+    n_boot: int
+    n_valid: int
+
+
+def interpolated_ap(
+    true_positive: np.ndarray,
+    ignored: np.ndarray,
+    det_weights: np.ndarray,
+    n_gt: np.ndarray,
+    recall_thresholds: np.ndarray = RECALL_THRESHOLDS,
+) -> np.ndarray:
+    """COCO 101-point interpolated AP for B weighted copies of one class's detections at once.
+
+    Weighted version of ``COCOeval.accumulate``: detection d counts ``det_weights[b, d]`` times in
+    copy b (its image's multiplicity in a bootstrap resample; 1 everywhere gives COCOeval's AP
+    exactly). Cumulative TP / FP sums over the score-sorted detections give recall
+    ``tp / n_gt`` and precision ``tp / (tp + fp + spacing(1))``; precision is made monotone from
+    the right, sampled at the first index whose recall reaches each threshold (0 past the
+    final recall), and averaged. Zero-weight detections only repeat the previous PR point, which
+    changes neither the envelope nor the sampled values.
+
+    Args:
+        true_positive: (T, D) bool, detection d is matched at IoU threshold t (COCO order:
+            sorted by descending score, see :class:`.coco.ClassMatches`).
+        ignored: (T, D) bool, COCO ``dtIgnore`` (neither TP nor FP).
+        det_weights: (B, D) float64 non-negative integer-valued weights.
+        n_gt: (B,) float64 non-ignored ground truths in each copy.
+        recall_thresholds: (R,) float64 increasing recall thresholds (COCO's 101).
+
+    Returns:
+        (B, T) float64 AP; nan where ``n_gt == 0`` (COCO leaves such a class out).
+    """
+    true_positive = np.asarray(true_positive, dtype=bool)
+    ignored = np.asarray(ignored, dtype=bool)
+    det_weights = np.asarray(det_weights, dtype=np.float64)
+    n_gt = np.asarray(n_gt, dtype=np.float64)
+    if true_positive.ndim != 2 or ignored.shape != true_positive.shape:
+        raise ValueError(
+            f"true_positive/ignored: expected matching (T, D) shapes, got {true_positive.shape} and {ignored.shape}"
+        )
+    n_thresholds, n_dets = true_positive.shape
+    if det_weights.ndim != 2 or det_weights.shape[1] != n_dets:
+        raise ValueError(f"det_weights: expected shape (B, {n_dets}), got {det_weights.shape}")
+    n_copies = det_weights.shape[0]
+    if n_gt.shape != (n_copies,):
+        raise ValueError(f"n_gt: expected shape ({n_copies},), got {n_gt.shape}")
+    ap = np.full((n_copies, n_thresholds), np.nan)
+    valid_rows = np.flatnonzero(n_gt > 0)
+    if valid_rows.size == 0:
+        return ap
+    weights = det_weights[valid_rows]
+    counts = n_gt[valid_rows][:, None]
+    for t in range(n_thresholds):
+        counted = ~ignored[t]
+        tp_sum = np.cumsum(weights * (true_positive[t] & counted), axis=1)
+        fp_sum = np.cumsum(weights * (~true_positive[t] & counted), axis=1)
+        recall = tp_sum / counts
+        precision = tp_sum / (fp_sum + tp_sum + np.spacing(1))
+        envelope = np.maximum.accumulate(precision[:, ::-1], axis=1)[:, ::-1]
+        envelope = np.concatenate([envelope, np.zeros((len(valid_rows), 1))], axis=1)
+        for row in range(len(valid_rows)):
+            indices = np.searchsorted(recall[row], recall_thresholds, side="left")
+            ap[valid_rows[row], t] = envelope[row, indices].mean()
+    return ap
+
+
+def bootstrap_weights(n_images: int, n_boot: int, rng: np.random.Generator) -> np.ndarray:
+    """Image multiplicities of ``n_boot`` bootstrap resamples of ``n_images`` frames.
+
+    Each resample draws ``n_images`` image indices uniformly with replacement.
+
+    Args:
+        n_images: Frames in the evaluation set (>= 1).
+        n_boot: Resamples (>= 1).
+        rng: Source of randomness.
+
+    Returns:
+        (n_boot, n_images) int64 counts, each row summing to ``n_images``.
+    """
+    draws = rng.integers(0, n_images, size=(n_boot, n_images))
+    offsets = np.arange(n_boot)[:, None] * n_images
+    return np.bincount((draws + offsets).ravel(), minlength=n_boot * n_images).reshape(n_boot, n_images)
+
+
+def bootstrap_ci(
+    gt_dict: Mapping[str, Any],
+    detections: Sequence[Mapping[str, Any]],
+    n_boot: int = 1000,
+    *,
+    rng: np.random.Generator,
+    alpha: float = 0.05,
+    metric: str = "ap50",
+    class_ids: Sequence[int] = PAPER_CLASSES,
+    image_ids: Sequence[int] | None = None,
+) -> dict[int, BootstrapCI]:
+    """Percentile bootstrap CI of per-class AP over frames (images resampled with replacement).
+
+    Approach: COCOeval matches detections once per image (``evalImgs``); matching is per image,
+    so a resample that contains an image k times contains its matches k times. Each resample is
+    therefore a vector of image multiplicities, and its AP is :func:`interpolated_ap` with each
+    detection weighted by its image's multiplicity and ``n_gt`` the weighted ground-truth count.
+    This equals running COCOeval on the resampled set with the duplicated images re-numbered
+    (pycocotools keys everything by image id; see :func:`resample_images`), which the tests check
+    on explicit resamples, except for the order of exactly tied scores within one image (COCO
+    breaks ties by copy, this by detection). 1000 resamples of 200 frames take well under a
+    second, versus minutes for 1000 COCOeval runs.
+
+    Args:
+        gt_dict: COCO ground-truth dict.
+        detections: COCO results records.
+        n_boot: Number of resamples (>= 1).
+        rng: Random generator (required; pass ``np.random.default_rng(seed)``).
+        alpha: 1 - confidence level, in (0, 1); 0.05 gives a 95 % interval.
+        metric: "ap50" (COCOeval run at IoU 0.5 only) or "ap50_95".
+        class_ids: Class ids.
+        image_ids: Frames to resample; all ground-truth images when None.
+
+    Returns:
+        ``{class_id: BootstrapCI}``; classes without ground truth get nan point and bounds.
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng: expected a numpy.random.Generator, got {type(rng).__name__}")
+    if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 1:
+        raise ValueError(f"n_boot: expected an int >= 1, got {n_boot!r}")
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha: expected a value in (0, 1), got {alpha!r}")
+    if metric not in BOOTSTRAP_METRICS:
+        raise ValueError(f"metric: expected one of {BOOTSTRAP_METRICS}, got {metric!r}")
+    iou_thresholds = IOU_THRESHOLDS[:1] if metric == "ap50" else IOU_THRESHOLDS
+    matches = match_table(gt_dict, detections, class_ids, image_ids, iou_thresholds)
+    n_images = len(next(iter(matches.values())).image_ids)
+    image_weights = bootstrap_weights(n_images, int(n_boot), rng).astype(np.float64)
+    result = {}
+    for class_id, match in matches.items():
+        ones = np.ones((1, len(match.scores)))
+        point = float(
+            interpolated_ap(
+                match.true_positive, match.ignored, ones, np.array([match.n_gt_per_image.sum()], float)
+            ).mean()
+        )
+        n_gt = image_weights @ match.n_gt_per_image.astype(np.float64)
+        values = np.empty(n_boot)
+        chunk = max(1, 2_000_000 // max(1, len(match.scores)))
+        for start in range(0, n_boot, chunk):
+            rows = slice(start, start + chunk)
+            det_weights = image_weights[rows][:, match.image_index]
+            values[rows] = interpolated_ap(match.true_positive, match.ignored, det_weights, n_gt[rows]).mean(axis=1)
+        valid = values[~np.isnan(values)]
+        if valid.size:
+            low, high = np.quantile(valid, [alpha / 2, 1 - alpha / 2])
+        else:
+            low = high = float("nan")
+        result[class_id] = BootstrapCI(
+            class_id=class_id,
+            metric=metric,
+            point=point,
+            low=float(low),
+            high=float(high),
+            alpha=float(alpha),
+            n_boot=int(n_boot),
+            n_valid=int(valid.size),
+        )
+    return result
+
+
+def resample_images(
+    gt_dict: Mapping[str, Any], detections: Sequence[Mapping[str, Any]], image_ids: Sequence[int]
+) -> tuple[dict[str, list[dict]], list[dict[str, Any]]]:
+    """Materialise a resample of images (with repeats) as a new COCO set, re-numbering images.
+
+    pycocotools keys images, annotations and matches by image id, so a frame drawn twice must
+    appear under two ids. The k-th entry of ``image_ids`` becomes image ``k + 1``; annotation ids
+    are re-numbered from 1; detections are copied onto every copy of their image.
+
+    Args:
+        gt_dict: COCO ground-truth dict.
+        detections: COCO results records.
+        image_ids: (N,) sequence of ground-truth image ids, repeats allowed.
+
+    Returns:
+        (ground-truth dict, detection records) of the resampled set.
+    """
+    validate_gt_dict(gt_dict)
+    images = {image["id"]: image for image in gt_dict["images"]}
+    annotations_by_image: dict[int, list[dict]] = {}
+    for ann in gt_dict["annotations"]:
+        annotations_by_image.setdefault(ann["image_id"], []).append(ann)
+    detections_by_image: dict[int, list[Mapping[str, Any]]] = {}
+    for record in detections:
+        detections_by_image.setdefault(record["image_id"], []).append(record)
+    new_images, new_annotations, new_detections = [], [], []
+    for position, image_id in enumerate(image_ids):
+        if image_id not in images:
+            raise ValueError(f"image_ids[{position}]: {image_id!r} is not in the ground truth")
+        new_id = position + 1
+        new_images.append({**images[image_id], "id": new_id})
+        for ann in annotations_by_image.get(image_id, []):
+            new_annotations.append({**ann, "id": len(new_annotations) + 1, "image_id": new_id})
+        for record in detections_by_image.get(image_id, []):
+            new_detections.append({**record, "image_id": new_id, "bbox": list(record["bbox"])})
+    categories = [dict(category) for category in gt_dict["categories"]]
+    return {"images": new_images, "annotations": new_annotations, "categories": categories}, new_detections

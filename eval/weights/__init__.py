@@ -1,0 +1,194 @@
+"""The registry of the weights shipped with rainbench, in this folder (docs/models.md).
+
+Each shipped model ``<name>`` is ``<name>.pt`` (the ultralytics checkpoint) and ``<name>.json``
+(its card: ``imgsz``, the letterbox size it is evaluated at), selectable by name
+(``rainbench eval --weights <name>``, :func:`resolve_weights`). On CPU a shipped model runs as
+its ONNX copy: ``<name>.onnx`` when one sits beside the checkpoint, else the copy
+:func:`export_onnx` builds on first use into the user cache (:func:`cached_onnx`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rainbench.eval.backends import BackendError
+from rainbench.eval.backends.ultralytics import _offline_ultralytics
+
+WEIGHTS_DIR = Path(__file__).resolve().parent
+"""Shipped weights, selectable by name (docs/models.md): ``<name>.pt`` (the ultralytics
+checkpoint), ``<name>.onnx`` (the same network exported by :func:`export_onnx`, run on CPU) and
+``<name>.json`` (the model's card: ``imgsz``, the letterbox size it is evaluated at)."""
+DEFAULT_IMGSZ = 640
+"""Letterbox size of models that do not declare their own (ultralytics' default)."""
+
+
+def shipped_models() -> list[str]:
+    """Names of the weights shipped with rainbench (``rainbench eval --weights NAME``)."""
+    return sorted(p.stem for p in WEIGHTS_DIR.glob("*.pt"))
+
+
+def _shipped_file(spec: str | Path, suffix: str) -> Path | None:
+    """``WEIGHTS_DIR/<spec><suffix>`` when ``spec`` names a shipped model (a bare name whose
+    ``.pt`` is shipped) and that file exists; else None."""
+    text = str(spec)
+    if Path(text).suffix != "" or not (WEIGHTS_DIR / f"{text}.pt").is_file():
+        return None
+    path = WEIGHTS_DIR / f"{text}{suffix}"
+    return path if path.is_file() else None
+
+
+def cache_dir() -> Path:
+    """Where rainbench keeps files it builds on first use: ``$XDG_CACHE_HOME/rainbench``
+    (default ``~/.cache/rainbench``)."""
+    root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(root) / "rainbench"
+
+
+def cached_onnx(checkpoint: Path) -> Path:
+    """The ONNX copy of a shipped ``.pt`` that ships without one, exported by
+    :func:`export_onnx` on first use into :func:`cache_dir` (named by the checkpoint's sha256, so
+    a new checkpoint gets a new copy) and reused afterwards. Written under a temporary name and
+    renamed, so a cut-off export never leaves a partial file."""
+    import hashlib
+
+    digest = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:16]
+    path = cache_dir() / "onnx" / f"{checkpoint.stem}-{digest}.onnx"
+    if path.is_file():
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        export_onnx(checkpoint, partial)
+        os.replace(partial, path)
+    except BackendError:
+        raise
+    except Exception as error:  # torch/onnx export failures come as many exception types
+        raise BackendError(f"--weights: {checkpoint}: could not build its ONNX copy in {path.parent} "
+                           f"({type(error).__name__}: {error})") from error
+    finally:
+        partial.unlink(missing_ok=True)
+    return path
+
+
+def _on_cuda(device: str | None) -> bool:
+    """Whether ``device`` (a torch device string; None: CUDA when present) is a CUDA device."""
+    if device is None:
+        import torch
+
+        return torch.cuda.is_available()
+    return str(device).lower() not in ("cpu", "")
+
+
+def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, str]:
+    """``(file, model name)`` for a weights spec: a shipped model's name, or a local file.
+
+    A shipped name resolves to its ONNX copy (``<name>.onnx``, run by onnxruntime: 2.3 to 2.8
+    times ultralytics' speed on CPU, the same detections) unless ``device`` is a CUDA device,
+    where it resolves to the ``.pt`` (ultralytics on the GPU). The model name is the shipped name
+    or the file stem. Darknet models resolve to their ``.weights`` file (the ``.cfg`` must sit
+    beside it). Raises :class:`BackendError` for a missing file.
+    """
+    text = str(spec)
+    path = Path(text)
+    checkpoint = _shipped_file(text, ".pt")
+    if checkpoint is not None:
+        if _on_cuda(device):
+            return checkpoint, text
+        return (_shipped_file(text, ".onnx") or cached_onnx(checkpoint)), text
+    if path.suffix.lower() == ".cfg":
+        path = path.with_suffix(".weights")
+    if not path.is_file():
+        hint = ""
+        if path.suffix == "":
+            hint = f"; shipped models: {', '.join(shipped_models()) or 'none'}"
+        raise BackendError(f"--weights: {path} does not exist (weights are loaded from local files only{hint})")
+    return path, path.stem
+
+
+def model_imgsz(spec: str | Path) -> int:
+    """The letterbox size a model is evaluated at by default: a shipped model's card ``imgsz``
+    (``<name>.json``), else :data:`DEFAULT_IMGSZ`."""
+    card = _shipped_file(spec, ".json")
+    if card is not None:
+        try:
+            imgsz = json.loads(card.read_text())["imgsz"]
+        except (ValueError, KeyError, TypeError):
+            raise BackendError(f"{card}: expected a JSON object with an integer `imgsz`") from None
+        if not (isinstance(imgsz, int) and imgsz >= 32):
+            raise BackendError(f"{card}: imgsz: expected an integer >= 32, got {imgsz!r}")
+        return imgsz
+    return DEFAULT_IMGSZ
+
+
+def export_onnx(weights: str | Path, out: str | Path) -> Path:
+    """Export an ultralytics detection checkpoint to ONNX for
+    :func:`rainbench.eval.backends.load_detector`: an fp32 graph, opset 17, dynamic batch and
+    image size (input ``images`` (B, 3, H, W), output ``output0`` (B, 4 + nc, N)), class names in
+    the ``names`` metadata. Needs the ``onnx`` package.
+
+    Batch norms are exported unfused, so every weight is the checkpoint's own value, and each
+    float32 weight that fp16 holds exactly is stored as fp16 behind a Cast to float32
+    (:func:`_store_exact_halves`): for a stripped ultralytics checkpoint (fp16 weights, as shipped)
+    the file is half the size of a fused fp32 export, with nothing lost. onnxruntime folds the
+    casts and fuses the batch norms when it loads the model, so it runs the same optimized graph
+    as a fused fp32 export."""
+    import onnx
+    import torch
+
+    ultralytics = _offline_ultralytics()
+    model = ultralytics.YOLO(str(weights))
+    net = model.model.float().eval()
+    for module in net.modules():
+        if hasattr(module, "export"):
+            module.export = True
+            module.format = "onnx"
+        if hasattr(module, "dynamic"):
+            module.dynamic = True  # anchors from the input's shape, not the traced one
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with torch.no_grad():
+        # PRESERVE keeps the (eval-mode) batch norms as nodes instead of folding them into the
+        # convolutions, which would make weights that fp16 cannot hold.
+        torch.onnx.export(net, torch.zeros(1, 3, 480, 640), str(out), dynamo=False, opset_version=17,
+                          training=torch.onnx.TrainingMode.PRESERVE, do_constant_folding=False,
+                          input_names=["images"], output_names=["output0"],
+                          dynamic_axes={"images": {0: "batch", 2: "height", 3: "width"},
+                                        "output0": {0: "batch", 2: "anchors"}})
+    proto = _store_exact_halves(onnx.load(str(out)))
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = "names", str(model.names)
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(out))
+    return out
+
+
+def _store_exact_halves(proto: Any) -> Any:
+    """Return ``proto`` (an ``onnx.ModelProto``, changed in place) with each float32 initializer
+    whose every value fp16 represents exactly stored as fp16, feeding a Cast back to float32 under
+    the original name. The graph computes bit for bit what it did; other initializers are kept."""
+    import onnx
+    from onnx import numpy_helper
+
+    graph = proto.graph
+    casts = []
+    for initializer in list(graph.initializer):
+        values = numpy_helper.to_array(initializer)
+        if values.dtype != np.float32 or values.size == 0:
+            continue
+        halves = values.astype(np.float16)
+        if not np.array_equal(halves.astype(np.float32), values):
+            continue
+        stored = numpy_helper.from_array(halves, f"{initializer.name}__fp16")
+        graph.initializer.remove(initializer)
+        graph.initializer.append(stored)
+        casts.append(onnx.helper.make_node("Cast", [stored.name], [initializer.name], to=onnx.TensorProto.FLOAT,
+                                           name=f"{initializer.name}__cast"))
+    nodes = casts + list(graph.node)
+    del graph.node[:]
+    graph.node.extend(nodes)
+    return proto

@@ -1,0 +1,189 @@
+"""The dataset layer (rainbench.store): one reader, one numbering, rates found by their decimal,
+and an import that loads no renderer."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from labelled_shards import write_labelled_shard
+
+from rainbench import store
+from rainbench.store.labels import FrameLabels
+from rainbench.store.manifest import write_manifest
+from rainbench.store.rates import rate_decimal, rate_token
+from rainbench.store.shard import ShardWriter, shard_name
+
+ODD_RATES = (0.0, 0.1, 12.5, 100.0)
+
+
+def _rate_shard(folder, rates=ODD_RATES, frames=2, scene_seed=0):
+    """A shard whose image at rate row r, frame f is filled with 10 * r + f, and one car box per
+    frame plus a person box on frame 1."""
+    path = folder / shard_name(scene_seed, 0)
+    folder.mkdir(parents=True, exist_ok=True)
+    with ShardWriter(path, attrs={"class_names": '["person", "bicycle", "car", "motorcycle"]'},
+                     rates=np.asarray(rates, np.float32), num_frames=frames, width=32, height=24,
+                     K=np.eye(3), threads=1) as writer:
+        for frame in range(frames):
+            boxes = [[2, 2, 10, 12]] + ([[12, 4, 16, 20]] if frame == 1 else [])
+            classes = [2] + ([0] if frame == 1 else [])
+            count = len(boxes)
+            labels = FrameLabels(bbox=np.asarray(boxes, np.float32), bbox_amodal=np.asarray(boxes, np.float32),
+                                 class_id=np.asarray(classes, np.int32), instance_id=np.arange(count, dtype=np.int32),
+                                 visible_fraction=np.ones(count, np.float32), truncation=np.zeros(count, np.float32))
+            rgb = np.stack([np.full((24, 32, 3), 10 * row + frame, np.uint8) for row in range(len(rates))])
+            writer.write_frame(frame, rgb, labels, np.eye(4))
+        writer.commit()
+    return path
+
+
+def test_importing_the_dataset_layer_and_the_evaluator_loads_no_renderer_and_chooses_no_gl():
+    code = (
+        "import importlib, os, pkgutil, sys\n"
+        "import rainbench, rainbench.store, rainbench.eval\n"
+        "for package in (rainbench.store, rainbench.eval):\n"
+        "    for module in pkgutil.walk_packages(package.__path__, package.__name__ + '.'):\n"
+        "        if module.name != 'rainbench.store.torch_dataset':\n"
+        "            importlib.import_module(module.name)\n"
+        "loaded = sorted({m.split('.')[0] for m in sys.modules} & {'mujoco', 'OpenGL', 'torch', 'ultralytics'})\n"
+        "print(loaded, os.environ.get('MUJOCO_GL'), 'rainbench.gen' in sys.modules, 'rainbench.mjcf' in sys.modules)\n"
+    )
+    env = {key: value for key, value in os.environ.items() if key != "MUJOCO_GL"}
+    result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert result.stdout.split("\n")[0] == "[] None False False"
+
+
+def test_the_gl_backend_is_chosen_when_mujoco_is_first_needed():
+    """The CLI, the configs and the packages choose nothing; the first module that builds scenes
+    chooses the backend, then imports MuJoCo."""
+    code = ("import os, sys\nimport rainbench.cli, rainbench.gen, rainbench.gen.config, rainbench.mjcf.layout\n"
+            "before = (os.environ.get('MUJOCO_GL'), 'mujoco' in sys.modules)\n"
+            "import rainbench.mjcf.scene\n"
+            "print(*before, os.environ.get('MUJOCO_GL'), 'mujoco' in sys.modules)\n")
+    env = {key: value for key, value in os.environ.items() if key != "MUJOCO_GL"}
+    result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    before, loaded_before, chosen, loaded_after = result.stdout.split()
+    assert (before, loaded_before, loaded_after) == ("None", "False", "True") and chosen in ("egl", "osmesa")
+
+
+@pytest.mark.parametrize("written, row", [("0.1", 1), (0.1, 1), (np.float32(0.1), 1),
+                                          (float(np.float32(0.1)), 1), ("12.50", 2), (12.5, 2),
+                                          ("100", 3), (100, 3), ("0", 0), (0.0, 0)])
+def test_a_rate_is_found_by_the_decimal_the_user_wrote(tmp_path, written, row):
+    dataset = store.Dataset(_rate_shard(tmp_path))
+    assert dataset.rates == ODD_RATES  # the stored float32 rates as their decimals
+    assert dataset.rate_row(written) == row
+    image = dataset.images[1]
+    with dataset.open(0) as handle:
+        assert dataset.read_rgb(handle, image, written)[0, 0, 0] == 10 * row + 1
+
+
+def test_rate_decimals_and_tokens():
+    assert [rate_token(rate) for rate in ("0.10", 0.1, np.float32(0.1), 12.5, "100")] == \
+        ["0.1", "0.1", "0.1", "12.5", "100"]
+    assert str(rate_decimal(float(np.float32(0.1)))) == "0.1"  # a float read back from float32
+    assert str(rate_decimal(0.123456789)) == "0.123456789"  # not a float32 value: as written
+    for bad in ("x", -1, float("nan"), None, True):
+        with pytest.raises(ValueError, match="rate"):
+            rate_decimal(bad)
+
+
+def test_selected_rates_come_in_the_order_asked_and_missing_ones_name_the_shard(tmp_path):
+    path = _rate_shard(tmp_path)
+    dataset = store.Dataset(path, rates=["100", 0.1, "0.10"])
+    assert dataset.rates == (100.0, 0.1)  # a repeat is dropped
+    frames = list(dataset.frames())
+    assert [[int(rgb[0, 0, 0]) for rgb in frame.rgb] for frame in frames] == [[30, 10], [31, 11]]
+    with pytest.raises(store.DatasetError, match=r"^rate 25 mm/h is not in the dataset: "
+                       r"scene000000_f00000\.h5 has no rate 25 mm/h \(it has 0, 0\.1, 12\.5, 100\)$"):
+        store.Dataset(path, rates=[25])
+    with pytest.raises(store.DatasetError, match=r"rates: expected at least one rate"):
+        store.Dataset(path, rates=[])
+    with pytest.raises(store.DatasetError, match=r"rate 50 mm/h is not among the selected rates \(100, 0\.1\)"):
+        dataset.rate_row(50)
+
+
+def test_frames_filter_classes_and_slice_rain_statistics_to_the_selected_rates(tmp_path):
+    dataset = store.Dataset(_rate_shard(tmp_path), rates=[12.5])
+    cars = [frame.labels for frame in dataset.frames(classes=[2])]
+    assert [labels["class_id"].tolist() for labels in cars] == [[2], [2]]
+    assert cars[1]["rain_coverage"].shape == (1, 1) and cars[0]["bbox"].tolist() == [[2, 2, 10, 12]]
+    everyone = [frame.labels["class_id"].tolist() for frame in dataset.frames()]
+    assert everyone == [[2], [2, 0]]
+
+
+def test_one_shard_order_and_numbering_for_every_reader(tmp_path):
+    """Manifest order (here not name order) decides the image ids of the reader, the numpy
+    reader, and both exports."""
+    root = tmp_path / "data"
+    first = write_labelled_shard(root, [[(2, 0, (1, 1, 9, 9), 1.0, 0.0)]] * 2, scene_seed=5)
+    second = write_labelled_shard(root, [[(0, 0, (2, 2, 8, 12), 1.0, 0.0)]] * 3, scene_seed=1)
+    entries = [store.manifest.shard_entry(path, root, scene_seed=seed, frame_offset=0, frames=frames,
+                                          rates=[0.0])
+               for path, seed, frames in ((first, 5, 2), (second, 1, 3))]
+    write_manifest(root, {"note": "test"}, entries, complete=True)
+    dataset = store.Dataset(root)
+    assert [(image.image_id, image.shard.name, image.frame) for image in dataset.images] == [
+        (1, first.name, 0), (2, first.name, 1), (3, second.name, 0), (4, second.name, 1), (5, second.name, 2)]
+    reader = store.ShardReader(root)
+    assert [reader.sample(i)[1]["image_id"] for i in range(len(reader))] == [1, 2, 3, 4, 5]
+    assert [reader.sample(i)[1]["labels"].tolist() for i in (1, 2)] == [[2], [0]]
+    from rainbench.store.export import export_coco
+    coco = export_coco(root, tmp_path / "coco", images=False)[0]
+    import json
+    images = json.loads(coco.read_text())["images"]
+    assert [(record["id"], record["shard"], record["frame"]) for record in images] == [
+        (1, first.name, 0), (2, first.name, 1), (3, second.name, 0), (4, second.name, 1), (5, second.name, 2)]
+    # without the manifest, sorted names decide
+    (root / store.MANIFEST).unlink()
+    assert [image.shard.name for image in store.Dataset(root).images][:1] == [second.name]
+
+
+def test_shards_with_other_rates_need_a_selection_every_shard_holds(tmp_path):
+    root = tmp_path / "data"
+    write_labelled_shard(root, [[]], scene_seed=0, rates=(0.0, 50.0))
+    write_labelled_shard(root, [[]], scene_seed=1, rates=(0.0, 100.0))
+    with pytest.raises(store.DatasetError, match="all shards of a dataset must share the same rates"):
+        store.Dataset(root)
+    assert store.Dataset(root, rates=["0"]).rates == (0.0,)
+    with pytest.raises(store.DatasetError, match=r"rate 50 mm/h is not in the dataset: scene000001_f00000\.h5"):
+        store.Dataset(root, rates=[0, 50])
+
+
+ALLOWED_IMPORTS = {
+    "store": set(), "rain": {"store"}, "mjcf": {"rain", "store"}, "gen": {"mjcf", "rain", "store"},
+    "eval": {"store"}, "experiments": {"gen", "mjcf", "eval", "store"},
+}
+"""The import graph of docs/architecture.md: package -> the rainbench packages it may import
+(``rainbench.gl`` and ``__version__`` from the root are open to all)."""
+
+
+def test_packages_import_only_what_docs_architecture_allows():
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    folders = {"store": "store", "rain": "rain", "mjcf": "mjcf", "gen": "gen", "eval": "eval",
+               "experiments": "experiments"}
+    seen = {}
+    for package, folder in folders.items():
+        used = set()
+        for path in (root / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                names = ([alias.name for alias in node.names] if isinstance(node, ast.Import)
+                         else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else [])
+                for name in names:
+                    parts = name.split(".")
+                    if parts[0] == "rainbench" and len(parts) > 1 and parts[1] in folders:
+                        used.add(parts[1])
+        seen[package] = used - {package}
+    assert {package: sorted(used - ALLOWED_IMPORTS[package]) for package, used in seen.items()} == \
+        {package: [] for package in folders}
+    documented = {}
+    for line in (root / "docs" / "architecture.md").read_text().splitlines():
+        package, arrow, targets = line.partition(" -> ")
+        if arrow and package.strip() in folders:
+            documented[package.strip()] = {t.strip() for t in targets.split(",")} - {"(nothing)"}
+    assert documented == ALLOWED_IMPORTS
