@@ -22,6 +22,7 @@ from .labels import FrameLabels
 from .manifest import (MANIFEST, SHARD_GLOB, DatasetError, list_shards, read_manifest, unlisted_shards,
                        verify_dataset)
 from .rates import RatesError, parse_rates, rate_token
+from .reader import ShardReader
 from .shard import ShardFormatError, ShardWriter, open_checked, open_shard, read_frame_labels, read_rgb
 
 __all__ = [
@@ -34,11 +35,7 @@ __all__ = [
 
 
 def __getattr__(name):
-    """``ShardReader`` and the torch ``ShardDataset`` on first use (the latter imports torch)."""
-    if name == "ShardReader":
-        from .reader import ShardReader
-
-        return ShardReader
+    """The torch ``ShardDataset`` on first use (it imports torch)."""
     if name == "ShardDataset":
         from .torch_dataset import ShardDataset
 
