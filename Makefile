@@ -90,6 +90,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/rain.py --json results/bench/rain.json
 	$(BIN)/python bench/eval_metrics.py --json results/bench/eval_metrics.json
 	$(BIN)/python bench/dataset.py --json results/bench/dataset.json
+	$(BIN)/python bench/train_reader.py --json results/bench/train_reader.json
 	$(BIN)/python bench/inference.py --json results/bench/inference.json
 	$(BIN)/python bench/inference.py --imgsz 960 --json results/bench/inference_960.json
 	$(BIN)/python bench/inference.py --weights rainbench-yolo11s --imgsz 960 --json results/bench/inference_11s_960.json

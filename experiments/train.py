@@ -24,9 +24,16 @@ training run depends on:
 - ``tiles`` (optional, in any stage): a :class:`~rainbench.experiments.tiles.TileConfig` mapping. That
   stage trains on tiles of the rescaled frames (:func:`prepare_tiles`) instead of whole frames,
   and must set ``imgsz`` to ``tiles.size``.
+- ``reader`` (optional, default ``shards``): whole-frame stages read the shards directly
+  (:mod:`rainbench.experiments.shard_training`, no export); ``export`` trains on exported YOLO
+  folders of the clean frames instead. Tile stages always cut their tiles from an export.
+- ``rain_curriculum`` (optional, ``reader: shards`` only): ``{rate: weight}``, the rain rates
+  training images are drawn at and how often (``{0: 2, 50: 1, 100: 1}``: half clean). The training
+  data is generated at exactly these rates (with ``train_data``'s ``rain_model``); validation stays
+  clean. Default: clean frames only.
 
-:func:`train` generates both datasets (resuming a partial one), exports them as YOLO folders,
-and trains, resuming from ``last.pt`` when a previous run of the same recipe was cut off. The
+:func:`train` generates both datasets (resuming a partial one), exports them as YOLO folders
+when a stage needs them, and trains, resuming from ``last.pt`` when a previous run of the same recipe was cut off. The
 last stage's best weights are copied to ``OUT/<name>.pt``, with ``OUT/<name>.onnx`` and
 ``OUT/<name>.json`` beside it (:func:`write_companions`). Nothing is downloaded:
 ``YOLO_OFFLINE=1``, ``plots=False`` (no font fetch) and ``amp=False`` (no AMP-check download).
@@ -53,6 +60,7 @@ from rainbench.store.manifest import is_int
 from rainbench.mjcf.layout import ScenarioConfig
 
 from rainbench.eval.weights import DEFAULT_IMGSZ
+from rainbench.experiments.shard_training import CurriculumError, RateCurriculum, shard_trainer_class
 from rainbench.experiments.tiles import TileConfig, TileError, export_tiles
 
 TRAIN_CLASSES: tuple[int, ...] = PAPER_CLASSES
@@ -63,7 +71,10 @@ TRAIN_SEED_START = 1_000_000
 """Seeds of training and validation scenes are >= this; evaluation seeds are below it."""
 RECIPES_DIR = Path(__file__).resolve().parent / "recipes"
 RECIPE_KEYS = {"name", "architecture", "train_data", "val_data", "train", "cpu", "eval_imgsz",
-               "classes"}
+               "classes", "reader", "rain_curriculum"}
+READERS = ("shards", "export")
+"""How a whole-frame stage reads its data: straight from the shards (the default; no export) or
+from exported YOLO folders. Tile stages always train on tiles cut from the export."""
 # Arguments rainbench sets itself (offline, paths, resume); a recipe may not set them.
 RESERVED_TRAIN_ARGS = {"data", "project", "name", "exist_ok", "pretrained", "plots", "amp", "resume",
                        "device", "model"}
@@ -86,6 +97,8 @@ class Recipe:
     source: str
     eval_imgsz: int = DEFAULT_IMGSZ
     classes: tuple[int, ...] = TRAIN_CLASSES  # COCO ids trained (labels of others are left out)
+    reader: str = "shards"  # one of READERS
+    curriculum: RateCurriculum = RateCurriculum()  # rates training images are drawn at (reader shards)
 
     def arguments(self, cuda: bool) -> dict[str, Any]:
         """ultralytics ``train()`` arguments of the first stage (``cpu`` overrides when not ``cuda``)."""
@@ -133,7 +146,7 @@ def recipe_path(recipe: str | Path) -> Path:
     return shipped
 
 
-def _dataset_config(section: Any, key: str, source: str) -> DatasetConfig:
+def _dataset_config(section: Any, key: str, source: str, rates: tuple[float, ...] = (0.0,)) -> DatasetConfig:
     if not isinstance(section, dict):
         raise TrainError(f"{source}: `{key}` must be a mapping of dataset settings")
     fields = dict(section)
@@ -146,7 +159,7 @@ def _dataset_config(section: Any, key: str, source: str) -> DatasetConfig:
     if scenario is not None and not isinstance(scenario, dict):
         raise TrainError(f"{source}: `{key}.scenario` must be a mapping of ScenarioConfig fields")
     try:
-        config = DatasetConfig(**fields, rates=(0.0,))
+        config = DatasetConfig(**fields, rates=rates)
         if scenario is not None:
             config = dataclasses.replace(config, scenario=ScenarioConfig(
                 **{"duration_s": config.duration_s, **scenario}))
@@ -202,23 +215,35 @@ def load_recipe(recipe: str | Path) -> Recipe:
         classes = parse_classes(raw.get("classes", list(TRAIN_CLASSES)))
     except ValueError as error:
         raise TrainError(f"{source}: `classes`: {str(error).removeprefix('--classes: ')}") from None
-    train_data = _dataset_config(raw["train_data"], "train_data", source)
+    reader = raw.get("reader", "shards")
+    if reader not in READERS:
+        raise TrainError(f"{source}: `reader` must be one of {', '.join(READERS)}, got {reader!r}")
+    try:
+        curriculum = (RateCurriculum() if raw.get("rain_curriculum") is None
+                      else RateCurriculum.from_mapping(raw["rain_curriculum"]))
+    except CurriculumError as error:
+        raise TrainError(f"{source}: `rain_curriculum`: {str(error).removeprefix('rain curriculum: ')}") from None
+    if curriculum != RateCurriculum() and reader != "shards":
+        raise TrainError(f"{source}: `rain_curriculum` needs `reader: shards` (an export holds one rate per folder)")
+    train_data = _dataset_config(raw["train_data"], "train_data", source, rates=tuple(sorted(curriculum.rates)))
     val_data = _dataset_config(raw["val_data"], "val_data", source)
     if _seed_range(train_data) & _seed_range(val_data):
         raise TrainError(f"{source}: train_data and val_data seeds overlap; validation scenes must be unseen")
     return Recipe(name=str(raw["name"]), architecture=str(raw["architecture"]), train_data=train_data,
                   val_data=val_data, train_args=dict(train_args), cpu_args=dict(cpu_args), source=source,
-                  eval_imgsz=eval_imgsz, classes=classes)
+                  eval_imgsz=eval_imgsz, classes=classes, reader=reader, curriculum=curriculum)
 
 
 def _seed_range(config: DatasetConfig) -> set[int]:
     return set(range(config.seed, config.seed + config.scenes))
 
 
-def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
+def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1, export: bool = True,
                  progress: Callable[[int], None] | None = None) -> Path:
-    """Generate (or finish) the clean training and validation datasets under ``OUT/data`` and
-    export them as YOLO folders under ``OUT/yolo``; returns the ultralytics ``dataset.yaml``."""
+    """Generate (or finish) the training and validation datasets under ``OUT/data``; with
+    ``export``, also export their clean frames as YOLO folders under ``OUT/yolo``. Returns the
+    ultralytics dataset yaml: ``OUT/dataset.yaml`` (the YOLO folders) with ``export``, else
+    ``OUT/shards.yaml`` (the shard folders, read by :func:`shard_trainer_class`'s trainer)."""
     from rainbench.store.export import export_yolo  # noqa: PLC0415
 
     out = Path(out)
@@ -228,6 +253,8 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
         manifest = data_dir / "manifest.json"
         before = manifest.read_bytes() if manifest.is_file() else None
         run_dataset(config, data_dir, workers=workers, progress=progress)
+        if not export:
+            continue
         done_marker = yolo / split / ".exported"
         # the export is redone when the data or the trained classes change
         stamp = json.dumps({"classes": list(recipe.classes), "manifest": manifest.read_text()})
@@ -237,6 +264,8 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1,
             export_yolo(data_dir, yolo / split, rates=[0.0], image_format="png", overwrite=True,
                         classes=recipe.classes)
             done_marker.write_text(stamp)
+    if not export:
+        return _dataset_yaml(out / "shards.yaml", out / "data", "train", "val", recipe.classes)
     return _dataset_yaml(out / "dataset.yaml", yolo, "train/rate_0/images", "val/rate_0/images",
                          recipe.classes)
 
@@ -308,11 +337,14 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     (out / "recipe.json").write_text(json.dumps(
         {"recipe": recipe.source, "device": device, "train_args": stages[0], "restarts": stages[1:]},
         indent=1, sort_keys=True))
-    dataset_yaml = prepare_data(recipe, out, workers=workers, progress=progress)
-    stage_data = []
-    for stage, arguments in enumerate(stages):
-        tiles = _stage_tiles(arguments, f"{recipe.source}: `stage {stage}")
-        stage_data.append(dataset_yaml if tiles is None else prepare_tiles(out, tiles, recipe.classes))
+    tiles_of = [_stage_tiles(arguments, f"{recipe.source}: `stage {stage}") for stage, arguments in enumerate(stages)]
+    from_shards = recipe.reader == "shards"
+    needs_export = not from_shards or any(tiles is not None for tiles in tiles_of)
+    shards_yaml = prepare_data(recipe, out, workers=workers, export=False, progress=progress) if from_shards else None
+    export_yaml = prepare_data(recipe, out, workers=workers, progress=progress) if needs_export else None
+    stage_data = [(shards_yaml if from_shards else export_yaml) if tiles is None
+                  else prepare_tiles(out, tiles, recipe.classes) for tiles in tiles_of]
+    shard_trainer = shard_trainer_class(recipe.curriculum, recipe.classes) if from_shards else None
     best = None
     for stage, arguments in enumerate(stages):
         arguments = {key: value for key, value in arguments.items() if key != "tiles"}
@@ -320,13 +352,18 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
         last = stage_dir / "weights" / "last.pt"
         if last.is_file() and not _finished(last):
             model = ultralytics.YOLO(str(last))
-            model.train(resume=True, device=device)
+            resumed = {"trainer": shard_trainer} if from_shards and tiles_of[stage] is None else {}
+            model.train(resume=True, device=device, **resumed)
         elif not last.is_file():
             model = ultralytics.YOLO(recipe.architecture)
             if best is not None:  # a warm restart: the previous stage's weights, a fresh schedule
                 model.load(str(best))
+            reads_shards = from_shards and tiles_of[stage] is None
+            if reads_shards:
+                arguments = {**arguments, "cache": False}  # images are drawn at a new rate each time
             model.train(data=str(stage_data[stage]), project=str(out.resolve()), name=stage_dir.name, exist_ok=True,
-                        pretrained=best is not None, plots=False, amp=False, device=device, **arguments)
+                        pretrained=best is not None, plots=False, amp=False, device=device,
+                        **({"trainer": shard_trainer} if reads_shards else {}), **arguments)
         best = stage_dir / "weights" / "best.pt"
         if not best.is_file():
             raise TrainError(f"training finished without {best}; see the log above")

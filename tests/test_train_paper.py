@@ -205,7 +205,7 @@ def test_tile_stage_trains_on_tiles_of_the_rescaled_frames(tmp_path, capsys):
     run_args = yaml.safe_load((out / "restart1" / "args.yaml").read_text())
     assert run_args["data"] == str(out / "tiles_s64_x0.8_n3_b0_a0.1_r0.yaml") and run_args["imgsz"] == 64
     first_args = yaml.safe_load((out / "run" / "args.yaml").read_text())
-    assert first_args["data"] == str(out / "dataset.yaml")
+    assert first_args["data"] == str(out / "shards.yaml")  # whole frames straight from the shards
     # A second run keeps the tiles (same config, same source export) and retrains nothing.
     stamp = train_tiles[0].stat().st_mtime_ns
     code, _, err = _run(capsys, "train", "--recipe", recipe_path, "--out", out, "--device", "cpu")

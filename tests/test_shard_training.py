@@ -1,0 +1,174 @@
+"""Training straight from shards (issue 19, part 1): the ultralytics dataset over the one reader,
+rain curricula, and a tiny training run that reads rainy shards."""
+
+import collections
+import random
+
+import numpy as np
+import pytest
+import torch
+from labelled_shards import write_labelled_shard
+
+from rainbench import cli
+from rainbench.experiments import train
+from rainbench.experiments.shard_training import CurriculumError, RateCurriculum, shard_dataset_class
+
+FRAMES = [
+    [(2, 0, (10, 12, 40, 50), 1.0, 0.0), (0, 1, (60, 5, 70, 30), 0.5, 0.0), (5, 2, (70, 40, 98, 79), 1.0, 0.2)],
+    [(3, 0, (1, 1, 99, 79), 1.0, 0.0)],
+    [],
+]
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    root = tmp_path_factory.mktemp("shards")
+    write_labelled_shard(root, FRAMES, width=100, height=80, rates=(0.0, 50.0, 100.0))
+    return root
+
+
+def _dataset(root, *, augment=False, curriculum=RateCurriculum(), keep_classes=None, imgsz=64):
+    from ultralytics.cfg import get_cfg
+
+    dataset_class = shard_dataset_class()
+    return dataset_class(img_path=str(root), imgsz=imgsz, augment=augment, hyp=get_cfg(), rect=False,
+                         batch_size=2, stride=32, pad=0.5, task="detect",
+                         data={"names": {i: str(i) for i in range(8)}, "channels": 3},
+                         curriculum=curriculum, keep_classes=keep_classes)
+
+
+def _pixel_boxes(item):
+    """The item's boxes mapped back to the shard image with ultralytics' own inverse letterbox."""
+    from ultralytics.utils import ops
+
+    height, width = item["img"].shape[1:]
+    cx, cy, w, h = item["bboxes"].double().T
+    xyxy = torch.stack([(cx - w / 2) * width, (cy - h / 2) * height, (cx + w / 2) * width,
+                        (cy + h / 2) * height], dim=1)
+    return ops.scale_boxes((height, width), xyxy, item["ori_shape"], ratio_pad=item["ratio_pad"]).numpy()
+
+
+@pytest.mark.parametrize("keep_classes", [None, [0, 2]])
+def test_the_dataset_yields_exactly_the_shards_boxes_after_the_letterbox(shards, keep_classes):
+    dataset = _dataset(shards, keep_classes=keep_classes)
+    assert len(dataset) == 3
+    for index, labels in enumerate(FRAMES):
+        kept = [label for label in labels if keep_classes is None or label[0] in keep_classes]
+        item = dataset[index]
+        assert item["img"].shape == (3, 64, 64) and item["ori_shape"] == (80, 100)
+        assert item["cls"].ravel().tolist() == [float(label[0]) for label in kept]
+        np.testing.assert_allclose(_pixel_boxes(item), np.array([label[2] for label in kept], float).reshape(-1, 4),
+                                   atol=1e-3)
+
+
+def test_load_image_resizes_the_stored_frame_as_ultralytics_does(shards):
+    """The long side goes to imgsz (80x100 -> 52x64), BGR uint8 of the stored frame."""
+    dataset = _dataset(shards, curriculum=RateCurriculum((100.0,), (1.0,)))
+    image, original, resized = dataset.load_image(0)
+    assert original == (80, 100) and resized == (52, 64) and image.shape == (52, 64, 3)
+    assert image.dtype == np.uint8 and image[0, 0, 0] == 90  # the grey background of the shard
+
+
+def test_a_curriculum_draws_its_rates_in_its_proportions_and_by_seed(shards, monkeypatch):
+    curriculum = RateCurriculum.from_mapping({0: 2, "50": 1, 100.0: 1})
+    assert curriculum.rates == (0.0, 50.0, 100.0) and curriculum.shares == (0.5, 0.25, 0.25)
+    dataset = _dataset(shards, augment=True, curriculum=curriculum)
+    drawn = []
+    real_read = dataset.store.read_rgb
+    monkeypatch.setattr(dataset.store, "read_rgb",
+                        lambda handle, image, rate: drawn.append(rate) or real_read(handle, image, rate))
+
+    def epochs(seed, count):
+        random.seed(seed)
+        drawn.clear()
+        for _ in range(count):
+            for index in range(len(dataset)):
+                dataset.load_image(index)
+        return list(drawn)
+
+    first = epochs(0, 1000)  # 3000 loads
+    counts = collections.Counter(first)
+    assert set(counts) == {0.0, 50.0, 100.0}
+    for rate, share in zip(curriculum.rates, curriculum.shares):
+        sigma = (len(first) * share * (1 - share)) ** 0.5
+        assert abs(counts[rate] - len(first) * share) < 4 * sigma, (rate, counts)
+    assert epochs(0, 1000) == first and epochs(1, 1000) != first  # deterministic by seed
+
+
+def test_augmented_items_keep_their_boxes_inside_the_image(shards):
+    random.seed(0)
+    dataset = _dataset(shards, augment=True, curriculum=RateCurriculum.from_mapping({0: 1, 100: 1}))
+    for index in range(6):
+        item = dataset[index % len(dataset)]
+        assert item["img"].shape[0] == 3 and item["img"].dtype == torch.uint8
+        boxes = item["bboxes"]
+        assert ((boxes >= 0) & (boxes <= 1)).all()
+
+
+@pytest.mark.parametrize("curriculum, message", [
+    ({}, "expected a mapping of rate -> weight"),
+    ({0: -1}, "expected weights >= 0 with a positive sum"),
+    ({0: 0}, "expected weights >= 0 with a positive sum"),
+    ({"x": 1}, "expected a number in mm/h"),
+    ({0: 1, "0.0": 1}, "repeat a rate"),
+])
+def test_bad_curricula_are_one_line_errors(curriculum, message):
+    with pytest.raises(CurriculumError, match=message):
+        RateCurriculum.from_mapping(curriculum)
+
+
+RAINY_RECIPE = """
+name: tiny-rain
+architecture: yolo11n.yaml
+eval_imgsz: 64
+rain_curriculum: {0: 1, 50: 1}
+train_data: {seed: 1000000, scenes: 1, frames: 3, fps: 0.2, width: 160, height: 120, rain_model: physical,
+             scenario: {num_cars: 3, num_pedestrians: 3, num_bicycles: 1, num_motorcycles: 1}}
+val_data: {seed: 2000000, scenes: 1, frames: 2, fps: 0.1, width: 160, height: 120}
+train: {epochs: 1, imgsz: 64, batch: 2, seed: 0, deterministic: true, workers: 0}
+"""
+
+
+def test_a_recipe_with_a_rain_curriculum_generates_its_rates_and_trains_from_the_shards(tmp_path, capsys):
+    recipe_path = tmp_path / "rain.yaml"
+    recipe_path.write_text(RAINY_RECIPE)
+    recipe = train.load_recipe(recipe_path)
+    assert recipe.reader == "shards" and recipe.train_data.rates == (0.0, 50.0)
+    assert recipe.val_data.rates == (0.0,)
+    out = tmp_path / "run"
+    code = cli.main(["train", "--recipe", str(recipe_path), "--out", str(out), "--device", "cpu"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert (out / "tiny-rain.pt").is_file() and not (out / "yolo").exists()  # no export step
+    import json
+    manifest = json.loads((out / "data" / "train" / "manifest.json").read_text())
+    assert manifest["config"]["rates"] == [0.0, 50.0] and manifest["config"]["rain_model"] == "physical"
+    import yaml
+    args = yaml.safe_load((out / "run" / "args.yaml").read_text())
+    assert args["data"] == str(out / "shards.yaml") and args["cache"] is False
+
+
+@pytest.mark.parametrize("change, message", [
+    ("rain_curriculum: {0: 1, 50: 1}", None),
+    ("rain_curriculum: {0: 1, 50: 1}\nreader: export", r"`rain_curriculum` needs `reader: shards`"),
+    ("reader: disk", r"`reader` must be one of shards, export, got 'disk'"),
+    ("rain_curriculum: {0: 0}", r"`rain_curriculum`: expected weights >= 0 with a positive sum"),
+])
+def test_recipe_reader_and_curriculum_are_checked_when_loaded(tmp_path, change, message):
+    path = tmp_path / "recipe.yaml"
+    path.write_text(RAINY_RECIPE.replace("rain_curriculum: {0: 1, 50: 1}", change))
+    if message is None:
+        assert train.load_recipe(path).curriculum.rates == (0.0, 50.0)
+        return
+    with pytest.raises(train.TrainError, match=message):
+        train.load_recipe(path)
+
+
+def test_ultralytics_fraction_keeps_the_first_frames(shards):
+    from ultralytics.cfg import get_cfg
+
+    dataset_class = shard_dataset_class()
+    common = dict(img_path=str(shards), imgsz=64, augment=False, hyp=get_cfg(), rect=False, batch_size=2,
+                  stride=32, pad=0.5, task="detect", data={"names": {i: str(i) for i in range(8)}, "channels": 3})
+    assert [image.frame for image in dataset_class(**common, fraction=0.67).images] == [0, 1]
+    assert [image.frame for image in dataset_class(**common, fraction=1).images] == [0, 1, 2]
