@@ -9,8 +9,16 @@ bar (AP@0.5 >= 0.80 for car and person, >= 0.60 for bicycle and motorcycle) and 
 way: it measures, it does not judge.
 
 Usage: ``python bench/quality.py [--weights rainbench-yolo11n ...] [--data data/quality]
-[--json OUT] [--seed 100] [--scenes 5] [--frames 40] [--layouts street,highway,...]``
+[--json OUT] [--seed 100] [--scenes 5] [--frames 40] [--layouts street,highway,...]
+[--rain physical|jeon2022]``
 (``--layouts`` checks each road layout on its own data: the bar must hold per layout.)
+
+``--rain MODEL`` measures robustness instead (issue 19): the same scenes at rates 0:100:10 with
+that rain model (``physical`` with the weather following the rate, ``jeon2022`` over the
+unchanged scene, each model's default), and per model and class clean AP@0.5, AP@0.5 at 50 and
+100 mm/h, mPC (mean AP@0.5 over 10..100 mm/h) and rPC = mPC / clean AP@0.5, with bootstrap
+intervals of the clean and 100 mm/h AP, against the rain-robust target (rPC >= 0.90 for car and
+person).
 """
 
 from __future__ import annotations
@@ -27,6 +35,9 @@ from rainbench.eval.backends.ultralytics import preload_torch
 preload_torch()  # before Mesa renders the frames
 
 QUALITY_BAR = {"car": 0.80, "person": 0.80, "bicycle": 0.60, "motorcycle": 0.60}
+RAIN_RPC_TARGET = {"car": 0.90, "person": 0.90}
+"""Issue 19's target for a rain-robust model: rPC of AP@0.5 under the rain model."""
+RAIN_RATES = tuple(float(rate) for rate in range(0, 101, 10))
 CLIP_SECONDS = 20.0
 
 
@@ -44,12 +55,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="comma list of road layouts, each checked on its own data (the "
                              "same seeds at that layout, by day); 'seed' (default): each seed "
                              "its own layout and time of day")
+    parser.add_argument("--rain", default=None, choices=("physical", "jeon2022"),
+                        help="measure robustness at rates 0:100:10 under this rain model instead")
     parser.add_argument("--json", default=None, help="write the figures here")
     args = parser.parse_args(argv)
     if args.seed < 0 or args.seed + args.scenes > 1_000_000:
         parser.error("--seed/--scenes: the check must use evaluation seeds (below 1000000)")
 
     from rainbench.eval.pipeline import run_eval
+    from rainbench.eval.report.records import robustness_records
     from rainbench.gen.config import DatasetConfig
     from rainbench.gen.dataset import run_dataset
 
@@ -57,9 +71,11 @@ def main(argv: list[str] | None = None) -> int:
     rows, seconds = [], {}
     for layout in args.layouts.split(","):
         chosen = {} if layout == "seed" else {"layout": layout, "time_of_day": "day"}
-        data, out = Path(args.data) / layout, Path(args.out) / layout
+        name = layout if args.rain is None else f"{layout}-{args.rain}"
+        data, out = Path(args.data) / name, Path(args.out) / name
+        rain = {} if args.rain is None else {"rates": RAIN_RATES, "rain_model": args.rain}
         config = DatasetConfig(seed=args.seed, scenes=args.scenes, frames=args.frames,
-                               fps=args.frames / CLIP_SECONDS, rates=(0.0,), **chosen)
+                               fps=args.frames / CLIP_SECONDS, **{"rates": (0.0,), **rain}, **chosen)
         started = time.perf_counter()
         run_dataset(config, data, workers=1)
         seconds[f"generate {layout}"] = time.perf_counter() - started
@@ -67,12 +83,56 @@ def main(argv: list[str] | None = None) -> int:
         result = run_eval(data, out, weights=weights, imgsz=args.imgsz, n_boot=200,
                           device="cpu", progress=False, force=True)
         seconds[f"eval {layout}"] = time.perf_counter() - started
+        if args.rain is not None:
+            rows += _robustness_rows(layout, result.records, robustness_records(result.records, ("ap50",)))
+            continue
         rows += [{"layout": layout, **{key: record[key] for key in (
             "model", "class", "n_gt", "ap50", "ap50_ci_low", "ap50_ci_high", "f1")}}
             for record in result.records if record["rate"] == 0]
     print(f"seeds {args.seed}..{args.seed + args.scenes - 1}, {args.frames} frames each over "
           f"{CLIP_SECONDS:g} s, imgsz {args.imgsz or 'per model'} "
           f"({', '.join(f'{k} {v:.0f} s' for k, v in seconds.items())})")
+    if args.rain is not None:
+        _print_robustness(rows, args.rain)
+    else:
+        _print_quality(rows)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"rows": rows, "bar": QUALITY_BAR if args.rain is None else RAIN_RPC_TARGET,
+                                               "rain": args.rain, "seconds": seconds,
+                                               "cpu_count": os.cpu_count()}, indent=1))
+    return 0
+
+
+def _robustness_rows(layout: str, records: list[dict], summary: list[dict]) -> list[dict]:
+    """One row per (model, class): clean AP@0.5 and its interval, AP@0.5 at 50 and 100 mm/h (with
+    the 100 mm/h interval), mPC and rPC."""
+    by_key = {(r["model"], r["class"], float(r["rate"])): r for r in records}
+    rows = []
+    for entry in summary:
+        clean, at50, at100 = (by_key[(entry["model"], entry["class"], rate)] for rate in (0.0, 50.0, 100.0))
+        rows.append({"layout": layout, "model": entry["model"], "class": entry["class"], "n_gt": clean["n_gt"],
+                     "ap50": clean["ap50"], "ap50_ci_low": clean["ap50_ci_low"], "ap50_ci_high": clean["ap50_ci_high"],
+                     "ap50_at_50": at50["ap50"], "ap50_at_100": at100["ap50"],
+                     "ap50_at_100_ci_low": at100["ap50_ci_low"], "ap50_at_100_ci_high": at100["ap50_ci_high"],
+                     "mpc": entry["mpc"], "rpc": entry["rpc"]})
+    return rows
+
+
+def _print_robustness(rows: list[dict], rain: str) -> None:
+    print(f"rain model {rain}, rates 0:100:10; target rPC >= 0.90 for car and person")
+    print("| layout | model | class | boxes | clean AP@0.5 (95 % CI) | 50 mm/h | 100 mm/h (95 % CI) | mPC | rPC | met |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for row in rows:
+        target = RAIN_RPC_TARGET.get(row["class"])
+        met = "" if target is None else ("yes" if row["rpc"] >= target else "no")
+        print(f"| {row['layout']} | {row['model']} | {row['class']} | {row['n_gt']} | {row['ap50']:.3f} "
+              f"({row['ap50_ci_low']:.3f}-{row['ap50_ci_high']:.3f}) | {row['ap50_at_50']:.3f} | "
+              f"{row['ap50_at_100']:.3f} ({row['ap50_at_100_ci_low']:.3f}-{row['ap50_at_100_ci_high']:.3f}) | "
+              f"{row['mpc']:.3f} | {row['rpc']:.3f} | {met} |")
+
+
+def _print_quality(rows: list[dict]) -> None:
     print("| layout | model | class | boxes | AP@0.5 (95 % CI) | F1 | bar | met |")
     print("|---|---|---|---|---|---|---|---|")
     for row in rows:
@@ -80,12 +140,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {row['layout']} | {row['model']} | {row['class']} | {row['n_gt']} | "
               f"{row['ap50']:.3f} ({row['ap50_ci_low']:.3f}-{row['ap50_ci_high']:.3f}) | "
               f"{row['f1']:.3f} | {bar:.2f} | {'yes' if row['ap50'] >= bar else 'no'} |")
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"rows": rows, "bar": QUALITY_BAR,
-                                               "seconds": seconds, "cpu_count": os.cpu_count()},
-                                              indent=1))
-    return 0
 
 
 if __name__ == "__main__":

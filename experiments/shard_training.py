@@ -79,6 +79,51 @@ class RateCurriculum:
         return rng.choices(self.rates, weights=self.weights)[0]
 
 
+@dataclass(frozen=True)
+class RandomRainAugment:
+    """albumentations' ``RandomRain`` on training images, the usual practice that knows nothing of
+    mm/h, depth or wet roads: the baseline a rain curriculum is compared with on equal terms (the
+    same clean frames, the same training). Each loaded image gets it with probability ``p``;
+    ``options`` are ``RandomRain`` arguments (``rain_type``, ``slant_range``, ...)."""
+
+    p: float = 0.5
+    options: tuple[tuple[str, Any], ...] = ()
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.p, (int, float)) and not isinstance(self.p, bool) and 0 <= self.p <= 1):
+            raise CurriculumError(f"random_rain: p must be a probability in [0, 1], got {self.p!r}")
+        self.transform()  # unknown or bad options fail when the recipe is read
+
+    @classmethod
+    def from_mapping(cls, mapping: Mapping[str, Any]) -> RandomRainAugment:
+        """``{p: 0.5, rain_type: heavy, ...}`` (a recipe's ``random_rain``)."""
+        if not isinstance(mapping, Mapping):
+            raise CurriculumError(f"random_rain: expected a mapping of p and RandomRain options, got {mapping!r}")
+        options = dict(mapping)
+        return cls(p=options.pop("p", 0.5),
+                   options=tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in options.items())))
+
+    def transform(self):
+        """The albumentations ``RandomRain`` (always applied: ``p`` is drawn by the dataset)."""
+        try:
+            import albumentations  # noqa: PLC0415
+        except ImportError:
+            raise CurriculumError("random_rain: needs albumentations (pip install 'rainbench[bench]', which "
+                                  "make venv installs)") from None
+        import inspect  # noqa: PLC0415
+
+        known = [name for name in inspect.signature(albumentations.RandomRain).parameters if name != "p"]
+        unknown = [name for name, _ in self.options if name not in known]
+        if unknown:
+            raise CurriculumError(f"random_rain: unknown option {unknown[0]!r}; expected p or some of "
+                                  f"{', '.join(known)}")
+        try:
+            return albumentations.RandomRain(p=1.0, **dict(self.options))
+        except (TypeError, ValueError) as error:
+            reason = " ".join(str(error).split())[:200]
+            raise CurriculumError(f"random_rain: options {dict(self.options)} are not RandomRain's ({reason})") from None
+
+
 def _resize_long_side(image: np.ndarray, imgsz: int) -> np.ndarray:
     """``image`` with its long side resized to ``imgsz`` (aspect kept, bilinear): what
     ultralytics' ``BaseDataset.load_image`` does to an image it reads from a file."""
@@ -102,14 +147,18 @@ def shard_dataset_class():
     class ShardYOLODataset(YOLODataset):
         """ultralytics' ``YOLODataset`` over the shards of ``img_path`` (a dataset directory, one
         shard, or a list of shards). Extra keyword arguments: ``curriculum`` (the
-        :class:`RateCurriculum` images are drawn at) and ``keep_classes`` (the COCO class ids
-        whose labels are kept; None keeps all). ``im_files`` are ``<shard>#<frame>`` names;
+        :class:`RateCurriculum` images are drawn at), ``keep_classes`` (the COCO class ids
+        whose labels are kept; None keeps all) and ``random_rain`` (a
+        :class:`RandomRainAugment` applied to training images, or None). ``im_files`` are ``<shard>#<frame>`` names;
         ``images`` the :class:`rainbench.store.Image` of each index (the first ones of the
         dataset when ultralytics' ``fraction`` is below 1)."""
 
         def __init__(self, *args, curriculum: RateCurriculum = RateCurriculum(),
-                     keep_classes: Sequence[int] | None = None, **kwargs) -> None:
+                     keep_classes: Sequence[int] | None = None,
+                     random_rain: RandomRainAugment | None = None, **kwargs) -> None:
             self.curriculum = curriculum
+            self.random_rain = random_rain
+            self._random_rain = None if random_rain is None else random_rain.transform()
             self.keep_classes = None if keep_classes is None else np.asarray(keep_classes, np.int64)
             self._handles: dict[int, Any] = {}
             self._handles_pid = None
@@ -161,6 +210,9 @@ def shard_dataset_class():
             image = self.images[i]
             rate = self.curriculum.draw(random) if len(self.curriculum.rates) > 1 else self.curriculum.rates[0]
             rgb = self.store.read_rgb(self._handle(image.shard_index), image, rate)
+            if self.augment and self._random_rain is not None and random.random() < self.random_rain.p:
+                self._random_rain.set_random_seed(random.getrandbits(32))  # by ultralytics' seeded generator
+                rgb = self._random_rain(image=rgb)["image"]
             height, width = rgb.shape[:2]
             imgsz = max(self.imgsz) if isinstance(self.imgsz, (tuple, list)) else self.imgsz
             resized = _resize_long_side(np.ascontiguousarray(rgb[:, :, ::-1]), imgsz)
@@ -180,12 +232,13 @@ def shard_dataset_class():
     return ShardYOLODataset
 
 
-def shard_trainer_class(curriculum: RateCurriculum, classes: Sequence[int] | None):
+def shard_trainer_class(curriculum: RateCurriculum, classes: Sequence[int] | None,
+                        random_rain: RandomRainAugment | None = None):
     """An ultralytics ``DetectionTrainer`` subclass whose training data is a ``ShardYOLODataset``
     drawn at ``curriculum`` and whose validation data is the clean (0 mm/h) frames of the
     validation shards; both keep the labels of ``classes`` (COCO ids). Pass it as
     ``YOLO(...).train(trainer=...)`` with a data yaml whose ``train`` and ``val`` are dataset
-    directories of shards."""
+    directories of shards. ``random_rain``: albumentations' RandomRain on training images."""
     from rainbench.eval.backends.ultralytics import _offline_ultralytics
 
     _offline_ultralytics()
@@ -208,6 +261,7 @@ def shard_trainer_class(curriculum: RateCurriculum, classes: Sequence[int] | Non
                 single_cls=self.args.single_cls or False, stride=stride, pad=0.0 if training else 0.5,
                 prefix=colorstr(f"{mode}: "), task=self.args.task, classes=self.args.classes,
                 data=self.data, fraction=get_split_fraction(self.args.fraction, "train" if training else "val"),
-                curriculum=curriculum if training else RateCurriculum(), keep_classes=classes)
+                curriculum=curriculum if training else RateCurriculum(), keep_classes=classes,
+                random_rain=random_rain if training else None)
 
     return ShardDetectionTrainer

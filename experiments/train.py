@@ -31,6 +31,12 @@ training run depends on:
   training images are drawn at and how often (``{0: 2, 50: 1, 100: 1}``: half clean). The training
   data is generated at exactly these rates (with ``train_data``'s ``rain_model``); validation stays
   clean. Default: clean frames only.
+- ``init_weights`` (optional): a shipped model's name or a ``.pt`` file the first stage starts from
+  (a fine-tune with a fresh schedule, like a warm restart); default: from scratch.
+- ``random_rain`` (optional, ``reader: shards`` only, not with ``rain_curriculum``): albumentations'
+  ``RandomRain`` on the clean training frames, ``{p: 0.5, rain_type: heavy, ...}`` (``p`` the
+  share of images it is applied to, the rest ``RandomRain`` arguments): the usual practice, for
+  comparing a rain curriculum with on equal terms.
 
 :func:`train` generates both datasets (resuming a partial one), exports them as YOLO folders
 when a stage needs them, and trains, resuming from ``last.pt`` when a previous run of the same recipe was cut off. The
@@ -60,7 +66,8 @@ from rainbench.store.manifest import is_int
 from rainbench.mjcf.layout import ScenarioConfig
 
 from rainbench.eval.weights import DEFAULT_IMGSZ
-from rainbench.experiments.shard_training import CurriculumError, RateCurriculum, shard_trainer_class
+from rainbench.experiments.shard_training import (CurriculumError, RandomRainAugment, RateCurriculum,
+                                                  shard_trainer_class)
 from rainbench.experiments.tiles import TileConfig, TileError, export_tiles
 
 TRAIN_CLASSES: tuple[int, ...] = PAPER_CLASSES
@@ -71,7 +78,7 @@ TRAIN_SEED_START = 1_000_000
 """Seeds of training and validation scenes are >= this; evaluation seeds are below it."""
 RECIPES_DIR = Path(__file__).resolve().parent / "recipes"
 RECIPE_KEYS = {"name", "architecture", "train_data", "val_data", "train", "cpu", "eval_imgsz",
-               "classes", "reader", "rain_curriculum"}
+               "classes", "reader", "rain_curriculum", "random_rain", "init_weights"}
 READERS = ("shards", "export")
 """How a whole-frame stage reads its data: straight from the shards (the default; no export) or
 from exported YOLO folders. Tile stages always train on tiles cut from the export."""
@@ -99,6 +106,8 @@ class Recipe:
     classes: tuple[int, ...] = TRAIN_CLASSES  # COCO ids trained (labels of others are left out)
     reader: str = "shards"  # one of READERS
     curriculum: RateCurriculum = RateCurriculum()  # rates training images are drawn at (reader shards)
+    random_rain: RandomRainAugment | None = None  # albumentations RandomRain on training images (reader shards)
+    init_weights: Path | None = None  # a checkpoint the first stage starts from (a fine-tune); None: from scratch
 
     def arguments(self, cuda: bool) -> dict[str, Any]:
         """ultralytics ``train()`` arguments of the first stage (``cpu`` overrides when not ``cuda``)."""
@@ -225,13 +234,31 @@ def load_recipe(recipe: str | Path) -> Recipe:
         raise TrainError(f"{source}: `rain_curriculum`: {str(error).removeprefix('rain curriculum: ')}") from None
     if curriculum != RateCurriculum() and reader != "shards":
         raise TrainError(f"{source}: `rain_curriculum` needs `reader: shards` (an export holds one rate per folder)")
+    try:
+        random_rain = (None if raw.get("random_rain") is None
+                       else RandomRainAugment.from_mapping(raw["random_rain"]))
+    except CurriculumError as error:
+        raise TrainError(f"{source}: `random_rain`: {str(error).removeprefix('random_rain: ')}") from None
+    if random_rain is not None and (reader != "shards" or curriculum != RateCurriculum()):
+        raise TrainError(f"{source}: `random_rain` needs `reader: shards` and no `rain_curriculum` (it rains on "
+                         "the clean frames: the baseline a curriculum is compared with)")
+    init_weights = None
+    if raw.get("init_weights") is not None:
+        from rainbench.eval.backends import BackendError
+        from rainbench.eval.weights import checkpoint_file
+
+        try:
+            init_weights = checkpoint_file(raw["init_weights"])
+        except BackendError as error:
+            raise TrainError(f"{source}: `init_weights`: {error}") from None
     train_data = _dataset_config(raw["train_data"], "train_data", source, rates=tuple(sorted(curriculum.rates)))
     val_data = _dataset_config(raw["val_data"], "val_data", source)
     if _seed_range(train_data) & _seed_range(val_data):
         raise TrainError(f"{source}: train_data and val_data seeds overlap; validation scenes must be unseen")
     return Recipe(name=str(raw["name"]), architecture=str(raw["architecture"]), train_data=train_data,
                   val_data=val_data, train_args=dict(train_args), cpu_args=dict(cpu_args), source=source,
-                  eval_imgsz=eval_imgsz, classes=classes, reader=reader, curriculum=curriculum)
+                  eval_imgsz=eval_imgsz, classes=classes, reader=reader, curriculum=curriculum,
+                  random_rain=random_rain, init_weights=init_weights)
 
 
 def _seed_range(config: DatasetConfig) -> set[int]:
@@ -344,7 +371,7 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     export_yaml = prepare_data(recipe, out, workers=workers, progress=progress) if needs_export else None
     stage_data = [(shards_yaml if from_shards else export_yaml) if tiles is None
                   else prepare_tiles(out, tiles, recipe.classes) for tiles in tiles_of]
-    shard_trainer = shard_trainer_class(recipe.curriculum, recipe.classes) if from_shards else None
+    shard_trainer = shard_trainer_class(recipe.curriculum, recipe.classes, recipe.random_rain) if from_shards else None
     best = None
     for stage, arguments in enumerate(stages):
         arguments = {key: value for key, value in arguments.items() if key != "tiles"}
@@ -356,13 +383,14 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
             model.train(resume=True, device=device, **resumed)
         elif not last.is_file():
             model = ultralytics.YOLO(recipe.architecture)
-            if best is not None:  # a warm restart: the previous stage's weights, a fresh schedule
-                model.load(str(best))
+            start = best if best is not None else recipe.init_weights
+            if start is not None:  # a warm restart or a fine-tune: those weights, a fresh schedule
+                model.load(str(start))
             reads_shards = from_shards and tiles_of[stage] is None
             if reads_shards:
                 arguments = {**arguments, "cache": False}  # images are drawn at a new rate each time
             model.train(data=str(stage_data[stage]), project=str(out.resolve()), name=stage_dir.name, exist_ok=True,
-                        pretrained=best is not None, plots=False, amp=False, device=device,
+                        pretrained=start is not None, plots=False, amp=False, device=device,
                         **({"trainer": shard_trainer} if reads_shards else {}), **arguments)
         best = stage_dir / "weights" / "best.pt"
         if not best.is_file():

@@ -172,3 +172,88 @@ def test_ultralytics_fraction_keeps_the_first_frames(shards):
                   stride=32, pad=0.5, task="detect", data={"names": {i: str(i) for i in range(8)}, "channels": 3})
     assert [image.frame for image in dataset_class(**common, fraction=0.67).images] == [0, 1]
     assert [image.frame for image in dataset_class(**common, fraction=1).images] == [0, 1, 2]
+
+
+def test_random_rain_rains_on_the_clean_frames_by_seed(shards):
+    from rainbench.experiments.shard_training import RandomRainAugment
+
+    stored = _dataset(shards).load_image(0)[0]
+    always = _dataset(shards, augment=True)
+    always.random_rain, always._random_rain = (RandomRainAugment(p=1.0),
+                                               RandomRainAugment(p=1.0).transform())
+    random.seed(5)
+    first = always.load_image(0)[0].copy()
+    always.ims[0] = None  # out of the buffer: read again
+    random.seed(5)
+    again = always.load_image(0)[0]
+    np.testing.assert_array_equal(first, again)  # deterministic by seed
+    assert first.shape == stored.shape and (first != stored).mean() > 0.01  # streaks and dimming
+    never = _dataset(shards, augment=True)
+    never.random_rain, never._random_rain = RandomRainAugment(p=0.0), RandomRainAugment(p=0.0).transform()
+    np.testing.assert_array_equal(never.load_image(0)[0], stored)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("random_rain: {p: 0.5, rain_type: heavy}", None),
+    ("random_rain: {p: 2}", r"`random_rain`: p must be a probability in \[0, 1\], got 2"),
+    ("random_rain: {p: 0.5, colour: red}", r"`random_rain`: unknown option 'colour'; expected p or some of "),
+    ("random_rain: {p: 0.5}\nrain_curriculum: {0: 1, 50: 1}", r"`random_rain` needs `reader: shards` and no"),
+])
+def test_recipe_random_rain_is_checked_when_loaded(tmp_path, text, message):
+    path = tmp_path / "recipe.yaml"
+    path.write_text(RAINY_RECIPE.replace("rain_curriculum: {0: 1, 50: 1}", text))
+    if message is None:
+        assert train.load_recipe(path).random_rain.options == (("rain_type", "heavy"),)
+        return
+    with pytest.raises(train.TrainError, match=message):
+        train.load_recipe(path)
+
+
+def test_a_recipe_with_random_rain_trains_on_the_clean_shards(tmp_path, capsys):
+    recipe_path = tmp_path / "random_rain.yaml"
+    recipe_path.write_text(RAINY_RECIPE.replace("rain_curriculum: {0: 1, 50: 1}", "random_rain: {p: 1.0}")
+                           .replace("name: tiny-rain", "name: tiny-random-rain"))
+    assert train.load_recipe(recipe_path).train_data.rates == (0.0,)
+    out = tmp_path / "run"
+    code = cli.main(["train", "--recipe", str(recipe_path), "--out", str(out), "--device", "cpu"])
+    assert code == 0, capsys.readouterr().err
+    assert (out / "tiny-random-rain.pt").is_file() and not (out / "yolo").exists()
+
+
+@pytest.mark.parametrize("value, message", [
+    ("rainbench-yolo11n", None),
+    ("no-such-model", r"`init_weights`: no-such-model: expected a shipped model name \(.*rainbench-yolo11n.*\) or an existing \.pt"),
+])
+def test_recipe_init_weights_name_a_checkpoint(tmp_path, value, message):
+    path = tmp_path / "recipe.yaml"
+    path.write_text(RAINY_RECIPE + f"init_weights: {value}\n")
+    if message is None:
+        assert train.load_recipe(path).init_weights.name == "rainbench-yolo11n.pt"
+        return
+    with pytest.raises(train.TrainError, match=message):
+        train.load_recipe(path)
+
+
+def test_a_fine_tune_starts_from_its_init_weights(tmp_path, capsys):
+    """With lr 0 a fine-tune of the shipped nano model ends where it began, but for the class-logit
+    convs of the detection head (``model.23.cv3.*.2``), which ultralytics' set-up for a new
+    dataset moves (as in the warm-restart test, here by up to 0.2). A cold start would differ in
+    every tensor."""
+    from rainbench.eval.weights import checkpoint_file
+
+    recipe_path = tmp_path / "fine.yaml"
+    recipe_path.write_text(RAINY_RECIPE.replace("name: tiny-rain", "name: tiny-fine") + "init_weights: rainbench-yolo11n\n"
+                           + "cpu: {optimizer: AdamW, lr0: 0.0, warmup_epochs: 0, warmup_bias_lr: 0.0}\n")
+    out = tmp_path / "run"
+    code = cli.main(["train", "--recipe", str(recipe_path), "--out", str(out), "--device", "cpu"])
+    assert code == 0, capsys.readouterr().err
+
+    def parameters(path):
+        return dict(torch.load(path, map_location="cpu", weights_only=False)["model"].named_parameters())
+
+    before, after = parameters(checkpoint_file("rainbench-yolo11n")), parameters(out / "tiny-fine.pt")
+    assert before.keys() == after.keys()
+    unchanged = [name for name in before if torch.equal(before[name], after[name])]
+    assert len(unchanged) >= 0.95 * len(before), len(unchanged)
+    moved = {n for n in before if (before[n].float() - after[n].float()).abs().max().item() >= 0.01}
+    assert moved <= {f"model.23.cv3.{level}.2.{kind}" for level in range(3) for kind in ("weight", "bias")}, moved

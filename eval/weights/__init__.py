@@ -84,6 +84,19 @@ def _on_cuda(device: str | None) -> bool:
     return str(device).lower() not in ("cpu", "")
 
 
+def checkpoint_file(spec: str | Path) -> Path:
+    """The ultralytics checkpoint of a shipped model's name (its ``.pt``) or of a local ``.pt``
+    file; anything else raises :class:`BackendError` naming it."""
+    shipped = _shipped_file(str(spec), ".pt")
+    if shipped is not None:
+        return shipped
+    path = Path(spec)
+    if path.suffix != ".pt" or not path.is_file():
+        raise BackendError(f"{spec}: expected a shipped model name ({', '.join(shipped_models()) or 'none'}) "
+                           "or an existing .pt checkpoint")
+    return path
+
+
 def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, str]:
     """``(file, model name)`` for a weights spec: a shipped model's name, or a local file.
 
