@@ -149,9 +149,9 @@ def shard_dataset_class():
         shard, or a list of shards). Extra keyword arguments: ``curriculum`` (the
         :class:`RateCurriculum` images are drawn at), ``keep_classes`` (the COCO class ids
         whose labels are kept; None keeps all) and ``random_rain`` (a
-        :class:`RandomRainAugment` applied to training images, or None). ``im_files`` are ``<shard>#<frame>`` names;
-        ``images`` the :class:`rainbench.store.Image` of each index (the first ones of the
-        dataset when ultralytics' ``fraction`` is below 1)."""
+        :class:`RandomRainAugment` applied to training images, or None). ``im_files`` are
+        ``<shard>#<frame>`` names; ``images`` the :class:`rainbench.store.Image` of each index
+        (the first ones of the dataset when ultralytics' ``fraction`` is below 1)."""
 
         def __init__(self, *args, curriculum: RateCurriculum = RateCurriculum(),
                      keep_classes: Sequence[int] | None = None,
