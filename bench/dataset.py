@@ -32,7 +32,6 @@ from pathlib import Path
 
 import cv2
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
-import numpy as np
 
 from rainbench.gen import sim
 from rainbench.gen.config import GenerateConfig

@@ -1,7 +1,6 @@
 """Datasets: manifest, resume after crashes, verify, worker-count independence, Ray, readers."""
 
 import json
-import os
 import signal
 import subprocess
 import sys

@@ -1,6 +1,5 @@
 """The runnable examples of docs/reading.md run on a small dataset."""
 
-import os
 import re
 from pathlib import Path
 

@@ -2,7 +2,6 @@
 
 import json
 
-import numpy as np
 import pytest
 from labelled_shards import OLD_CLASS_NAMES, write_labelled_shard
 
