@@ -187,10 +187,6 @@ def _pitch_quat(angle: float) -> list[float]:
     return [math.cos(angle / 2), 0.0, math.sin(angle / 2), 0.0]
 
 
-def _yaw_quat(angle: float) -> list[float]:
-    return [math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)]
-
-
 def limb_direction(angle: float) -> np.ndarray:
     """(x, z) direction of a limb segment hanging along -z at angle 0, swung by ``angle``
     about +y (positive swings it backwards, towards -x)."""
@@ -291,7 +287,7 @@ def add_person(
     legs_bare = b.clothing == "skirt"
     for side, tag in ((1, "l"), (-1, "r")):
         hip = root.add_body(name=f"{prefix}thigh_{tag}", pos=[0, side * p.hip_half_width, hip_z],
-                            quat=_yaw_quat(side * leg_splay))
+                            quat=unit_yaw_quat(side * leg_splay).tolist())
         hip.add_joint(name=f"{prefix}hip_{tag}", type=HINGE, axis=[0, 1, 0])
         if b.clothing == "shorts":
             _geom(hip, f"{prefix}thigh_{tag}", GEOM.mjGEOM_CAPSULE, [1.06 * p.thigh_radius],
@@ -779,4 +775,6 @@ def add_motorcycle(body, prefix: str, colour: tuple[float, float, float],
 
 
 def unit_yaw_quat(heading: float) -> np.ndarray:
+    """(4,) quaternion (w, x, y, z) of a turn by ``heading`` radians about +z (the general
+    yaw-pitch-roll one is :func:`rainbench.mjcf.layout.yaw_quat`)."""
     return np.array([math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2)])

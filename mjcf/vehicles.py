@@ -31,7 +31,7 @@ from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from . import layout as L
-from .parts import GLASS, HEADLIGHT, RIM, TAILLIGHT, TRIM, TYRE, Y_AXIS_QUAT, _geom, rgba
+from .parts import GLASS, HEADLIGHT, RIM, TAILLIGHT, TRIM, TYRE, Y_AXIS_QUAT, _geom, rgba, unit_yaw_quat
 
 GEOM = mujoco.mjtGeom
 
@@ -723,10 +723,6 @@ def lamp_positions(shape: VehicleShape) -> dict[str, list[tuple[float, float, fl
             for kind, lamps in _lamp_boxes(shape).items()}
 
 
-def _yaw_quat(yaw: float) -> list[float]:
-    return [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
-
-
 def _pitch_quat(pitch: float) -> list[float]:
     return [math.cos(pitch / 2), 0.0, math.sin(pitch / 2), 0.0]
 
@@ -785,7 +781,7 @@ def add_vehicle(spec: mujoco.MjSpec, body, prefix: str, shape: VehicleShape,
         colour = HEADLIGHT if kind == "head" else TAILLIGHT
         for (centre, half, yaw), tag in zip(_lamp_boxes(shape)[kind], "lr"):
             _geom(body, f"{prefix}{name}_{tag}", GEOM.mjGEOM_BOX, half, colour,
-                  pos=list(centre), quat=_yaw_quat(yaw))
+                  pos=list(centre), quat=unit_yaw_quat(yaw).tolist())
 
     # Bumpers (their outer faces are the vehicle's length), number plates and the grille.
     bumper_z = {end: _underside(end_loft, x) + (0.10 if big else 0.07)

@@ -10,7 +10,8 @@ the evaluator and the paper report) opens a dataset through :class:`Dataset`, so
 - a rate is found one way: :meth:`Dataset.rate_row` compares the decimal the user wrote
   (``"12.5"``, ``0.1``) with each stored rate's shortest decimal
   (:func:`rainbench.store.rates.rate_rows`), whatever the storage dtype;
-- every shard is checked when it is opened (:func:`rainbench.store.shard.open_checked`).
+- every shard is checked once, labels included, when the dataset is built
+  (:func:`rainbench.store.shard.open_checked`); later opens check its format.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 
 from .manifest import DatasetError, list_shards
 from .rates import MissingRate, rate_decimal, rate_rows
-from .shard import open_checked, read_frame_labels, read_rgb
+from .shard import open_checked, open_shard, read_frame_labels, read_rgb
 
 
 @dataclass(frozen=True)
@@ -135,8 +136,9 @@ class Dataset:
         return self._sizes[shard]
 
     def open(self, shard: int):
-        """Open shard number ``shard`` read-only, checked (an ``h5py.File``; close it)."""
-        return open_checked(self.shards[shard])
+        """Open shard number ``shard`` read-only (an ``h5py.File``; close it). Its format is
+        checked again; its labels were checked when the dataset was built."""
+        return open_shard(self.shards[shard])
 
     def walk(self, images: Sequence[Image] | None = None) -> Iterator[tuple[Image, object]]:
         """Yield ``(image, handle)`` for ``images`` (default all) in their order: each shard is

@@ -5,7 +5,7 @@ The torch ``Dataset`` over it is :class:`rainbench.store.torch_dataset.ShardData
 Samples are (shard, frame, rate) triples in that order: shards in manifest order (sorted paths
 without a manifest), then frames, then the selected rates. Shard files are opened lazily, once
 per process, so both classes are safe with ``DataLoader(num_workers > 0)``. Every shard is
-checked when it is opened (:func:`rainbench.store.shard.check_labels`): NaN boxes or
+checked when the reader is built (:func:`rainbench.store.shard.check_labels`): NaN boxes or
 inconsistent ``/labels/offsets`` raise ``ShardFormatError`` naming the file and the frame.
 
 Target keys (numpy arrays from :class:`ShardReader`, tensors from ``ShardDataset``):
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .dataset import Dataset
-from .shard import open_checked, read_rgb
+from .shard import read_rgb
 
 _LABEL_KEYS = ("bbox", "class_id", "instance_id", "visible_fraction", "truncation")
 
@@ -49,16 +49,12 @@ class ShardReader:
         self.classes = None if classes is None else np.asarray(sorted(set(classes)), np.int64)
         self._rate_rows = [np.asarray([self.dataset.rate_row(rate, shard) for rate in self.rates])
                            for shard in range(len(self.shards))]
-        frames = np.bincount([image.shard_index for image in self.dataset.images],
-                             minlength=len(self.shards))
-        self._first_image_id = np.concatenate([[1], 1 + np.cumsum(frames)[:-1]])
-        self._sample_starts = np.concatenate([[0], np.cumsum(frames * len(self.rates))])
         self._pid = None
         self._handles: dict[int, object] = {}
         self._labels: dict[int, dict[str, np.ndarray]] = {}
 
     def __len__(self) -> int:
-        return int(self._sample_starts[-1])
+        return len(self.dataset.images) * len(self.rates)
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -69,15 +65,14 @@ class ShardReader:
         """(shard number, frame, rate number) of sample ``index``."""
         if not 0 <= index < len(self):
             raise IndexError(f"sample index {index} out of range 0..{len(self) - 1}")
-        shard = int(np.searchsorted(self._sample_starts, index, side="right") - 1)
-        frame, rate = divmod(index - int(self._sample_starts[shard]), len(self.rates))
-        return shard, frame, rate
+        image, rate = divmod(index, len(self.rates))  # samples: images in id order, then rates
+        return self.dataset.images[image].shard_index, self.dataset.images[image].frame, rate
 
     def _handle(self, shard: int):
         if self._pid != os.getpid():  # a forked DataLoader worker: open its own handles
             self._handles, self._pid = {}, os.getpid()
         if shard not in self._handles:
-            self._handles[shard] = open_checked(self.shards[shard])
+            self._handles[shard] = self.dataset.open(shard)
         return self._handles[shard]
 
     def _shard_labels(self, shard: int) -> dict[str, np.ndarray]:
@@ -104,7 +99,7 @@ class ShardReader:
             "visible_fraction": labels["visible_fraction"][rows][keep].astype(np.float32),
             "truncation": labels["truncation"][rows][keep].astype(np.float32),
             "rate": np.float32(self.rates[rate_number]),
-            "image_id": int(self._first_image_id[shard]) + frame,
+            "image_id": self.dataset.images[index // len(self.rates)].image_id,
             "shard": self.shards[shard].name,
             "frame": frame,
         }
