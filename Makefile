@@ -24,6 +24,8 @@ THREADS ?=
 RESULTS ?= results/eval
 WEIGHTS ?=
 PREDICTIONS ?=
+# make eval / make paper: MODEL=REFERENCE pairs of the robustness comparison (docs/models.md)
+COMPARE ?=
 # make train / make paper variables (docs/models.md)
 RECIPE ?= rainbench-yolo11n
 TRAIN_OUT ?=
@@ -57,7 +59,8 @@ dataset: $(STAMP)
 
 eval: $(STAMP)
 	$(BIN)/rainbench eval --data $(OUT) --out $(RESULTS) \
-		$(foreach w,$(WEIGHTS),--weights $(w)) $(if $(PREDICTIONS),--predictions $(PREDICTIONS),)
+		$(foreach w,$(WEIGHTS),--weights $(w)) $(if $(PREDICTIONS),--predictions $(PREDICTIONS),) \
+		$(foreach c,$(COMPARE),--compare $(c))
 
 # Trains the recipe's model from scratch on clean scenes (resumes a cut-off run when re-run).
 train: $(STAMP)
@@ -67,7 +70,8 @@ train: $(STAMP)
 paper: $(STAMP)
 	$(BIN)/rainbench paper --out $(PAPER_OUT) --data $(OUT)/paper $(SCENE_FLAGS) --scenes $(SCENES) \
 		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
-		$(foreach m,$(MODELS),--model $(m)) $(foreach w,$(WEIGHTS),--weights $(w))
+		$(foreach m,$(MODELS),--model $(m)) $(foreach w,$(WEIGHTS),--weights $(w)) \
+		$(foreach c,$(COMPARE),--compare $(c))
 
 verify: $(STAMP)
 	$(BIN)/rainbench verify $(OUT)

@@ -247,7 +247,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
                        imgsz=args.imgsz, batch=args.batch, conf=args.conf, iou=args.iou,
                        max_det=args.max_det, report_conf=args.report_conf, n_boot=args.n_boot,
                        class_map=args.class_map, device=args.device, force=args.force,
-                       progress=not args.quiet, trust_pickle=args.trust_pickle or None, classes=args.classes)
+                       progress=not args.quiet, trust_pickle=args.trust_pickle or None, classes=args.classes,
+                       references=tuple(_compare_pair(text) for text in args.compare or ()))
     print(outputs.paths["report.md"])
     return 0
 
@@ -275,10 +276,25 @@ def cmd_paper(args: argparse.Namespace) -> int:
     models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
     config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
-                         n_boot=args.n_boot, device=args.device, classes=args.classes)
+                         n_boot=args.n_boot, device=args.device, classes=args.classes,
+                         references=tuple(_compare_pair(text) for text in args.compare or ()))
     print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
                     force=args.force, progress=not args.quiet))
     return 0
+
+
+def _add_compare_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--compare", action="append", default=None, metavar="MODEL=REFERENCE",
+                        help="robustness comparison: the model's paired mPC difference is taken from "
+                             "REFERENCE (repeatable; default: the model its name extends, else the first)")
+
+
+def _compare_pair(text: str) -> tuple[str, str]:
+    """``(model, reference)`` of a ``--compare MODEL=REFERENCE`` value."""
+    model, sep, reference = text.partition("=")
+    if not sep or not model.strip() or not reference.strip():
+        raise CliError(f"--compare: expected MODEL=REFERENCE (model names as in the report), got {text!r}")
+    return model.strip(), reference.strip()
 
 
 def _scene_fields(args: argparse.Namespace) -> dict:
@@ -461,6 +477,7 @@ def build_parser() -> argparse.ArgumentParser:
                           help="classes to score, names or ids, e.g. person,car,bus,truck (default: the "
                                "paper's person,bicycle,car,motorcycle; also bus, truck)")
     evaluate.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
+    _add_compare_arg(evaluate)
     evaluate.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
     evaluate.add_argument("--trust-pickle", action="store_true",
                           help="load a .pt that ultralytics' safe loading refuses with Python's full "
@@ -498,6 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="generation processes")
     paper.add_argument("--classes", default=None,
                        help="classes to report, names or ids (default: the paper's four; e.g. add bus,truck)")
+    _add_compare_arg(paper)
     paper.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
     paper.add_argument("--quiet", action="store_true", help="no progress bars")
     paper.set_defaults(run=cmd_paper)

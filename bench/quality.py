@@ -10,15 +10,16 @@ way: it measures, it does not judge.
 
 Usage: ``python bench/quality.py [--weights rainbench-yolo11n ...] [--data data/quality]
 [--json OUT] [--seed 100] [--scenes 5] [--frames 40] [--layouts street,highway,...]
-[--rain physical|jeon2022]``
+[--rain physical|jeon2022 [--compare MODEL=REFERENCE ...]]``
 (``--layouts`` checks each road layout on its own data: the bar must hold per layout.)
 
 ``--rain MODEL`` measures robustness instead (issue 19): the same scenes at rates 0:100:10 with
 that rain model (``physical`` with the weather following the rate, ``jeon2022`` over the
 unchanged scene, each model's default), and per model and class clean AP@0.5, AP@0.5 at 50 and
-100 mm/h, mPC (mean AP@0.5 over 10..100 mm/h) and rPC = mPC / clean AP@0.5, with bootstrap
-intervals of the clean and 100 mm/h AP, against the rain-robust target (rPC >= 0.90 for car and
-person).
+100 mm/h, mPC (mean AP@0.5 over 10..100 mm/h) and rPC = mPC / clean AP@0.5, all with bootstrap
+intervals, and each model's paired mPC difference from the model it extends by name (else the
+first; ``rainbench.eval.comparison.comparison_rows``, as in ``make paper``'s report),
+against the rain-robust target (rPC >= 0.90 for car and person).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ RAIN_RPC_TARGET = {"car": 0.90, "person": 0.90}
 """Issue 19's target for a rain-robust model: rPC of AP@0.5 under the rain model."""
 RAIN_RATES = tuple(float(rate) for rate in range(0, 101, 10))
 CLIP_SECONDS = 20.0
+N_BOOT = 200
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -57,17 +59,24 @@ def main(argv: list[str] | None = None) -> int:
                              "its own layout and time of day")
     parser.add_argument("--rain", default=None, choices=("physical", "jeon2022"),
                         help="measure robustness at rates 0:100:10 under this rain model instead")
+    parser.add_argument("--compare", action="append", default=None, metavar="MODEL=REFERENCE",
+                        help="with --rain: take MODEL's paired mPC difference from REFERENCE (repeatable)")
     parser.add_argument("--json", default=None, help="write the figures here")
     args = parser.parse_args(argv)
     if args.seed < 0 or args.seed + args.scenes > 1_000_000:
         parser.error("--seed/--scenes: the check must use evaluation seeds (below 1000000)")
 
     from rainbench.eval.pipeline import run_eval
-    from rainbench.eval.report.records import robustness_records
     from rainbench.gen.config import DatasetConfig
     from rainbench.gen.dataset import run_dataset
 
     weights = args.weights or ["rainbench-yolo11n"]
+    references = []
+    for text in args.compare or ():
+        model, sep, reference = text.partition("=")
+        if not sep or not model or not reference:
+            parser.error(f"--compare: expected MODEL=REFERENCE, got {text!r}")
+        references.append((model, reference))
     rows, seconds = [], {}
     for layout in args.layouts.split(","):
         chosen = {} if layout == "seed" else {"layout": layout, "time_of_day": "day"}
@@ -80,11 +89,11 @@ def main(argv: list[str] | None = None) -> int:
         run_dataset(config, data, workers=1)
         seconds[f"generate {layout}"] = time.perf_counter() - started
         started = time.perf_counter()
-        result = run_eval(data, out, weights=weights, imgsz=args.imgsz, n_boot=200,
-                          device="cpu", progress=False, force=True)
+        result = run_eval(data, out, weights=weights, imgsz=args.imgsz, n_boot=N_BOOT,
+                          device="cpu", progress=False, force=True, references=references)
         seconds[f"eval {layout}"] = time.perf_counter() - started
         if args.rain is not None:
-            rows += _robustness_rows(layout, result.records, robustness_records(result.records, ("ap50",)))
+            rows += [{"layout": layout, **row} for row in result.robustness]
             continue
         rows += [{"layout": layout, **{key: record[key] for key in (
             "model", "class", "n_gt", "ap50", "ap50_ci_low", "ap50_ci_high", "f1")}}
@@ -104,32 +113,24 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _robustness_rows(layout: str, records: list[dict], summary: list[dict]) -> list[dict]:
-    """One row per (model, class): clean AP@0.5 and its interval, AP@0.5 at 50 and 100 mm/h (with
-    the 100 mm/h interval), mPC and rPC."""
-    by_key = {(r["model"], r["class"], float(r["rate"])): r for r in records}
-    rows = []
-    for entry in summary:
-        clean, at50, at100 = (by_key[(entry["model"], entry["class"], rate)] for rate in (0.0, 50.0, 100.0))
-        rows.append({"layout": layout, "model": entry["model"], "class": entry["class"], "n_gt": clean["n_gt"],
-                     "ap50": clean["ap50"], "ap50_ci_low": clean["ap50_ci_low"], "ap50_ci_high": clean["ap50_ci_high"],
-                     "ap50_at_50": at50["ap50"], "ap50_at_100": at100["ap50"],
-                     "ap50_at_100_ci_low": at100["ap50_ci_low"], "ap50_at_100_ci_high": at100["ap50_ci_high"],
-                     "mpc": entry["mpc"], "rpc": entry["rpc"]})
-    return rows
-
-
 def _print_robustness(rows: list[dict], rain: str) -> None:
-    print(f"rain model {rain}, rates 0:100:10; target rPC >= 0.90 for car and person")
-    print("| layout | model | class | boxes | clean AP@0.5 (95 % CI) | 50 mm/h | 100 mm/h (95 % CI) | mPC | rPC | met |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print(f"rain model {rain}, rates 0:100:10; target rPC >= 0.90 for car and person; 95 % intervals "
+          "over frames, one set of resamples for every rate and model (mPC differences are paired)")
+    print("| layout | model | class | boxes | clean AP@0.5 | 50 mm/h | 100 mm/h | mPC | rPC | met | mPC difference |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+
+    def cell(row: dict, key: str) -> str:
+        return f"{row[key]:.3f} ({row[key + '_low']:.3f}-{row[key + '_high']:.3f})"
+
     for row in rows:
         target = RAIN_RPC_TARGET.get(row["class"])
         met = "" if target is None else ("yes" if row["rpc"] >= target else "no")
-        print(f"| {row['layout']} | {row['model']} | {row['class']} | {row['n_gt']} | {row['ap50']:.3f} "
-              f"({row['ap50_ci_low']:.3f}-{row['ap50_ci_high']:.3f}) | {row['ap50_at_50']:.3f} | "
-              f"{row['ap50_at_100']:.3f} ({row['ap50_at_100_ci_low']:.3f}-{row['ap50_at_100_ci_high']:.3f}) | "
-              f"{row['mpc']:.3f} | {row['rpc']:.3f} | {met} |")
+        difference = ("" if row["reference"] is None else
+                      f"{row['mpc_difference']:+.3f} ({row['mpc_difference_low']:+.3f} to "
+                      f"{row['mpc_difference_high']:+.3f}) vs {row['reference']}")
+        print(f"| {row['layout']} | {row['model']} | {row['class']} | {row['n_gt']} | {cell(row, 'clean')} | "
+              f"{row['at_50']:.3f} | {cell(row, 'at_heavy')} | {cell(row, 'mpc')} | {cell(row, 'rpc')} | {met} | "
+              f"{difference} |")
 
 
 def _print_quality(rows: list[dict]) -> None:

@@ -42,7 +42,7 @@ def main() -> None:
     from ultralytics.data.build import build_dataloader
     from ultralytics.data.dataset import YOLODataset
 
-    from rainbench.experiments.shard_training import RateCurriculum, shard_dataset_class
+    from rainbench.experiments.shard_training import RainCurriculum, shard_dataset_class
 
     tmp = Path(tempfile.mkdtemp(prefix="rainbench-train-reader-"))
     try:
@@ -55,7 +55,7 @@ def main() -> None:
         names = {"names": {i: str(i) for i in range(4)}, "channels": 3}
         common = dict(imgsz=args.imgsz, augment=True, hyp=hyp, rect=False, batch_size=16, stride=32, pad=0.0,
                       task="detect", data=names, cache=None)
-        shard_set = shard_dataset_class()(img_path=str(data), curriculum=RateCurriculum.from_mapping({0: 1, 50: 1}),
+        shard_set = shard_dataset_class()(img_path=str(data), curriculum=RainCurriculum.from_mapping({0: 1, 50: 1}),
                                           **common)
         png_set = YOLODataset(img_path=str(tmp / "yolo" / "rate_0" / "images"), **common)
         loaders = {name: build_dataloader(dataset, batch=16, workers=2, shuffle=True)

@@ -29,6 +29,7 @@ from rainbench.store import SHARD_GLOB, Dataset, DatasetError, Image, read_frame
 from rainbench.store.rates import rate_token
 
 from rainbench.store.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES, class_list, parse_classes
+from .comparison import comparison_references, comparison_rows
 from .metrics.bootstrap import bootstrap_ci
 from .metrics.coco import coco_detections, coco_ground_truth
 from .metrics.evaluation import evaluate
@@ -36,7 +37,7 @@ from .report.figures import plot_detection_strip
 from .report.markdown import render_report_md
 from .report.paper import PAPER_TABLES
 from .report.plots import plot_metric_vs_rate
-from .report.records import metric_records, write_metrics
+from .report.records import json_ready, metric_records, write_metrics
 
 BOOTSTRAP_SEED = 0
 """Seed of the bootstrap generator (``np.random.default_rng(BOOTSTRAP_SEED)`` per model and rate)."""
@@ -197,6 +198,9 @@ class EvalOutputs:
     paths: dict[str, Path] = field(default_factory=dict)
     inference_runs: int = 0
     """(model, rate) pairs whose detections were computed by a backend in this run (not cached)."""
+    robustness: list[dict[str, Any]] = field(default_factory=list)
+    """Rows of the robustness comparison (:func:`rainbench.eval.comparison.comparison_rows`); empty
+    without rate 0 and a rainy rate."""
 
 
 def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map, classes) -> dict[str, Any]:
@@ -228,7 +232,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
              iou: float = 0.7, max_det: int = 300, report_conf: float = 0.25, n_boot: int = 1000,
              class_map: str | None = None, device: str | None = None, force: bool = False,
              progress: bool = True, trust_pickle: bool | None = None,
-             classes: str | Sequence[int | str] | None = None) -> EvalOutputs:
+             classes: str | Sequence[int | str] | None = None,
+             references: Sequence[tuple[str, str]] = ()) -> EvalOutputs:
     """Evaluate every model at every rain rate of a dataset and write the outputs under ``out_dir``.
 
     Detections come either from ``predictions_dir`` (``<model>/rate_<rate_token>.json`` COCO
@@ -248,8 +253,13 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     explicitly, every model must be able to predict every one of them (a model that cannot:
     one-line error naming the model and the class).
 
+    ``references``: ``(model, reference)`` pairs of the robustness comparison (``--compare``;
+    :func:`rainbench.eval.comparison.comparison_references`), checked before any inference.
+
     Outputs: ``metrics.json``, ``metrics.csv``, ``images.json``, ``report.md``,
-    ``ap50_vs_rate.png``, ``f1_vs_rate.png``, ``detections_strip.png``.
+    ``ap50_vs_rate.png``, ``f1_vs_rate.png``, ``detections_strip.png``, and with rate 0 and a
+    rainy rate ``robustness.json`` (:func:`rainbench.eval.comparison.comparison_rows`: mPC and
+    rPC with bootstrap intervals, paired differences between models; also in ``report.md``).
     """
     class_ids = _check_settings(predictions_dir, weights, imgsz=imgsz, batch=batch, max_det=max_det,
                                 n_boot=n_boot, conf=conf, iou=iou, report_conf=report_conf, classes=classes)
@@ -261,6 +271,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     inference_runs = 0
     if predictions_dir is not None:
         models = prediction_models(predictions_dir)
+        _references(models, references)
         detections = {(model, rate): load_predictions_file(predictions_path(predictions_dir, model, rate),
                                                            image_ids, class_ids)
                       for model in models for rate in rates}
@@ -269,12 +280,25 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
             dataset, list(weights), out_dir / "predictions", image_ids=image_ids, imgsz=imgsz, batch=batch,
             conf=conf, iou=iou, max_det=max_det, class_map=class_map, device=device, force=force,
             progress=progress, trust_pickle=trust_pickle, class_ids=class_ids,
-            classes_given=classes is not None)
+            classes_given=classes is not None, references=references)
     records = _score(gt, detections, models, rates, class_ids=class_ids, report_conf=report_conf,
                      n_boot=n_boot, progress=progress)
+    robustness = []
+    if 0.0 in rates and len(rates) > 1:
+        robustness = comparison_rows(gt, {model: {rate: detections[(model, rate)] for rate in rates} for model in models},
+                                     class_ids, n_boot, _references(models, references))
     paths = _write_outputs(records, dataset, gt, detections, models, out_dir, class_ids=class_ids,
-                           report_conf=report_conf)
-    return EvalOutputs(records=records, paths=paths, inference_runs=inference_runs)
+                           report_conf=report_conf, robustness=robustness)
+    return EvalOutputs(records=records, paths=paths, inference_runs=inference_runs, robustness=robustness)
+
+
+def _references(models: Sequence[str], chosen: Sequence[tuple[str, str]]) -> dict[str, str]:
+    """The robustness comparison's ``{model: reference}``; a chosen name that is not an evaluated
+    model is an :class:`EvalError`."""
+    try:
+        return comparison_references(list(models), chosen)
+    except ValueError as error:
+        raise EvalError(str(error)) from None
 
 
 def _check_settings(predictions_dir, weights, *, imgsz, batch, max_det, n_boot, conf, iou, report_conf,
@@ -296,7 +320,7 @@ def _check_settings(predictions_dir, weights, *, imgsz, batch, max_det, n_boot, 
 
 def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, image_ids: set[int], imgsz, batch,
                         conf, iou, max_det, class_map, device, force, progress, trust_pickle,
-                        class_ids: Sequence[int], classes_given: bool
+                        class_ids: Sequence[int], classes_given: bool, references: Sequence[tuple[str, str]] = ()
                         ) -> tuple[list[str], dict[tuple[str, float], list[dict]], int]:
     """Detections of every weights file at every rate of ``dataset``: (model names, {(model, rate):
     COCO results records}, number of (model, rate) pairs inferred in this run). Backend
@@ -316,6 +340,7 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
     if duplicates:
         raise EvalError(f"--weights: several weights files are named {duplicates[0]!r}; model names "
                         "(file stems) must be unique")
+    _references(models, references)
     # First load (and check) every detector that has rates to infer, then infer: a model that
     # cannot predict a requested class fails the run before any inference.
     plans = []
@@ -397,9 +422,10 @@ def _strip_image(dataset: Dataset, gt: dict, class_ids: Sequence[int]) -> Image:
 
 def _write_outputs(records: list[dict[str, Any]], dataset: Dataset, gt: dict, detections: dict,
                    models: Sequence[str], out_dir: Path, *, class_ids: Sequence[int],
-                   report_conf: float) -> dict[str, Path]:
-    """Write metrics, image list, report, plots and the detection strip (the first model's
-    boxes of the scored classes, across rates); returns the paths by output name."""
+                   report_conf: float, robustness: list[dict[str, Any]]) -> dict[str, Path]:
+    """Write metrics, image list, robustness rows (when there are any), report, plots and the
+    detection strip (the first model's boxes of the scored classes, across rates); returns the
+    paths by output name."""
     rates = list(dataset.rates)
     clean_rate = 0.0 if 0.0 in rates else rates[0]
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -409,9 +435,14 @@ def _write_outputs(records: list[dict[str, Any]], dataset: Dataset, gt: dict, de
     paths["images.json"].write_text(json.dumps(
         [{"id": image.image_id, "shard": image.shard.name, "frame": image.frame} for image in dataset.images],
         indent=1) + "\n", encoding="utf-8")
+    if robustness:
+        paths["robustness.json"] = out_dir / "robustness.json"
+        paths["robustness.json"].write_text(json.dumps(
+            [{key: json_ready(value) for key, value in row.items()} for row in robustness],
+            indent=1, allow_nan=False) + "\n", encoding="utf-8")
     paths["report.md"] = out_dir / "report.md"
-    paths["report.md"].write_text(render_report_md(records, paper=PAPER_TABLES, clean_rate=clean_rate),
-                                  encoding="utf-8")
+    paths["report.md"].write_text(render_report_md(records, paper=PAPER_TABLES, clean_rate=clean_rate,
+                                                   robustness=robustness), encoding="utf-8")
     paths["ap50_vs_rate.png"] = plot_metric_vs_rate(records, "ap50", out_dir / "ap50_vs_rate.png")
     paths["f1_vs_rate.png"] = plot_metric_vs_rate(records, "f1", out_dir / "f1_vs_rate.png")
     strip = _strip_image(dataset, gt, class_ids)

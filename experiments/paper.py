@@ -5,7 +5,9 @@ Defaults equal the paper's: one clip of 200 frames of 800x600 (seed 0, the cloud
 ``physical``) a dataset is generated (or finished: it resumes), every model is evaluated with
 ``run_eval`` into ``OUT/<rain model>/``, and ``OUT/report.md`` sets our Tables I, III and IV beside
 the paper's, with the analyses beyond it (half-AP rates, the two rain models side by side, AP by
-visible fraction and by box size at 0, 50 and 100 mm/h).
+visible fraction and by box size at 0, 50 and 100 mm/h, and every model's mPC and rPC with
+bootstrap intervals, rain-trained models against the clean-trained one they extend:
+``OUT/<rain model>/robustness.json`` holds those rows).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from rainbench.store import Dataset, read_frame_labels
 from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES, parse_classes
 from rainbench.eval.metrics.breakdown import ap_by_size, ap_by_visibility
 from rainbench.eval.metrics.robustness import half_value_rate
+from rainbench.eval.comparison import comparison_references
 from rainbench.eval.pipeline import EvalError, ground_truth, load_predictions_file, open_dataset, predictions_path, run_eval
 from rainbench.eval.report.markdown import render_paper_md
 
@@ -51,6 +54,7 @@ class PaperConfig:
     device: str | None = None
     breakdown_rates: tuple[float, ...] = (0.0, 50.0, 100.0)
     classes: str | tuple[int | str, ...] | None = None  # None: the paper's four; else as run_eval's
+    references: tuple[tuple[str, str], ...] = ()  # (model, reference) pairs of the robustness comparison
 
     def __post_init__(self) -> None:
         if self.classes is not None:
@@ -67,6 +71,10 @@ class PaperConfig:
             raise EvalError(f"dataset: expected a DatasetConfig, got {type(self.dataset).__name__}")
         if 0.0 not in self.dataset.rates:
             raise EvalError(f"RATES: the paper's comparison needs rate 0 (Normal), got {list(self.dataset.rates)}")
+        for pair in self.references:
+            if not (isinstance(pair, tuple) and len(pair) == 2 and all(isinstance(n, str) and n for n in pair)
+                    and pair[0] != pair[1]):
+                raise EvalError(f"--compare: expected MODEL=REFERENCE with two different model names, got {pair!r}")
 
 
 FIXED_WEATHER = "-fixed-weather"
@@ -154,8 +162,11 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
             detector = load_detector(spec, device=config.device, classes=class_ids)
             check_model_classes(detector, resolve_weights(spec, config.device)[1], class_ids)
             del detector
+    if config.references:  # a --compare naming no evaluated model fails before generating
+        comparison_references([resolve_weights(spec, config.device)[1] for spec in config.weights], config.references)
     data = config.dataset
     records_by_rain: dict[str, list] = {}
+    robustness: dict[str, list] = {}
     timings: dict[str, float] = {}
     skies = set()
     for name, rain_model, follows in conditions(config.rain_models):
@@ -170,9 +181,10 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
         start = time.perf_counter()
         outputs = run_eval(data_dir, out_dir / name, weights=list(config.weights), imgsz=config.imgsz,
                            batch=config.batch, n_boot=config.n_boot, device=config.device, force=force,
-                           progress=progress, classes=config.classes)
+                           progress=progress, classes=config.classes, references=config.references)
         timings[f"evaluate {name}"] = time.perf_counter() - start
         records_by_rain[name] = outputs.records
+        robustness[name] = outputs.robustness
     models = list(dict.fromkeys(record["model"] for record in records_by_rain[config.rain_models[0]]))
     half_rates = {}
     for rain_model, records in records_by_rain.items():
@@ -204,7 +216,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     ]
     text = render_paper_md(setup_lines=setup, table_one=counts, records_by_rain=records_by_rain,
                            half_rates=half_rates, breakdowns=tables, breakdown_model=models[0],
-                           paper_rain_model=paper_rain)
+                           paper_rain_model=paper_rain, robustness=robustness)
     out_dir.mkdir(parents=True, exist_ok=True)
     report = out_dir / "report.md"
     report.write_text(text, encoding="utf-8")

@@ -27,10 +27,18 @@ training run depends on:
 - ``reader`` (optional, default ``shards``): whole-frame stages read the shards directly
   (:mod:`rainbench.experiments.shard_training`, no export); ``export`` trains on exported YOLO
   folders of the clean frames instead. Tile stages always cut their tiles from an export.
-- ``rain_curriculum`` (optional, ``reader: shards`` only): ``{rate: weight}``, the rain rates
-  training images are drawn at and how often (``{0: 2, 50: 1, 100: 1}``: half clean). The training
-  data is generated at exactly these rates (with ``train_data``'s ``rain_model``); validation stays
-  clean. Default: clean frames only.
+- ``rain_curriculum`` (optional, ``reader: shards`` only): the rain training images are drawn
+  with and how often (:class:`~rainbench.experiments.shard_training.RainCurriculum`), either
+  ``{rate: weight}`` (``{0: 2, 50: 1, 100: 1}``: half clean), the rates of ``train_data``'s own
+  ``rain_model``, or ``{rain model: {rate: weight}}`` (``{physical: {0: 2, 50: 1}, jeon2022:
+  {50: 1}}``), the weights then shared by all (rain model, rate) pairs together (here 2/4,
+  1/4, 1/4). Each rain model's training data is ``train_data`` with that ``rain_model`` and
+  exactly its curriculum rates, the same seeds and fields otherwise (so image ``i`` is the same
+  scene frame in each; ``weather_follows_rate`` unset follows each rain model's own default, as
+  in :class:`~rainbench.gen.config.DatasetConfig`): ``OUT/data/train`` holds ``train_data``'s
+  own rain model (the flat form, or when the mapping names it), ``OUT/data/train-<rain model>``
+  each other one (:meth:`Recipe.train_datasets`). Validation stays clean. Default: clean
+  frames only.
 - ``init_weights`` (optional): a shipped model's name or a ``.pt`` file the first stage starts from
   (a fine-tune with a fresh schedule, like a warm restart); default: from scratch.
 - ``random_rain`` (optional, ``reader: shards`` only, not with ``rain_curriculum``): albumentations'
@@ -38,7 +46,8 @@ training run depends on:
   share of images it is applied to, the rest ``RandomRain`` arguments): the usual practice, for
   comparing a rain curriculum with on equal terms.
 
-:func:`train` generates both datasets (resuming a partial one), exports them as YOLO folders
+:func:`train` generates the datasets (one training dataset per rain model of the curriculum, and
+the validation dataset; resuming a partial one), exports them as YOLO folders
 when a stage needs them, and trains, resuming from ``last.pt`` when a previous run of the same recipe was cut off. The
 last stage's best weights are copied to ``OUT/<name>.pt``, with ``OUT/<name>.onnx`` and
 ``OUT/<name>.json`` beside it (:func:`write_companions`). Nothing is downloaded:
@@ -52,6 +61,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -66,7 +76,7 @@ from rainbench.store.manifest import is_int
 from rainbench.mjcf.layout import ScenarioConfig
 
 from rainbench.eval.weights import DEFAULT_IMGSZ
-from rainbench.experiments.shard_training import (CurriculumError, RandomRainAugment, RateCurriculum,
+from rainbench.experiments.shard_training import (CurriculumError, RainCurriculum, RandomRainAugment,
                                                   shard_trainer_class)
 from rainbench.experiments.tiles import TileConfig, TileError, export_tiles
 
@@ -97,7 +107,7 @@ class Recipe:
 
     name: str
     architecture: str
-    train_data: DatasetConfig
+    train_data: DatasetConfig  # train_data's fields, rates: every rate of the curriculum (train_datasets())
     val_data: DatasetConfig
     train_args: dict[str, Any]
     cpu_args: dict[str, Any]
@@ -105,7 +115,7 @@ class Recipe:
     eval_imgsz: int = DEFAULT_IMGSZ
     classes: tuple[int, ...] = TRAIN_CLASSES  # COCO ids trained (labels of others are left out)
     reader: str = "shards"  # one of READERS
-    curriculum: RateCurriculum = RateCurriculum()  # rates training images are drawn at (reader shards)
+    curriculum: RainCurriculum = RainCurriculum()  # rain training images are drawn with (reader shards)
     random_rain: RandomRainAugment | None = None  # albumentations RandomRain on training images (reader shards)
     init_weights: Path | None = None  # a checkpoint the first stage starts from (a fine-tune); None: from scratch
 
@@ -118,6 +128,20 @@ class Recipe:
         arguments with that restart's overrides). Each is ultralytics ``train()`` arguments plus,
         for a tile stage, ``tiles`` (a mapping of :class:`~rainbench.experiments.tiles.TileConfig`)."""
         return _stage_arguments(dict(self.train_args) if cuda else {**self.train_args, **self.cpu_args})
+
+    def train_datasets(self) -> dict[str | None, tuple[str, DatasetConfig]]:
+        """The training datasets, by the curriculum's rain models (None: the flat form, which
+        uses ``train_data``'s own): the folder under ``OUT/data`` each is generated into and its
+        config. ``train`` holds ``train_data``'s own rain model and comes first when present;
+        ``train-<rain model>`` each other one, which is ``train_data`` with that ``rain_model``
+        and the curriculum's rates of it, ascending. The first one's labels are trained on."""
+        own = self.train_data.rain_model
+        datasets = {model: ("train", self.train_data) if model is None else
+                    ("train" if model == own else f"train-{model}",
+                     dataclasses.replace(self.train_data, rain_model=model,
+                                         rates=tuple(sorted(self.curriculum.rates_of(model)))))
+                    for model in self.curriculum.rain_models}
+        return dict(sorted(datasets.items(), key=lambda item: item[1][0] != "train"))
 
 
 def _stage_arguments(merged: dict[str, Any]) -> list[dict[str, Any]]:
@@ -228,18 +252,18 @@ def load_recipe(recipe: str | Path) -> Recipe:
     if reader not in READERS:
         raise TrainError(f"{source}: `reader` must be one of {', '.join(READERS)}, got {reader!r}")
     try:
-        curriculum = (RateCurriculum() if raw.get("rain_curriculum") is None
-                      else RateCurriculum.from_mapping(raw["rain_curriculum"]))
+        curriculum = (RainCurriculum() if raw.get("rain_curriculum") is None
+                      else RainCurriculum.from_mapping(raw["rain_curriculum"]))
     except CurriculumError as error:
         raise TrainError(f"{source}: `rain_curriculum`: {str(error).removeprefix('rain curriculum: ')}") from None
-    if curriculum != RateCurriculum() and reader != "shards":
+    if curriculum != RainCurriculum() and reader != "shards":
         raise TrainError(f"{source}: `rain_curriculum` needs `reader: shards` (an export holds one rate per folder)")
     try:
         random_rain = (None if raw.get("random_rain") is None
                        else RandomRainAugment.from_mapping(raw["random_rain"]))
     except CurriculumError as error:
         raise TrainError(f"{source}: `random_rain`: {str(error).removeprefix('random_rain: ')}") from None
-    if random_rain is not None and (reader != "shards" or curriculum != RateCurriculum()):
+    if random_rain is not None and (reader != "shards" or curriculum != RainCurriculum()):
         raise TrainError(f"{source}: `random_rain` needs `reader: shards` and no `rain_curriculum` (it rains on "
                          "the clean frames: the baseline a curriculum is compared with)")
     init_weights = None
@@ -267,21 +291,27 @@ def _seed_range(config: DatasetConfig) -> set[int]:
 
 def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1, export: bool = True,
                  progress: Callable[[int], None] | None = None) -> Path:
-    """Generate (or finish) the training and validation datasets under ``OUT/data``; with
-    ``export``, also export their clean frames as YOLO folders under ``OUT/yolo``. Returns the
-    ultralytics dataset yaml: ``OUT/dataset.yaml`` (the YOLO folders) with ``export``, else
-    ``OUT/shards.yaml`` (the shard folders, read by :func:`shard_trainer_class`'s trainer)."""
+    """Generate (or finish) the training datasets (one per rain model of the curriculum,
+    :meth:`Recipe.train_datasets`) and the validation dataset under ``OUT/data``; with
+    ``export``, also export the clean frames of the first training dataset and of the validation
+    dataset as YOLO folders under ``OUT/yolo``. Returns the ultralytics dataset yaml:
+    ``OUT/dataset.yaml`` (the YOLO folders) with ``export``, else ``OUT/shards.yaml`` (the shard
+    folders of the first training dataset and of validation, read by
+    :func:`shard_trainer_class`'s trainer with :func:`train_data_dirs`)."""
     from rainbench.store.export import export_yolo  # noqa: PLC0415
 
     out = Path(out)
     yolo = out / "yolo"
-    for split, config in (("train", recipe.train_data), ("val", recipe.val_data)):
-        data_dir = out / "data" / split
+    train_sets = list(recipe.train_datasets().values())
+    train_folders = [folder for folder, _ in train_sets]
+    for folder, config in [*train_sets, ("val", recipe.val_data)]:
+        data_dir = out / "data" / folder
         manifest = data_dir / "manifest.json"
         before = manifest.read_bytes() if manifest.is_file() else None
         run_dataset(config, data_dir, workers=workers, progress=progress)
-        if not export:
+        if not export or folder not in (train_folders[0], "val"):
             continue
+        split = "val" if folder == "val" else "train"
         done_marker = yolo / split / ".exported"
         # the export is redone when the data or the trained classes change
         stamp = json.dumps({"classes": list(recipe.classes), "manifest": manifest.read_text()})
@@ -292,9 +322,16 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1, export: b
                         classes=recipe.classes)
             done_marker.write_text(stamp)
     if not export:
-        return _dataset_yaml(out / "shards.yaml", out / "data", "train", "val", recipe.classes)
+        return _dataset_yaml(out / "shards.yaml", out / "data", train_folders[0], "val", recipe.classes)
     return _dataset_yaml(out / "dataset.yaml", yolo, "train/rate_0/images", "val/rate_0/images",
                          recipe.classes)
+
+
+def train_data_dirs(recipe: Recipe, out: str | Path) -> dict[str, Path]:
+    """The training data directory of each rain model ``recipe``'s curriculum names (none for a
+    flat curriculum): ``rain_data`` of :func:`shard_trainer_class`."""
+    return {model: (Path(out) / "data" / folder).resolve()
+            for model, (folder, _) in recipe.train_datasets().items() if model is not None}
 
 
 def _dataset_yaml(path: Path, root: Path, train_images: str, val_images: str,
@@ -371,7 +408,8 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     export_yaml = prepare_data(recipe, out, workers=workers, progress=progress) if needs_export else None
     stage_data = [(shards_yaml if from_shards else export_yaml) if tiles is None
                   else prepare_tiles(out, tiles, recipe.classes) for tiles in tiles_of]
-    shard_trainer = shard_trainer_class(recipe.curriculum, recipe.classes, recipe.random_rain) if from_shards else None
+    shard_trainer = (shard_trainer_class(recipe.curriculum, recipe.classes, recipe.random_rain,
+                                         rain_data=train_data_dirs(recipe, out)) if from_shards else None)
     best = None
     for stage, arguments in enumerate(stages):
         arguments = {key: value for key, value in arguments.items() if key != "tiles"}
@@ -397,18 +435,102 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
             raise TrainError(f"training finished without {best}; see the log above")
     final = out / f"{recipe.name}.pt"
     shutil.copyfile(best, final)
-    write_companions(final, recipe.eval_imgsz)
+    write_companions(final, recipe.eval_imgsz, model_card(recipe, out, device, stages))
     return final
 
 
-def write_companions(weights: Path, eval_imgsz: int) -> tuple[Path, Path]:
+def _stage_record(stage_dir: Path, arguments: dict[str, Any]) -> dict[str, Any]:
+    """A stage of a model card: its folder, ultralytics ``train()`` arguments, epochs run, the
+    training time ultralytics logged (``results.csv`` column ``time``, seconds, its last row) and
+    the best validation mAP@0.5 and mAP@0.5:0.95 with their epochs (None without a results file)."""
+    import csv  # noqa: PLC0415
+
+    record: dict[str, Any] = {"dir": stage_dir.name, "args": arguments, "epochs": None, "seconds": None,
+                              "best_map50": None, "best_map50_epoch": None, "best_map50_95": None,
+                              "best_map50_95_epoch": None}
+    results = stage_dir / "results.csv"
+    if not results.is_file():
+        return record
+    with results.open(newline="") as handle:
+        rows = [{key.strip(): value for key, value in row.items()} for row in csv.DictReader(handle)]
+    if not rows:
+        return record
+    record["epochs"] = len(rows)
+    record["seconds"] = round(float(rows[-1]["time"]), 1) if rows[-1].get("time") else None
+    for key, column in (("best_map50", "metrics/mAP50(B)"), ("best_map50_95", "metrics/mAP50-95(B)")):
+        values = [float(row[column]) for row in rows if row.get(column)]
+        if values:
+            best = max(range(len(values)), key=values.__getitem__)
+            record[key], record[f"{key}_epoch"] = round(values[best], 4), best + 1
+    return record
+
+
+def model_card(recipe: Recipe, out: str | Path, device: str, stages: list[dict[str, Any]]) -> dict[str, Any]:
+    """What a trained model's card ``<name>.json`` says besides ``imgsz``: the recipe (file and
+    sha256), the classes, the data (each dataset's manifest config, by folder under
+    ``OUT/data``), the rain it was trained with (curriculum entries, RandomRain, the checkpoint
+    it was fine-tuned from), every stage (:func:`_stage_record`), the device and the software
+    versions, and the checkpoint's sha256 (``OUT/<name>.pt``). Reads only files of the run."""
+    import platform  # noqa: PLC0415
+    from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415
+
+    from rainbench import __version__  # noqa: PLC0415
+    from rainbench.store.classes import CLASS_NAMES  # noqa: PLC0415
+    from rainbench.store.manifest import sha256_of  # noqa: PLC0415
+
+    out = Path(out)
+    folders = [folder for folder, _ in recipe.train_datasets().values()] + ["val"]
+    data = {}
+    for folder in folders:
+        manifest = out / "data" / folder / "manifest.json"
+        data[folder] = json.loads(manifest.read_text())["config"] if manifest.is_file() else None
+    software = {"rainbench": __version__, "python": platform.python_version()}
+    for package in ("ultralytics-opencv-headless", "torch", "mujoco", "numpy"):
+        try:
+            software[package] = version(package)
+        except PackageNotFoundError:
+            software[package] = None
+    source = Path(recipe.source)
+    own_model = recipe.train_data.rain_model
+    return {
+        "name": recipe.name,
+        "architecture": recipe.architecture,
+        "classes": {str(class_id): CLASS_NAMES[class_id] for class_id in recipe.classes},
+        "recipe": {"file": source.name, "sha256": sha256_of(source) if source.is_file() else None},
+        "data": data,
+        "reader": recipe.reader,
+        "rain_curriculum": [{"rain_model": model or own_model, "rate": rate, "weight": weight}
+                            for (model, rate), weight in zip(recipe.curriculum.entries, recipe.curriculum.weights)],
+        "random_rain": (None if recipe.random_rain is None
+                        else {"p": recipe.random_rain.p, **dict(recipe.random_rain.options)}),
+        "init_weights": (None if recipe.init_weights is None
+                         else {"file": recipe.init_weights.name, "sha256": sha256_of(recipe.init_weights)}),
+        "stages": [_stage_record(_stage_dir(out, stage), arguments) for stage, arguments in enumerate(stages)],
+        "device": device,
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores" + _gpu_name(device),
+        "software": software,
+        "checkpoint_sha256": sha256_of(out / f"{recipe.name}.pt") if (out / f"{recipe.name}.pt").is_file() else None,
+    }
+
+
+def _gpu_name(device: str) -> str:
+    """``", <GPU name>"`` when ``device`` is a CUDA device, else empty."""
+    if device == "cpu":
+        return ""
+    import torch  # noqa: PLC0415
+
+    return f", {torch.cuda.get_device_name(int(device) if device.isdigit() else 0)}" if torch.cuda.is_available() else ""
+
+
+def write_companions(weights: Path, eval_imgsz: int, card: dict[str, Any] | None = None) -> tuple[Path, Path]:
     """Beside ``<name>.pt``, write what a shipped model needs besides its checkpoint: ``<name>.onnx``
     (:func:`~rainbench.eval.weights.export_onnx`, run on CPU) and the card ``<name>.json``
-    (``{"imgsz": eval_imgsz}``). Shipping a model is copying the three files to
-    ``eval/weights/`` (docs/models.md). Returns ``(onnx path, card path)``."""
+    (``{"imgsz": eval_imgsz}`` and the fields of ``card``, :func:`model_card`). Shipping a model is
+    copying the ``.pt`` and the card to ``eval/weights/`` (docs/models.md). Returns ``(onnx path,
+    card path)``."""
     from rainbench.eval.weights import export_onnx
 
     onnx = export_onnx(weights, weights.with_suffix(".onnx"))
-    card = weights.with_suffix(".json")
-    card.write_text(json.dumps({"imgsz": eval_imgsz}, indent=1) + "\n")
-    return onnx, card
+    card_path = weights.with_suffix(".json")
+    card_path.write_text(json.dumps({"imgsz": eval_imgsz, **(card or {})}, indent=1, default=str) + "\n")
+    return onnx, card_path

@@ -152,6 +152,30 @@ def test_predictions_mode_end_to_end_perfect_predictions(data_dir, tmp_path, cap
     assert "| perfect | Normal | 1.000 |" in report and "|  | % drop | 0.00 |" in report
 
 
+def test_robustness_rows_pair_models_and_bad_compare_is_refused_first(data_dir, tmp_path, capsys):
+    records = _perfect_records(data_dir)
+    present = sorted({r["category_id"] for r in records if r["category_id"] in PAPER_CLASSES})
+    preds = tmp_path / "preds"
+    _write_predictions(preds, "base", records)
+    _write_predictions(preds, "base-blind", records, rates=(0.0,))  # sees nothing in the rain
+    _write_predictions(preds, "base-blind", [], rates=(50.0,))
+    out = tmp_path / "results"
+    code, _, err = _run(capsys, "eval", "--data", data_dir, "--predictions", preds, "--out", out,
+                        "--n-boot", "20", "--quiet", "--compare", "base-blind=nobody")
+    _one_line_error(err, "--compare: 'nobody' is not an evaluated model (models: base, base-blind)")
+    assert code == 2 and not out.exists()
+    code, _, err = _run(capsys, "eval", "--data", data_dir, "--predictions", preds, "--out", out,
+                        "--n-boot", "20", "--quiet")
+    assert code == 0, err
+    rows = {(row["model"], row["class"]): row for row in json.loads((out / "robustness.json").read_text())}
+    for class_id in present:
+        base, blind = rows[("base", CLASS_NAMES[class_id])], rows[("base-blind", CLASS_NAMES[class_id])]
+        assert (base["clean"], base["mpc"], base["rpc"], base["reference"]) == (1.0, 1.0, 1.0, None)
+        assert (blind["clean"], blind["mpc"], blind["rpc"], blind["reference"]) == (1.0, 0.0, 0.0, "base")
+        assert (blind["mpc_difference"], blind["mpc_difference_low"], blind["mpc_difference_high"]) == (-1.0, -1.0, -1.0)
+    assert "## Rain robustness with intervals" in (out / "report.md").read_text()
+
+
 def test_bad_prediction_files_name_the_file(data_dir, tmp_path):
     records = _perfect_records(data_dir)
     preds = tmp_path / "preds"

@@ -12,7 +12,8 @@ import pytest
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-from rainbench.eval.metrics.bootstrap import bootstrap_ci, bootstrap_weights, interpolated_ap, resample_images
+from rainbench.eval.metrics.bootstrap import (bootstrap_ci, bootstrap_weights, interpolated_ap, resample_images,
+                                              robustness_intervals)
 from rainbench.eval.metrics.breakdown import SIZE_RANGES, ap_by_size, ap_by_visibility
 from rainbench.eval.metrics.coco import coco_detections, coco_ground_truth, match_table
 from rainbench.eval.metrics.evaluation import evaluate
@@ -527,6 +528,82 @@ def test_bootstrap_ci_narrows_with_more_frames():
     small = bootstrap_ci(small_gt, small_dets, 300, rng=np.random.default_rng(0), class_ids=(CAR,))[CAR]
     large = bootstrap_ci(large_gt, large_dets, 300, rng=np.random.default_rng(0), class_ids=(CAR,))[CAR]
     assert (large.high - large.low) < 0.6 * (small.high - small.low)
+
+
+def _rainy(detections, keep, rng):
+    """The detections with each kept with probability ``keep`` (rain costs recall)."""
+    return [record for record in detections if rng.random() < keep]
+
+
+def _rainy_models(seed=21, n_images=60):
+    """Ground truth and {model: {rate: detections}} of two models at 0, 50 and 100 mm/h."""
+    rng = np.random.default_rng(seed)
+    gt, detections = synthetic_set(rng, n_images)
+    models = {"clean-trained": {0: detections, 50: _rainy(detections, 0.6, rng), 100: _rainy(detections, 0.3, rng)},
+              "rain-trained": {0: detections, 50: _rainy(detections, 0.9, rng), 100: _rainy(detections, 0.8, rng)}}
+    return gt, models
+
+
+def test_robustness_intervals_points_are_cocoeval_and_intervals_contain_them():
+    gt, models = _rainy_models()
+    result = robustness_intervals(gt, models, 200, rng=np.random.default_rng(0), class_ids=(PERSON, CAR),
+                                  references={"rain-trained": "clean-trained"})
+    again = robustness_intervals(gt, models, 200, rng=np.random.default_rng(0), class_ids=(PERSON, CAR),
+                                 references={"rain-trained": "clean-trained"})
+    assert result == again
+    for model, by_rate in models.items():
+        for class_id in (PERSON, CAR):
+            entry = result[model][class_id]
+            reference_ap = {rate: direct_ap(direct_cocoeval(gt, records), class_id)[0] for rate, records in by_rate.items()}
+            for rate, value in reference_ap.items():
+                assert entry.ap50[float(rate)].point == pytest.approx(value, abs=1e-12)
+            assert entry.mpc.point == pytest.approx(mpc(reference_ap), abs=1e-12)
+            assert entry.rpc.point == pytest.approx(rpc(reference_ap), abs=1e-12)
+            for interval in (entry.mpc, entry.rpc, *entry.ap50.values()):
+                assert interval.low <= interval.point <= interval.high
+    car = result["rain-trained"][CAR]
+    assert car.reference == "clean-trained" and result["clean-trained"][CAR].mpc_difference is None
+    assert car.mpc_difference.point == pytest.approx(car.mpc.point - result["clean-trained"][CAR].mpc.point)
+    assert car.mpc_difference.low > 0  # the rain-trained model keeps far more detections
+
+
+def test_robustness_intervals_resample_frames_once_for_every_rate_and_model():
+    gt, models = _rainy_models()
+    same = {"a": models["clean-trained"], "b": models["clean-trained"]}
+    result = robustness_intervals(gt, same, 100, rng=np.random.default_rng(1), class_ids=(CAR,), references={"b": "a"})
+    difference = result["b"][CAR].mpc_difference
+    assert (difference.point, difference.low, difference.high) == (0.0, 0.0, 0.0)  # paired: identical models
+    unchanged = {"steady": {rate: models["clean-trained"][0] for rate in (0, 50, 100)}}
+    steady = robustness_intervals(gt, unchanged, 100, rng=np.random.default_rng(1), class_ids=(CAR,))["steady"][CAR]
+    assert (steady.rpc.low, steady.rpc.point, steady.rpc.high) == pytest.approx((1.0, 1.0, 1.0), abs=1e-12)
+
+
+def test_robustness_intervals_one_resample_equals_cocoeval_on_that_resample():
+    gt, models = _rainy_models(n_images=25)
+    by_rate = models["clean-trained"]
+    result = robustness_intervals(gt, {"m": by_rate}, 1, rng=np.random.default_rng(5), class_ids=(CAR,))["m"][CAR]
+    weights = bootstrap_weights(25, 1, np.random.default_rng(5))[0]
+    image_ids = sorted(image["id"] for image in gt["images"])
+    sample = np.repeat(image_ids, weights).tolist()
+    resampled = {rate: direct_ap(direct_cocoeval(*resample_images(gt, records, sample)), CAR)[0]
+                 for rate, records in by_rate.items()}
+    assert result.mpc.low == result.mpc.high == pytest.approx(mpc(resampled), abs=1e-12)
+    assert result.rpc.low == pytest.approx(rpc(resampled), abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    "detections, references, message",
+    [
+        ({}, None, r"detections: expected \{model: \{rate: records\}\} with at least one model, got none"),
+        ({"a": {0: [], 50: []}, "b": {0: [], 100: []}}, None,
+         r"detections\['b'\]: expected the rates \[0.0, 50.0\] of the first model, got \[0.0, 100.0\]"),
+        ({"a": {50: [], 100: []}}, None, r"detections: expected rate 0 and at least one rate > 0 mm/h"),
+        ({"a": {0: [], 50: []}}, {"a": "clean"}, r"references: 'a' -> 'clean' names a model without detections"),
+    ],
+)
+def test_robustness_intervals_bad_arguments(detections, references, message):
+    with pytest.raises(ValueError, match=message):
+        robustness_intervals(_GT, detections, 10, rng=np.random.default_rng(0), references=references)
 
 
 def test_bootstrap_ci_class_without_ground_truth_is_nan():

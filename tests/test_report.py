@@ -224,3 +224,24 @@ def test_robustness_records():
     assert ap50["drop_pct"] == pytest.approx(50.0)
     assert ap50["mpc"] == pytest.approx(0.5) and ap50["rpc"] == pytest.approx(0.625)
     assert math.isnan(f1["clean"]) and math.isnan(f1["rpc"])
+
+
+def test_robustness_section_shows_intervals_and_paired_differences():
+    from rainbench.eval.report.markdown import robustness_section
+
+    nan = float("nan")
+    base = {"class": "car", "n_gt": 141, "heavy_rate": 100.0, "at_50": 0.3}
+    for key, values in (("clean", (0.94, 0.9, 0.97)), ("at_heavy", (0.1, 0.06, 0.16)), ("mpc", (0.25, 0.21, 0.3)),
+                        ("rpc", (0.266, 0.226, 0.319))):
+        base.update(zip((key, f"{key}_low", f"{key}_high"), values))
+    clean = {**base, "model": "clean", "reference": None,
+             "mpc_difference": nan, "mpc_difference_low": nan, "mpc_difference_high": nan}
+    rain = {**base, "model": "clean-rain", "reference": "clean",
+            "mpc_difference": 0.087, "mpc_difference_low": 0.041, "mpc_difference_high": 0.127}
+    lines = robustness_section({"physical": [clean, rain]})
+    assert robustness_section({}) == []
+    assert lines[0].startswith("### Rain robustness with intervals")
+    assert "| Model | Class | Boxes | AP@0.5 Normal | 50 mm/h | 100 mm/h | mPC | rPC | mPC difference (paired) |" in lines
+    assert "| clean | car | 141 | 0.940 (0.900-0.970) | 0.300 | 0.100 (0.060-0.160) | 0.250 (0.210-0.300) | " \
+           "0.266 (0.226-0.319) |  |" in lines
+    assert any(line.endswith("| +0.087 (+0.041 to +0.127) vs clean |") for line in lines)

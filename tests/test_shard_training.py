@@ -2,7 +2,9 @@
 rain curricula, and a tiny training run that reads rainy shards."""
 
 import collections
+import dataclasses
 import random
+import re
 
 import numpy as np
 import pytest
@@ -11,7 +13,7 @@ from labelled_shards import write_labelled_shard
 
 from rainbench import cli
 from rainbench.experiments import train
-from rainbench.experiments.shard_training import CurriculumError, RateCurriculum, shard_dataset_class
+from rainbench.experiments.shard_training import CurriculumError, RainCurriculum, shard_dataset_class
 
 FRAMES = [
     [(2, 0, (10, 12, 40, 50), 1.0, 0.0), (0, 1, (60, 5, 70, 30), 0.5, 0.0), (5, 2, (70, 40, 98, 79), 1.0, 0.2)],
@@ -27,14 +29,14 @@ def shards(tmp_path_factory):
     return root
 
 
-def _dataset(root, *, augment=False, curriculum=RateCurriculum(), keep_classes=None, imgsz=64):
+def _dataset(root, *, augment=False, curriculum=RainCurriculum(), keep_classes=None, imgsz=64, rain_data=None):
     from ultralytics.cfg import get_cfg
 
     dataset_class = shard_dataset_class()
     return dataset_class(img_path=str(root), imgsz=imgsz, augment=augment, hyp=get_cfg(), rect=False,
                          batch_size=2, stride=32, pad=0.5, task="detect",
                          data={"names": {i: str(i) for i in range(8)}, "channels": 3},
-                         curriculum=curriculum, keep_classes=keep_classes)
+                         curriculum=curriculum, keep_classes=keep_classes, rain_data=rain_data)
 
 
 def _pixel_boxes(item):
@@ -63,14 +65,14 @@ def test_the_dataset_yields_exactly_the_shards_boxes_after_the_letterbox(shards,
 
 def test_load_image_resizes_the_stored_frame_as_ultralytics_does(shards):
     """The long side goes to imgsz (80x100 -> 52x64), BGR uint8 of the stored frame."""
-    dataset = _dataset(shards, curriculum=RateCurriculum((100.0,), (1.0,)))
+    dataset = _dataset(shards, curriculum=RainCurriculum(((None, 100.0),), (1.0,)))
     image, original, resized = dataset.load_image(0)
     assert original == (80, 100) and resized == (52, 64) and image.shape == (52, 64, 3)
     assert image.dtype == np.uint8 and image[0, 0, 0] == 90  # the grey background of the shard
 
 
 def test_a_curriculum_draws_its_rates_in_its_proportions_and_by_seed(shards, monkeypatch):
-    curriculum = RateCurriculum.from_mapping({0: 2, "50": 1, 100.0: 1})
+    curriculum = RainCurriculum.from_mapping({0: 2, "50": 1, 100.0: 1})
     assert curriculum.rates == (0.0, 50.0, 100.0) and curriculum.shares == (0.5, 0.25, 0.25)
     dataset = _dataset(shards, augment=True, curriculum=curriculum)
     drawn = []
@@ -97,7 +99,7 @@ def test_a_curriculum_draws_its_rates_in_its_proportions_and_by_seed(shards, mon
 
 def test_augmented_items_keep_their_boxes_inside_the_image(shards):
     random.seed(0)
-    dataset = _dataset(shards, augment=True, curriculum=RateCurriculum.from_mapping({0: 1, 100: 1}))
+    dataset = _dataset(shards, augment=True, curriculum=RainCurriculum.from_mapping({0: 1, 100: 1}))
     for index in range(6):
         item = dataset[index % len(dataset)]
         assert item["img"].shape[0] == 3 and item["img"].dtype == torch.uint8
@@ -114,7 +116,131 @@ def test_augmented_items_keep_their_boxes_inside_the_image(shards):
 ])
 def test_bad_curricula_are_one_line_errors(curriculum, message):
     with pytest.raises(CurriculumError, match=message):
-        RateCurriculum.from_mapping(curriculum)
+        RainCurriculum.from_mapping(curriculum)
+
+
+def _mark_pixels(shard, base):
+    """Make every stored image of ``shard`` tell its rain model and rate row apart: add
+    ``base + 20 * rate row + frame`` to it (mod 256), in place (HDF5 rewrites the chunks)."""
+    import h5py
+
+    with h5py.File(shard, "r+") as handle:
+        rgb = handle["rgb"]
+        for row in range(rgb.shape[0]):
+            for frame in range(rgb.shape[1]):
+                rgb[row, frame] = (rgb[row, frame].astype(np.int64) + base + 20 * row + frame) % 256
+
+
+TWO_MODEL_RATES = {"physical": (0.0, 50.0, 100.0), "jeon2022": (50.0, 100.0)}
+
+
+@pytest.fixture(scope="module")
+def two_models(tmp_path_factory):
+    """The same three frames stored as two rain models' data, with different pixels: rain model ->
+    (dataset directory, its shard)."""
+    root = tmp_path_factory.mktemp("two_models")
+    data = {}
+    for base, (model, rates) in zip((40, 140), TWO_MODEL_RATES.items()):
+        shard = write_labelled_shard(root / model, FRAMES, width=100, height=80, rates=rates)
+        _mark_pixels(shard, base)
+        data[model] = (root / model, shard)
+    return data
+
+
+TWO_MODEL_CURRICULUM = {"physical": {0: 2, 50: 1, 100: 1}, "jeon2022": {50: 1, 100: 1}}
+
+
+def _two_model_dataset(two_models, **options):
+    rain_data = {model: str(folder) for model, (folder, _) in two_models.items()}
+    return _dataset(two_models["physical"][0], curriculum=RainCurriculum.from_mapping(TWO_MODEL_CURRICULUM),
+                    rain_data=rain_data, **options)
+
+
+def test_a_two_model_curriculum_shares_its_weights_over_all_pairs():
+    curriculum = RainCurriculum.from_mapping(TWO_MODEL_CURRICULUM)
+    assert curriculum.entries == (("physical", 0.0), ("physical", 50.0), ("physical", 100.0),
+                                  ("jeon2022", 50.0), ("jeon2022", 100.0))
+    assert curriculum.shares == pytest.approx((2 / 6, 1 / 6, 1 / 6, 1 / 6, 1 / 6))
+    assert curriculum.rain_models == ("physical", "jeon2022") and curriculum.rates == (0.0, 50.0, 100.0)
+    assert curriculum.rates_of("jeon2022") == (50.0, 100.0) and curriculum.rates_of(None) == ()
+    assert RainCurriculum.from_mapping({0: 1}).draw(random.Random(0)) == (None, 0.0)
+
+
+def test_a_two_model_curriculum_draws_each_pair_in_its_proportions_and_by_seed(two_models, monkeypatch):
+    dataset = _two_model_dataset(two_models)
+    assert dataset.stores["physical"] is dataset.store and dataset.stores["jeon2022"] is not dataset.store
+    drawn = []
+    for model, store in dataset.stores.items():
+        real_read = store.read_rgb
+        monkeypatch.setattr(store, "read_rgb", lambda handle, image, rate, model=model, real_read=real_read:
+                            drawn.append((model, rate)) or real_read(handle, image, rate))
+
+    def epochs(seed, count):
+        random.seed(seed)
+        drawn.clear()
+        for _ in range(count):
+            for index in range(len(dataset)):
+                dataset.load_image(index)
+        return list(drawn)
+
+    first = epochs(0, 1000)  # 3000 loads
+    counts = collections.Counter(first)
+    curriculum = dataset.curriculum
+    assert set(counts) == set(curriculum.entries)
+    for entry, share in zip(curriculum.entries, curriculum.shares):
+        sigma = (len(first) * share * (1 - share)) ** 0.5
+        assert abs(counts[entry] - len(first) * share) < 4 * sigma, (entry, counts)
+    assert epochs(0, 1000) == first and epochs(1, 1000) != first  # deterministic by seed
+
+
+@pytest.mark.parametrize("model, rate", [(model, rate) for model, rates in TWO_MODEL_RATES.items()
+                                         for rate in rates])
+def test_an_image_drawn_at_a_rain_model_and_rate_is_that_models_stored_frame(two_models, model, rate):
+    """With imgsz 100 (the stored width) nothing is resized: the loaded BGR image is exactly the
+    drawn rain model's stored RGB frame at the drawn rate; the labels are the same for all."""
+    import h5py
+
+    dataset = _two_model_dataset(two_models, imgsz=100)
+    dataset.curriculum = RainCurriculum(((model, rate),), (1.0,))  # always draws this pair
+    with h5py.File(two_models[model][1]) as handle:
+        row = TWO_MODEL_RATES[model].index(rate)
+        for index in range(len(FRAMES)):
+            image, original, resized = dataset.load_image(index)
+            assert original == resized == (80, 100)
+            np.testing.assert_array_equal(image, handle["rgb"][row, index][:, :, ::-1])
+            assert dataset.labels[index]["cls"].ravel().tolist() == [float(c) for c, *_ in FRAMES[index]]
+
+
+def test_rain_models_whose_frames_differ_are_refused(two_models, tmp_path):
+    rain_data = {model: str(folder) for model, (folder, _) in two_models.items()}
+    curriculum = RainCurriculum.from_mapping(TWO_MODEL_CURRICULUM)
+    fewer = tmp_path / "fewer"
+    write_labelled_shard(fewer, FRAMES[:2], width=100, height=80, rates=(50.0, 100.0))
+    with pytest.raises(CurriculumError, match=rf"rain curriculum: {re.escape(str(fewer))} holds 2 images but .*physical holds 3"):
+        _dataset(two_models["physical"][0], curriculum=curriculum, rain_data={**rain_data, "jeon2022": str(fewer)})
+    moved = tmp_path / "moved"
+    write_labelled_shard(moved, [FRAMES[0], FRAMES[2], FRAMES[1]], width=100, height=80, rates=(50.0, 100.0))
+    with pytest.raises(CurriculumError, match=rf"rain curriculum: {re.escape(str(moved))} image 2 \(scene000000_f00000\.h5#1\) is not the frame of "):
+        _dataset(two_models["physical"][0], curriculum=curriculum, rain_data={**rain_data, "jeon2022": str(moved)})
+    with pytest.raises(CurriculumError, match=r"no training data for rain model 'jeon2022' \(rain_data names physical\)"):
+        _dataset(two_models["physical"][0], curriculum=curriculum, rain_data={"physical": rain_data["physical"]})
+
+
+@pytest.mark.parametrize("curriculum, message", [
+    ({"physical": {0: 1}, 50: 1}, r"entry 50: 1 mixes the two forms"),
+    ({0: 1, "physical": {0: 1}}, r"entry 'physical': \{0: 1\} mixes the two forms"),
+    ({"rainy": {0: 1}}, r"unknown rain model 'rainy'; expected one of jeon2022, physical"),
+    ({"physical": {}}, r"physical: expected a mapping of rate -> weight, got \{\}"),
+    ({"physical": {0: 1}, "jeon2022": {50: 0}}, r"jeon2022: expected weights >= 0 with a positive sum, got \[0\]"),
+    ({"physical": {0: 1, 50: -1}}, r"physical: expected weights >= 0 with a positive sum, got \[1, -1\]"),
+    ({"jeon2022": {50: "1"}}, r"jeon2022: expected weights >= 0 with a positive sum, got \['1'\]"),
+    ({"jeon2022": {"wet": 1}}, r"jeon2022: .*expected a number in mm/h"),
+    ({"jeon2022": {50: 1, "50.0": 1}}, r"jeon2022: rates \[50.0, 50.0\] repeat a rate"),
+])
+def test_bad_rain_model_curricula_are_one_line_errors(curriculum, message):
+    with pytest.raises(CurriculumError, match="rain curriculum: " + message) as error:
+        RainCurriculum.from_mapping(curriculum)
+    assert "\n" not in str(error.value)
 
 
 RAINY_RECIPE = """
@@ -162,6 +288,77 @@ def test_recipe_reader_and_curriculum_are_checked_when_loaded(tmp_path, change, 
         return
     with pytest.raises(train.TrainError, match=message):
         train.load_recipe(path)
+
+
+def test_a_recipe_curriculum_over_rain_models_generates_one_dataset_per_model(tmp_path):
+    """``train`` holds train_data's own rain model, ``train-<model>`` the others: train_data with
+    that rain model and its curriculum rates, the same seeds and fields otherwise (unset
+    weather_follows_rate: each rain model's own default)."""
+    recipe_text = RAINY_RECIPE.replace("rain_curriculum: {0: 1, 50: 1}",
+                                       "rain_curriculum: {jeon2022: {50: 1}, physical: {0: 2, 50: 1}}")
+    path = tmp_path / "recipe.yaml"
+    path.write_text(recipe_text)
+    recipe = train.load_recipe(path)
+    datasets = recipe.train_datasets()
+    assert recipe.train_data.rates == (0.0, 50.0) and recipe.curriculum.shares == (0.25, 0.5, 0.25)
+    assert list(datasets) == ["physical", "jeon2022"]  # train first: its labels are trained on
+    assert [folder for folder, _ in datasets.values()] == ["train", "train-jeon2022"]
+    physical, jeon = datasets["physical"][1], datasets["jeon2022"][1]
+    assert physical == recipe.train_data and physical.rain_model == "physical"
+    assert jeon.rain_model == "jeon2022" and jeon.rates == (50.0,) and jeon.weather_follows_rate is None
+    assert dataclasses.replace(jeon, rain_model="physical", rates=(0.0, 50.0)) == physical
+    path.write_text(recipe_text.replace(", physical: {0: 2, 50: 1}}", "}"))  # own model not named
+    assert [folder for folder, _ in train.load_recipe(path).train_datasets().values()] == ["train-jeon2022"]
+    path.write_text(RAINY_RECIPE)  # the flat form: train_data's own rain model, in train
+    assert {model: folder for model, (folder, _) in train.load_recipe(path).train_datasets().items()} == {
+        None: "train"}
+
+
+@pytest.mark.parametrize("curriculum, message", [
+    ("{physical: {0: 1}, 50: 1}", r"`rain_curriculum`: entry 50: 1 mixes the two forms"),
+    ("{rainy: {0: 1}}", r"`rain_curriculum`: unknown rain model 'rainy'; expected one of jeon2022, physical$"),
+    ("{}", r"`rain_curriculum`: expected a mapping of rate -> weight or of rain model -> \{rate: weight\}, got \{\}"),
+    ("{physical: {}}", r"`rain_curriculum`: physical: expected a mapping of rate -> weight, got \{\}"),
+    ("{physical: {0: 1}, jeon2022: {50: -1}}",
+     r"`rain_curriculum`: jeon2022: expected weights >= 0 with a positive sum, got \[-1\]"),
+    ("{physical: {0: 1}, jeon2022: {50: 1}}\nreader: export", r"`rain_curriculum` needs `reader: shards`"),
+    ("{physical: {0: 1}, jeon2022: {50: 1}}\nrandom_rain: {p: 0.5}", r"`random_rain` needs `reader: shards` and no"),
+])
+def test_recipe_rain_model_curricula_are_checked_when_loaded(tmp_path, curriculum, message):
+    path = tmp_path / "recipe.yaml"
+    path.write_text(RAINY_RECIPE.replace("rain_curriculum: {0: 1, 50: 1}", f"rain_curriculum: {curriculum}"))
+    with pytest.raises(train.TrainError, match=message) as error:
+        train.load_recipe(path)
+    assert str(error.value).startswith(str(path)) and "\n" not in str(error.value)
+
+
+def test_a_recipe_curriculum_over_rain_models_trains_on_each_models_data(tmp_path, capsys, monkeypatch):
+    from rainbench.experiments import shard_training
+
+    opened = []
+    real_open = shard_training.open_rain_data
+
+    def recording_open(img_path, curriculum, rain_data=None):
+        store, stores = real_open(img_path, curriculum, rain_data)
+        opened.append({model: dataset.root for model, dataset in stores.items()})
+        return store, stores
+
+    monkeypatch.setattr(shard_training, "open_rain_data", recording_open)
+    recipe_path = tmp_path / "models.yaml"
+    recipe_path.write_text(RAINY_RECIPE.replace("rain_curriculum: {0: 1, 50: 1}",
+                                                "rain_curriculum: {physical: {0: 1, 50: 1}, jeon2022: {50: 1}}"))
+    out = tmp_path / "run"
+    code = cli.main(["train", "--recipe", str(recipe_path), "--out", str(out), "--device", "cpu"])
+    assert code == 0, capsys.readouterr().err
+    import json
+    configs = {folder: json.loads((out / "data" / folder / "manifest.json").read_text())["config"]
+               for folder in ("train", "train-jeon2022")}
+    assert configs["train"]["rain_model"] == "physical" and configs["train"]["rates"] == [0.0, 50.0]
+    assert configs["train-jeon2022"]["rain_model"] == "jeon2022" and configs["train-jeon2022"]["rates"] == [50.0]
+    assert {**configs["train-jeon2022"], "rain_model": "physical", "rates": [0.0, 50.0]} == configs["train"]
+    data = (out / "data").resolve()
+    assert {"physical": data / "train", "jeon2022": data / "train-jeon2022"} in opened  # the training set
+    assert {None: data / "val"} in opened  # validation: clean frames of its own data
 
 
 def test_ultralytics_fraction_keeps_the_first_frames(shards):

@@ -12,6 +12,7 @@ from rainbench import cli
 from rainbench.eval import backends
 from rainbench.eval import weights as registry
 from rainbench.eval.backends.onnx import OnnxDetector
+from rainbench.store.manifest import sha256_of
 from rainbench.eval.backends.ultralytics import _offline_ultralytics
 from rainbench.experiments import train
 from rainbench.store.classes import CLASS_NAMES
@@ -92,7 +93,7 @@ def test_bad_recipes_are_one_line_errors(tmp_path):
 
 def test_recipe_classes_choose_the_trained_labels_and_the_model_names(tmp_path):
     write = tmp_path / "recipe.yaml"
-    assert train.load_recipe("rainbench-yolo11n").classes == (0, 1, 2, 3)  # the shipped models'
+    assert train.load_recipe("rainbench-yolo11n").classes == (0, 1, 2, 3, 5, 7)  # the retrain on the new scenes
     write.write_text(TINY_RECIPE + "classes: [person, car, bus, truck]\n")
     recipe = train.load_recipe(write)
     assert recipe.classes == (0, 2, 5, 7)
@@ -134,8 +135,22 @@ def test_tiny_training_run_writes_weights_the_evaluator_loads(tmp_path, capsys):
     assert code == 0, err
     weights = out / "tiny-yolo.pt"
     assert stdout.strip().endswith(str(weights)) and weights.is_file()
-    # Beside the checkpoint: its ONNX copy and its card (the recipe's eval_imgsz).
-    assert json.loads((out / "tiny-yolo.json").read_text()) == {"imgsz": 96}
+    # Beside the checkpoint: its ONNX copy and its card (the recipe's eval_imgsz, data, stages, ...).
+    card = json.loads((out / "tiny-yolo.json").read_text())
+    assert card["imgsz"] == 96 and card["name"] == "tiny-yolo" and card["architecture"] == "yolo11n.yaml"
+    assert card["classes"] == {"0": "person", "1": "bicycle", "2": "car", "3": "motorcycle"}
+    assert card["recipe"] == {"file": "tiny.yaml", "sha256": sha256_of(recipe_path)}
+    assert card["checkpoint_sha256"] == sha256_of(weights) and card["device"] == "cpu"
+    assert card["data"]["train"] == json.loads((out / "data" / "train" / "manifest.json").read_text())["config"]
+    assert card["data"]["val"]["seed"] == 2000000 and card["data"]["train"]["scenes"] == 2
+    assert card["rain_curriculum"] == [{"rain_model": "jeon2022", "rate": 0.0, "weight": 1.0}]
+    assert card["random_rain"] is None and card["init_weights"] is None
+    [stage] = card["stages"]
+    assert stage["dir"] == "run" and stage["epochs"] == 1 and stage["args"]["imgsz"] == 64
+    assert stage["seconds"] > 0 and stage["best_map50_epoch"] == 1
+    import torch  # noqa: PLC0415
+
+    assert card["software"]["torch"] == torch.__version__.split("+")[0]
     onnx_copy = backends.load_detector(out / "tiny-yolo.onnx")
     assert onnx_copy.names == {0: "person", 1: "bicycle", 2: "car", 3: "motorcycle"}
     settings = json.loads((out / "recipe.json").read_text())
@@ -297,6 +312,23 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
         assert {r["model"] for r in records} == {"rainbench-yolo11n", "rainbench-yolo11n-weak"}
         assert sorted({r["rate"] for r in records}) == [0, 50, 100]
         assert (tmp_path / "out" / rain / "ap50_vs_rate.png").stat().st_size > 1000
+    # The robustness section: every model's mPC and rPC with intervals, the weak control's
+    # difference paired against the nano model it extends; points equal the metric records'.
+    assert "Rain robustness with intervals" in report
+    for rain in ("jeon2022", "physical", "physical-fixed-weather"):
+        rows = json.loads((tmp_path / "out" / rain / "robustness.json").read_text())
+        assert "Rain robustness with intervals" in (tmp_path / "out" / rain / "report.md").read_text()
+        records = {(r["model"], r["class"], r["rate"]): r for r in json.loads(
+            (tmp_path / "out" / rain / "metrics.json").read_text())}
+        assert [(row["model"], row["reference"]) for row in rows if row["class"] == "car"] == [
+            ("rainbench-yolo11n", None), ("rainbench-yolo11n-weak", "rainbench-yolo11n")]
+        for row in rows:
+            ap = {rate: records[(row["model"], row["class"], rate)]["ap50"] for rate in (0, 50, 100)}
+            if ap[0] is None:
+                continue
+            assert row["clean"] == pytest.approx(ap[0], abs=1e-9)
+            assert row["mpc"] == pytest.approx((ap[50] + ap[100]) / 2, abs=1e-9)
+            assert row["mpc_low"] <= row["mpc"] <= row["mpc_high"]
     # Table I counts equal the shard's labels.
     from rainbench.experiments.paper import table_one
 
@@ -307,6 +339,26 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
         assert instances == n_gt and (objects > 0) == (instances > 0)
     code, _, err = _run(capsys, "paper", "--rates", "50,100", "--data", tmp_path / "d2", "--out", tmp_path / "o2")
     assert code == 2 and "needs rate 0" in err and len(err.strip().splitlines()) == 1
+    for compare, message in (("rainbench-yolo11n", "--compare: expected MODEL=REFERENCE"),
+                             ("rainbench-yolo11n-weak=other", "--compare: 'other' is not an evaluated model")):
+        code, _, err = _run(capsys, "paper", "--frames", 2, "--compare", compare, "--data", tmp_path / "d3",
+                            "--out", tmp_path / "o3")
+        assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "d3" / "jeon2022").exists()  # refused before generating
+
+
+def test_comparison_references_follow_names_unless_chosen():
+    from rainbench.eval.comparison import comparison_references
+
+    models = ["rainbench-yolo11n", "rainbench-yolo11n-randomrain", "rainbench-yolo11n-rain", "rainbench-yolo11s",
+              "rainbench-yolo11s-rain", "mine"]
+    assert comparison_references(models) == {
+        "rainbench-yolo11n-randomrain": "rainbench-yolo11n", "rainbench-yolo11n-rain": "rainbench-yolo11n",
+        "rainbench-yolo11s": "rainbench-yolo11n", "rainbench-yolo11s-rain": "rainbench-yolo11s",
+        "mine": "rainbench-yolo11n"}
+    chosen = comparison_references(models, [("rainbench-yolo11n-rain", "rainbench-yolo11n-randomrain")])
+    assert chosen["rainbench-yolo11n-rain"] == "rainbench-yolo11n-randomrain"
+    assert comparison_references(["only"]) == {}
 
 
 def test_shipped_model_without_onnx_builds_its_copy_once_into_the_cache(tmp_path, monkeypatch):

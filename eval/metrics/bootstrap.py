@@ -15,7 +15,7 @@ import numpy as np
 
 from rainbench.store.classes import PAPER_CLASSES
 
-from .coco import IOU_THRESHOLDS, RECALL_THRESHOLDS, match_table, validate_gt_dict
+from .coco import IOU_THRESHOLDS, RECALL_THRESHOLDS, ClassMatches, match_table, validate_gt_dict
 
 BOOTSTRAP_METRICS = ("ap50", "ap50_95")
 """Metrics :func:`bootstrap_ci` can resample."""
@@ -163,12 +163,7 @@ def bootstrap_ci(
     Returns:
         ``{class_id: BootstrapCI}``; classes without ground truth get nan point and bounds.
     """
-    if not isinstance(rng, np.random.Generator):
-        raise ValueError(f"rng: expected a numpy.random.Generator, got {type(rng).__name__}")
-    if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 1:
-        raise ValueError(f"n_boot: expected an int >= 1, got {n_boot!r}")
-    if not 0.0 < alpha < 1.0:
-        raise ValueError(f"alpha: expected a value in (0, 1), got {alpha!r}")
+    _check_resampling(n_boot, rng, alpha)
     if metric not in BOOTSTRAP_METRICS:
         raise ValueError(f"metric: expected one of {BOOTSTRAP_METRICS}, got {metric!r}")
     iou_thresholds = IOU_THRESHOLDS[:1] if metric == "ap50" else IOU_THRESHOLDS
@@ -177,34 +172,194 @@ def bootstrap_ci(
     image_weights = bootstrap_weights(n_images, int(n_boot), rng).astype(np.float64)
     result = {}
     for class_id, match in matches.items():
-        ones = np.ones((1, len(match.scores)))
-        point = float(
-            interpolated_ap(
-                match.true_positive, match.ignored, ones, np.array([match.n_gt_per_image.sum()], float)
-            ).mean()
-        )
-        n_gt = image_weights @ match.n_gt_per_image.astype(np.float64)
-        values = np.empty(n_boot)
-        chunk = max(1, 2_000_000 // max(1, len(match.scores)))
-        for start in range(0, n_boot, chunk):
-            rows = slice(start, start + chunk)
-            det_weights = image_weights[rows][:, match.image_index]
-            values[rows] = interpolated_ap(match.true_positive, match.ignored, det_weights, n_gt[rows]).mean(axis=1)
-        valid = values[~np.isnan(values)]
-        if valid.size:
-            low, high = np.quantile(valid, [alpha / 2, 1 - alpha / 2])
-        else:
-            low = high = float("nan")
+        point, values = _resampled_ap(match, image_weights)
+        low, high, n_valid = _percentiles(values, alpha)
         result[class_id] = BootstrapCI(
             class_id=class_id,
             metric=metric,
             point=point,
-            low=float(low),
-            high=float(high),
+            low=low,
+            high=high,
             alpha=float(alpha),
             n_boot=int(n_boot),
-            n_valid=int(valid.size),
+            n_valid=n_valid,
         )
+    return result
+
+
+def _check_resampling(n_boot: Any, rng: Any, alpha: Any) -> None:
+    """One-line ValueErrors for the arguments every bootstrap here takes."""
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng: expected a numpy.random.Generator, got {type(rng).__name__}")
+    if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 1:
+        raise ValueError(f"n_boot: expected an int >= 1, got {n_boot!r}")
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha: expected a value in (0, 1), got {alpha!r}")
+
+
+def _resampled_ap(match: ClassMatches, image_weights: np.ndarray) -> tuple[float, np.ndarray]:
+    """AP at the first IoU threshold(s) of ``match`` (mean over its thresholds): the point value
+    (every image once, COCOeval's AP) and the (B,) float64 value of each resample of
+    ``image_weights`` ((B, N) image multiplicities in ``match.image_ids`` order; nan where the
+    resample holds no ground truth of the class)."""
+    ones = np.ones((1, len(match.scores)))
+    point = float(
+        interpolated_ap(match.true_positive, match.ignored, ones, np.array([match.n_gt_per_image.sum()], float)).mean()
+    )
+    n_boot = len(image_weights)
+    n_gt = image_weights @ match.n_gt_per_image.astype(np.float64)
+    values = np.empty(n_boot)
+    chunk = max(1, 2_000_000 // max(1, len(match.scores)))
+    for start in range(0, n_boot, chunk):
+        rows = slice(start, start + chunk)
+        det_weights = image_weights[rows][:, match.image_index]
+        values[rows] = interpolated_ap(match.true_positive, match.ignored, det_weights, n_gt[rows]).mean(axis=1)
+    return point, values
+
+
+def _percentiles(values: np.ndarray, alpha: float) -> tuple[float, float, int]:
+    """(low, high, n_valid): the ``alpha / 2`` and ``1 - alpha / 2`` quantiles of the non-nan
+    entries of the (B,) ``values`` (nan, nan when none is)."""
+    valid = values[~np.isnan(values)]
+    if not valid.size:
+        return float("nan"), float("nan"), 0
+    low, high = np.quantile(valid, [alpha / 2, 1 - alpha / 2])
+    return float(low), float(high), int(valid.size)
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A point value and its percentile bootstrap interval (nan bounds when no resample held
+    ground truth of the class)."""
+
+    point: float
+    low: float
+    high: float
+
+
+@dataclass(frozen=True)
+class RobustnessCI:
+    """Robustness of one model for one class under rain, with bootstrap intervals.
+
+    Every interval comes from the same resamples of frames: a resample draws frames once and
+    holds each drawn frame at every rate, for every model (the frames are the same scene at each
+    rate), so mPC, rPC and differences between models are resampled as paired quantities.
+
+    Attributes:
+        class_id (int): COCO-80 class id.
+        ap50 (dict[float, Interval]): AP@0.5 at each rate (mm/h), rate 0 included.
+        mpc (Interval): mean AP@0.5 over the rates > 0.
+        rpc (Interval): mPC / AP@0.5 at rate 0 (nan where the clean AP is 0).
+        reference (str | None): the model this one is compared with, or None.
+        mpc_difference (Interval | None): this model's mPC minus the reference's, paired.
+        alpha (float): 1 - confidence level.
+        n_boot (int): Resamples drawn.
+    """
+
+    class_id: int
+    ap50: dict[float, Interval]
+    mpc: Interval
+    rpc: Interval
+    reference: str | None
+    mpc_difference: Interval | None
+    alpha: float
+    n_boot: int
+
+
+def robustness_intervals(
+    gt_dict: Mapping[str, Any],
+    detections: Mapping[str, Mapping[float, Sequence[Mapping[str, Any]]]],
+    n_boot: int = 1000,
+    *,
+    rng: np.random.Generator,
+    alpha: float = 0.05,
+    class_ids: Sequence[int] = PAPER_CLASSES,
+    references: Mapping[str, str] | None = None,
+) -> dict[str, dict[int, RobustnessCI]]:
+    """Bootstrap intervals of AP@0.5 per rate, mPC and rPC (Michaelis et al. 2019) of several
+    models on one dataset, and of each model's mPC difference from a reference model.
+
+    The frames are resampled once (``n_boot`` resamples of the ground truth's images): each
+    resample weights every rate's and every model's detections by the same image multiplicities
+    (:func:`bootstrap_ci`'s method), so the mPC of a resample is the mean of that resample's
+    per-rate APs, and the difference of two models is paired. Point values are COCOeval's AP.
+
+    Args:
+        gt_dict: COCO ground-truth dict; the same frames and boxes at every rate.
+        detections: ``{model: {rate_mm_h: COCO results records}}``; every model has the same
+            rates, among them 0 and at least one > 0.
+        n_boot: Number of resamples (>= 1).
+        rng: Random generator (required; pass ``np.random.default_rng(seed)``).
+        alpha: 1 - confidence level, in (0, 1); 0.05 gives 95 % intervals.
+        class_ids: Class ids.
+        references: ``{model: reference model}`` for the mPC differences (both keys of
+            ``detections``); models not in it get no difference.
+
+    Returns:
+        ``{model: {class_id: RobustnessCI}}`` in the order of ``detections``.
+    """
+    _check_resampling(n_boot, rng, alpha)
+    if not detections:
+        raise ValueError("detections: expected {model: {rate: records}} with at least one model, got none")
+    rate_sets = {model: sorted(float(rate) for rate in by_rate) for model, by_rate in detections.items()}
+    rates = next(iter(rate_sets.values()))
+    for model, model_rates in rate_sets.items():
+        if model_rates != rates:
+            raise ValueError(f"detections[{model!r}]: expected the rates {rates} of the first model, got {model_rates}")
+    if 0.0 not in rates or len(rates) < 2:
+        raise ValueError(f"detections: expected rate 0 and at least one rate > 0 mm/h, got rates {rates}")
+    references = dict(references or {})
+    for model, reference in references.items():
+        if model not in detections or reference not in detections:
+            raise ValueError(f"references: {model!r} -> {reference!r} names a model without detections "
+                             f"(models: {', '.join(detections)})")
+    image_ids = sorted(int(image["id"]) for image in gt_dict["images"])
+    image_weights = bootstrap_weights(len(image_ids), int(n_boot), rng).astype(np.float64)
+    rainy = [rate for rate in rates if rate > 0]
+    samples: dict[str, dict[int, dict[float, tuple[float, np.ndarray]]]] = {}
+    for model, by_rate in detections.items():
+        records_at = {float(rate): records for rate, records in by_rate.items()}
+        per_class: dict[int, dict[float, tuple[float, np.ndarray]]] = {}
+        for rate in rates:
+            matches = match_table(gt_dict, records_at[rate], class_ids, image_ids, IOU_THRESHOLDS[:1])
+            for class_id, match in matches.items():
+                per_class.setdefault(class_id, {})[rate] = _resampled_ap(match, image_weights)
+        samples[model] = per_class
+
+    def summary(model: str, class_id: int) -> tuple[float, np.ndarray, float, np.ndarray]:
+        by_rate = samples[model][class_id]
+        mpc_point = float(np.mean([by_rate[rate][0] for rate in rainy]))
+        mpc_values = np.mean([by_rate[rate][1] for rate in rainy], axis=0)
+        clean_point, clean_values = by_rate[0.0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rpc_values = np.where(clean_values > 0, mpc_values / np.where(clean_values > 0, clean_values, 1), np.nan)
+        rpc_point = mpc_point / clean_point if clean_point > 0 else float("nan")
+        return mpc_point, mpc_values, rpc_point, rpc_values
+
+    def interval(point: float, values: np.ndarray) -> Interval:
+        low, high, _ = _percentiles(values, alpha)
+        return Interval(point=float(point), low=low, high=high)
+
+    result: dict[str, dict[int, RobustnessCI]] = {}
+    for model in detections:
+        result[model] = {}
+        for class_id, by_rate in samples[model].items():
+            mpc_point, mpc_values, rpc_point, rpc_values = summary(model, class_id)
+            reference = references.get(model)
+            difference = None
+            if reference is not None:
+                reference_point, reference_values, _, _ = summary(reference, class_id)
+                difference = interval(mpc_point - reference_point, mpc_values - reference_values)
+            result[model][class_id] = RobustnessCI(
+                class_id=class_id,
+                ap50={rate: interval(*by_rate[rate]) for rate in rates},
+                mpc=interval(mpc_point, mpc_values),
+                rpc=interval(rpc_point, rpc_values),
+                reference=reference,
+                mpc_difference=difference,
+                alpha=float(alpha),
+                n_boot=int(n_boot),
+            )
     return result
 
 

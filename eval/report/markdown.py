@@ -119,6 +119,7 @@ def render_report_md(
     clean_rate: float = 0.0,
     heavy_rate: float | None = None,
     title: str = "rainbench: detection under synthetic rain",
+    robustness: Sequence[Mapping[str, Any]] = (),
 ) -> str:
     """Render records as a markdown report in the paper's layout.
 
@@ -139,6 +140,8 @@ def render_report_md(
         clean_rate: Rate shown as "Normal".
         heavy_rate: Rate compared with Normal in Tables III/IV; the highest rate when None.
         title: Report title.
+        robustness: Rows of :func:`rainbench.eval.comparison.comparison_rows` (mPC and rPC with
+            intervals, paired differences); none: no such section.
 
     Returns:
         The markdown text.
@@ -198,6 +201,8 @@ def render_report_md(
                 row += [_fmt(entry["clean"]), _fmt(entry["mpc"]), _fmt(entry["rpc"])] if entry else ["n/a"] * 3
             rows.append(row)
     lines += _table(header, rows)
+    if robustness:
+        lines += [""] + robustness_section({"": robustness}, level="##")
     lines += ["", f"## Ground-truth instances (non-ignored), model {models[0]}", ""]
     lines += _table(
         ["Class"] + [_rate_label(rate, clean_rate) for rate in rates],
@@ -257,6 +262,64 @@ def _weather_share(records_by_rain: Mapping[str, Sequence[Mapping[str, Any]]]) -
     return lines + [""]
 
 
+def _with_interval(row: Mapping[str, Any], key: str) -> str:
+    """``0.812 (0.770-0.850)``: a point and its interval, n/a for nan."""
+    point, low, high = (as_float(row[f"{key}{suffix}"]) for suffix in ("", "_low", "_high"))
+    if math.isnan(point):
+        return "n/a"
+    return f"{_fmt(point)} ({_fmt(low)}-{_fmt(high)})" if not math.isnan(low) else _fmt(point)
+
+
+def _signed_interval(row: Mapping[str, Any], key: str) -> str:
+    """``+0.087 (+0.041 to +0.127)``: a signed difference and its interval, blank for nan."""
+    point, low, high = (as_float(row[f"{key}{suffix}"]) for suffix in ("", "_low", "_high"))
+    if math.isnan(point):
+        return ""
+    return f"{point:+.3f} ({low:+.3f} to {high:+.3f})" if not math.isnan(low) else f"{point:+.3f}"
+
+
+def robustness_section(robustness: Mapping[str, Sequence[Mapping[str, Any]]], level: str = "###") -> list[str]:
+    """Section comparing models' robustness with intervals, one table per dataset.
+
+    Args:
+        robustness: ``{dataset name: rows}``, rows of :func:`rainbench.eval.comparison.comparison_rows`;
+            an empty name prints no name line (one dataset).
+        level: The heading's markdown level.
+
+    Returns:
+        Markdown lines (none when ``robustness`` is empty).
+    """
+    if not robustness:
+        return []
+    lines = [f"{level} Rain robustness with intervals: clean-trained and rain-trained models compared", "",
+             "mPC: mean AP@0.5 over the rainy rates; rPC = mPC / AP@0.5 Normal (Michaelis et al. 2019). "
+             "Intervals: 95 % percentile bootstrap over frames, one set of resamples for every rate and "
+             "every model, so each model's mPC difference from its reference (the model whose name it "
+             "extends, `rainbench-yolo11n-rain` from `rainbench-yolo11n`, else the first model) is paired: "
+             "an interval that excludes 0 is a difference these frames support. Evaluate a clean-trained "
+             "model with its rain-trained variants together to compare them (docs/models.md).", ""]
+    for name, rows in robustness.items():
+        if not rows:
+            continue
+        heavy = as_float(rows[0]["heavy_rate"])
+        lines += [f"{name}:", ""] if name else []
+        table_rows = []
+        previous = None
+        for row in rows:
+            model = row["model"] if row["model"] != previous else ""
+            previous = row["model"]
+            reference = row.get("reference")
+            difference = _signed_interval(row, "mpc_difference")
+            table_rows.append([model, row["class"], str(row["n_gt"]), _with_interval(row, "clean"),
+                               _fmt(row["at_50"]), _with_interval(row, "at_heavy"), _with_interval(row, "mpc"),
+                               _with_interval(row, "rpc"),
+                               f"{difference} vs {reference}" if difference and reference else ""])
+        lines += _table(["Model", "Class", "Boxes", "AP@0.5 Normal", "50 mm/h", f"{heavy:g} mm/h", "mPC", "rPC",
+                         "mPC difference (paired)"], table_rows)
+        lines += [""]
+    return lines
+
+
 def render_paper_md(
     *,
     setup_lines: Sequence[str],
@@ -266,6 +329,7 @@ def render_paper_md(
     breakdowns: Mapping[str, Mapping[float, Mapping[str, Mapping[str, Any]]]],
     breakdown_model: str,
     paper_rain_model: str = "jeon2022",
+    robustness: Mapping[str, Sequence[Mapping[str, Any]]] | None = None,
 ) -> str:
     """The ``make paper`` report: our Tables I, III and IV beside the seed paper's, plots of both
     rain models, and the analyses beyond the paper. Every table shows the classes of the records
@@ -284,6 +348,7 @@ def render_paper_md(
             ``breakdown_model`` under ``paper_rain_model`` rain.
         breakdown_model: The model of ``breakdowns``.
         paper_rain_model: The rain model of the paper's Tables III and IV comparison.
+        robustness: ``{rain model: rows}`` of :func:`robustness_section` (none: no such section).
 
     Returns:
         The markdown text.
@@ -334,6 +399,7 @@ def render_paper_md(
                   f"Full rate-by-rate tables with bootstrap intervals: [{rain_model}/report.md]({rain_model}/report.md)."]
     lines += ["", "## Beyond the paper", ""]
     lines += _weather_share(records_by_rain)
+    lines += robustness_section(robustness or {})
     lines += ["### Rain rate (mm/h) at which AP@0.5 falls to half its clean value", ""]
     rain_models = list(records_by_rain)
     models = index_records(next(iter(records_by_rain.values())))[0]

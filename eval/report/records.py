@@ -215,7 +215,7 @@ def index_records(records: Sequence[Mapping[str, Any]]) -> tuple[list[str], list
     return models, rates, classes, by_key
 
 
-def _json_ready(value: Any) -> Any:
+def json_ready(value: Any) -> Any:
     """A JSON-serialisable copy of ``value``: nan/inf -> None, numpy scalars -> Python."""
     if isinstance(value, np.generic):
         value = value.item()
@@ -247,7 +247,7 @@ def write_metrics(records: Sequence[Mapping[str, Any]], out_dir: str | Path) -> 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     fields = _field_order(records)
-    cleaned = [{key: _json_ready(record.get(key)) for key in fields} for record in records]
+    cleaned = [{key: json_ready(record.get(key)) for key in fields} for record in records]
     json_path = out_dir / "metrics.json"
     json_path.write_text(json.dumps(cleaned, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     csv_path = out_dir / "metrics.csv"
