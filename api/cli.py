@@ -486,7 +486,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(run=cmd_eval)
     training = sub.add_parser("train", help="train a YOLO detector from scratch on clean scenes (a recipe)")
     training.add_argument("--recipe", default="rainbench-yolo11n",
-                          help="a shipped recipe name (rainbench-yolo11n, rainbench-yolo11s) or a .yaml file")
+                          help="a shipped recipe name (experiments/recipes: rainbench-yolo11n, rainbench-yolo11s, rainbench-yolo11n-rain, ...) or a .yaml file")
     training.add_argument("--out", default=None, help="run directory (default: runs/<name>); "
                           "running the same command again resumes a cut-off run there")
     training.add_argument("--device", default=None, help="torch device (default: CUDA 0 if present, else cpu)")

@@ -9,21 +9,34 @@ compute on sky and empty road. A tile stage instead rescales each frame by
 (rare classes more often), some anywhere (background and negatives). ultralytics then trains at
 ``imgsz`` = ``size``, so the tiles are not resized again and objects keep the evaluator's scale.
 
+Rain on training tiles (:func:`export_tiles`'s ``rain_sources`` and ``random_rain``): a tile's
+pixels may be cut from the same frame rendered otherwise (another rain model or rate: one YOLO
+folder each, drawn per tile by weight), and albumentations' RandomRain may rain on the frame a
+tile is cut from. Both draw from a generator of their own (:func:`rain_generator`), so a rainy
+tile set places its tiles exactly where the clean one with the same :class:`TileConfig` does,
+with the same labels; validation tiles stay clean.
+
 Pure functions (:func:`cut_boxes`, :func:`sample_tile_origins`, :func:`grid_tile_origins`)
-decide what goes in a tile; :func:`export_tiles` reads a YOLO folder and writes a tiled one.
+decide what goes in a tile; :func:`export_tiles` reads YOLO folders and writes a tiled one.
 Boxes are float ``x1, y1, x2, y2`` in pixel-edge coordinates throughout.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
+
+if TYPE_CHECKING:
+    from rainbench.experiments.shard_training import RandomRainAugment
 
 
 class TileError(ValueError):
@@ -79,10 +92,16 @@ class TileConfig:
             raise TileError(f"{source}.{unknown[0]} is not a tile setting (expected some of {', '.join(known)})")
         return cls(**mapping)
 
-    def token(self) -> str:
-        """A folder name that differs whenever a setting differs."""
-        return (f"tiles_s{self.size}_x{self.scale:g}_n{self.per_image}_b{self.background:g}"
-                f"_a{self.min_area_fraction:g}_r{self.seed}")
+    def token(self, rain: Mapping[str, Any] | None = None) -> str:
+        """A folder name that differs whenever a setting differs. ``rain``: a JSON-able
+        description of the training tiles' rain (None: clean tiles, the name has no rain part);
+        it appends ``_rain<the first 10 hex digits of its sha256>``, so other rain, another name."""
+        token = (f"tiles_s{self.size}_x{self.scale:g}_n{self.per_image}_b{self.background:g}"
+                 f"_a{self.min_area_fraction:g}_r{self.seed}")
+        if rain is None:
+            return token
+        digest = hashlib.sha256(json.dumps(rain, sort_keys=True, default=str).encode()).hexdigest()
+        return f"{token}_rain{digest[:10]}"
 
 
 def _check_fits(image_size: tuple[int, int], size: int) -> None:
@@ -190,8 +209,48 @@ def class_weights_of(label_dir: Path, num_classes: int) -> np.ndarray:
     return np.where(counts > 0, 1.0 / np.sqrt(np.maximum(counts, 1.0)), 0.0)
 
 
-def export_tiles(source: Path, out: Path, config: TileConfig, *, grid: bool,
-                 num_classes: int) -> int:
+def rain_generator(seed: int) -> np.random.Generator:
+    """The generator of a tile set's rain draws (each tile's rain source, RandomRain's chance and
+    seed): a stream of its own derived from ``seed`` (:attr:`TileConfig.seed`), apart from the
+    placements' ``default_rng(seed)``, so rain never moves a tile."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1,)))
+
+
+def _read_bgr(path: Path) -> np.ndarray:
+    """The (H, W, 3) uint8 BGR image at ``path``."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise TileError(f"{path}: not a readable image")
+    return bgr
+
+
+def _rescale(bgr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(H, W, 3) ``bgr`` resized to ``size`` = ``(height, width)`` (bilinear, as ultralytics'
+    letterbox), itself when it has that size already."""
+    if bgr.shape[:2] == size:
+        return bgr
+    return cv2.resize(bgr, (size[1], size[0]), interpolation=cv2.INTER_LINEAR)
+
+
+def _check_rain_sources(source: Path, names: list[str], folders: Sequence[Path]) -> None:
+    """Raise TileError unless every YOLO folder of ``folders`` holds the frames of ``source``:
+    the same image names (``names``, sorted) and the same label files."""
+    for folder in dict.fromkeys(folders):
+        if folder == source:
+            continue
+        if sorted(path.name for path in (folder / "images").glob("*.png")) != names:
+            raise TileError(f"{folder / 'images'}: holds other images than {source / 'images'}; a rain "
+                            "source must hold the frames of the source")
+        for name in names:
+            label = Path(name).with_suffix(".txt").name
+            if (folder / "labels" / label).read_text() != (source / "labels" / label).read_text():
+                raise TileError(f"{folder / 'labels' / label}: labels differ from {source / 'labels' / label}; "
+                                "a rain source must hold the frames of the source")
+
+
+def export_tiles(source: Path, out: Path, config: TileConfig, *, grid: bool, num_classes: int,
+                 rain_sources: Sequence[tuple[Path, float]] | None = None,
+                 random_rain: RandomRainAugment | None = None) -> int:
     """Cut the YOLO folder ``source`` (``images/*.png`` with ``labels/*.txt`` of the same stem)
     into tiles under ``out/images`` and ``out/labels``; returns the number of tiles written.
 
@@ -200,14 +259,40 @@ def export_tiles(source: Path, out: Path, config: TileConfig, *, grid: bool,
     give the same tiles); ``grid=True`` covers each image with :func:`grid_tile_origins`
     (validation). Images are rescaled by ``config.scale`` with bilinear interpolation, as
     ultralytics' letterbox does. ``out`` is replaced.
+
+    Rain, on training tiles only (a grid with rain is a :class:`TileError`), drawn per tile from
+    :func:`rain_generator` (``config.seed``), so the tiles' places and labels are those without
+    rain and the same arguments give the same files:
+
+    - ``rain_sources``: (K,) ``(YOLO folder, weight >= 0)`` pairs, each holding the frames of
+      ``source`` (the same image names and label files; ``source`` itself may be one) rendered
+      otherwise, e.g. at another rain rate. Each tile's pixels are cut from one of them, drawn
+      with probability proportional to its weight (no draw when K is 1); its labels are
+      ``source``'s. None: ``source``'s pixels.
+    - ``random_rain``: albumentations' RandomRain with probability ``random_rain.p`` per tile,
+      seeded by the generator; it rains on the whole frame (RGB, before the rescale) the tile is
+      then cut from, as on a whole training frame: RandomRain's drop count and length grow with
+      the image's height, so raining on the tile alone would give denser, shorter drops.
     """
     from rainbench.store.export import _yolo_lines, read_yolo_labels
 
     images = sorted((source / "images").glob("*.png"))
     if not images:
         raise TileError(f"{source / 'images'}: no .png images to cut into tiles")
+    rainy = rain_sources is not None or random_rain is not None
+    if rainy and grid:
+        raise TileError(f"{source}: rain is for training tiles only; a validation grid is cut clean")
+    folders = [Path(folder) for folder, _ in rain_sources] if rain_sources is not None else [source]
+    shares = np.asarray([weight for _, weight in rain_sources] if rain_sources is not None else [1.0], np.float64)
+    if len(folders) == 0 or not (np.isfinite(shares).all() and (shares >= 0).all() and shares.sum() > 0):
+        raise TileError(f"rain_sources: expected (folder, weight) pairs with weights >= 0 and a positive sum, "
+                        f"got {list(rain_sources or [])}")
+    shares = shares / shares.sum()
+    _check_rain_sources(source, [path.name for path in images], folders)
+    transform = None if random_rain is None else random_rain.transform()
     weights = class_weights_of(source / "labels", num_classes)
     rng = np.random.default_rng(config.seed)
+    rain_rng = rain_generator(config.seed)
     for sub in ("images", "labels"):
         folder = out / sub
         if folder.is_dir():
@@ -216,22 +301,36 @@ def export_tiles(source: Path, out: Path, config: TileConfig, *, grid: bool,
         folder.mkdir(parents=True, exist_ok=True)
     written = 0
     for image_path in images:
-        bgr = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise TileError(f"{image_path}: not a readable image")
+        bgr = _read_bgr(image_path)
         height, width = bgr.shape[:2]
         boxes, class_ids = read_yolo_labels(source / "labels" / f"{image_path.stem}.txt", width, height)
-        new_height, new_width = rescaled_size(height, width, config.scale)
-        if (new_height, new_width) != (height, width):
-            bgr = cv2.resize(bgr, (new_width, new_height), interpolation=cv2.INTER_LINEAR)
+        new_size = new_height, new_width = rescaled_size(height, width, config.scale)
+        if new_size != (height, width):
             boxes = boxes * np.array([new_width / width, new_height / height] * 2, dtype=np.float32)
-        origins = (grid_tile_origins((new_height, new_width), config.size) if grid else
-                   sample_tile_origins(boxes, class_ids, (new_height, new_width), config, weights, rng))
+        origins = (grid_tile_origins(new_size, config.size) if grid else
+                   sample_tile_origins(boxes, class_ids, new_size, config, weights, rng))
+        stored = {source: bgr}  # rain source folder -> (H, W, 3) BGR frame as stored
+        rescaled: dict[Path, np.ndarray] = {}  # the same, rescaled
         for number, (x0, y0) in enumerate(origins):
             tile_boxes, tile_classes = cut_boxes(boxes, class_ids, (int(x0), int(y0)), config.size,
                                                  config.min_area_fraction)
             stem = f"{image_path.stem}_t{number:02d}"
-            crop = np.ascontiguousarray(bgr[y0:y0 + config.size, x0:x0 + config.size])
+            folder = folders[int(rain_rng.choice(len(folders), p=shares))] if len(folders) > 1 else folders[0]
+            if folder not in stored:
+                stored[folder] = _read_bgr(folder / "images" / image_path.name)
+                if stored[folder].shape != bgr.shape:
+                    raise TileError(f"{folder / 'images' / image_path.name}: {stored[folder].shape[1]}x"
+                                    f"{stored[folder].shape[0]} px, but {image_path} is {width}x{height}; a rain "
+                                    "source must hold the frames of the source")
+            if transform is not None and rain_rng.random() < random_rain.p:
+                transform.set_random_seed(int(rain_rng.integers(2**32)))
+                rained = transform(image=np.ascontiguousarray(stored[folder][:, :, ::-1]))["image"][:, :, ::-1]
+                frame = _rescale(rained, new_size)
+            else:
+                if folder not in rescaled:
+                    rescaled[folder] = _rescale(stored[folder], new_size)
+                frame = rescaled[folder]
+            crop = np.ascontiguousarray(frame[y0:y0 + config.size, x0:x0 + config.size])
             if not cv2.imwrite(str(out / "images" / f"{stem}.png"), crop):
                 raise OSError(f"{out / 'images' / stem}.png: could not write the tile")
             (out / "labels" / f"{stem}.txt").write_text(

@@ -23,7 +23,9 @@ training run depends on:
   0..max with their COCO names;
 - ``tiles`` (optional, in any stage): a :class:`~rainbench.experiments.tiles.TileConfig` mapping. That
   stage trains on tiles of the rescaled frames (:func:`prepare_tiles`) instead of whole frames,
-  and must set ``imgsz`` to ``tiles.size``.
+  and must set ``imgsz`` to ``tiles.size``. Its training tiles get the recipe's rain (the
+  ``rain_curriculum``'s rain models and rates, or ``random_rain``), as whole frames do; its
+  validation tiles are clean.
 - ``reader`` (optional, default ``shards``): whole-frame stages read the shards directly
   (:mod:`rainbench.experiments.shard_training`, no export); ``export`` trains on exported YOLO
   folders of the clean frames instead. Tile stages always cut their tiles from an export.
@@ -73,6 +75,7 @@ from rainbench.gen.dataset import run_dataset
 from rainbench.store.export import yolo_names
 from rainbench.store.classes import PAPER_CLASSES, parse_classes
 from rainbench.store.manifest import is_int
+from rainbench.store.rates import rate_token
 from rainbench.mjcf.layout import ScenarioConfig
 
 from rainbench.eval.weights import DEFAULT_IMGSZ
@@ -257,7 +260,8 @@ def load_recipe(recipe: str | Path) -> Recipe:
     except CurriculumError as error:
         raise TrainError(f"{source}: `rain_curriculum`: {str(error).removeprefix('rain curriculum: ')}") from None
     if curriculum != RainCurriculum() and reader != "shards":
-        raise TrainError(f"{source}: `rain_curriculum` needs `reader: shards` (an export holds one rate per folder)")
+        raise TrainError(f"{source}: `rain_curriculum` needs `reader: shards` (whole frames read from an export "
+                       "have one rate)")
     try:
         random_rain = (None if raw.get("random_rain") is None
                        else RandomRainAugment.from_mapping(raw["random_rain"]))
@@ -293,38 +297,44 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1, export: b
                  progress: Callable[[int], None] | None = None) -> Path:
     """Generate (or finish) the training datasets (one per rain model of the curriculum,
     :meth:`Recipe.train_datasets`) and the validation dataset under ``OUT/data``; with
-    ``export``, also export the clean frames of the first training dataset and of the validation
-    dataset as YOLO folders under ``OUT/yolo``. Returns the ultralytics dataset yaml:
-    ``OUT/dataset.yaml`` (the YOLO folders) with ``export``, else ``OUT/shards.yaml`` (the shard
-    folders of the first training dataset and of validation, read by
-    :func:`shard_trainer_class`'s trainer with :func:`train_data_dirs`)."""
+    ``export``, also export them as YOLO folders: ``OUT/yolo/<folder>/rate_<token>`` for each
+    training dataset at each of its curriculum rates (``OUT/yolo/train/rate_0`` alone without
+    a curriculum) and ``OUT/yolo/val/rate_0``. Each export's stamp ``OUT/yolo/<folder>/.exported``
+    records the trained classes and the dataset's manifest; an export is redone when they change
+    or a rate's folder is missing. Returns the ultralytics dataset yaml: ``OUT/dataset.yaml``
+    (the first training dataset at its first curriculum rate, and validation, as YOLO folders)
+    with ``export``, else ``OUT/shards.yaml`` (the shard folders of the first training dataset
+    and of validation, read by :func:`shard_trainer_class`'s trainer with
+    :func:`train_data_dirs`)."""
     from rainbench.store.export import export_yolo  # noqa: PLC0415
 
     out = Path(out)
     yolo = out / "yolo"
-    train_sets = list(recipe.train_datasets().values())
-    train_folders = [folder for folder, _ in train_sets]
-    for folder, config in [*train_sets, ("val", recipe.val_data)]:
+    train_sets = recipe.train_datasets()
+    exported = {folder: recipe.curriculum.rates_of(model) for model, (folder, _) in train_sets.items()}
+    exported["val"] = (0.0,)
+    first = next(iter(train_sets.values()))[0]
+    for folder, config in [*train_sets.values(), ("val", recipe.val_data)]:
         data_dir = out / "data" / folder
         manifest = data_dir / "manifest.json"
         before = manifest.read_bytes() if manifest.is_file() else None
         run_dataset(config, data_dir, workers=workers, progress=progress)
-        if not export or folder not in (train_folders[0], "val"):
+        if not export:
             continue
-        split = "val" if folder == "val" else "train"
-        done_marker = yolo / split / ".exported"
+        done_marker = yolo / folder / ".exported"
         # the export is redone when the data or the trained classes change
         stamp = json.dumps({"classes": list(recipe.classes), "manifest": manifest.read_text()})
         if (before != manifest.read_bytes() or not done_marker.is_file()
-                or done_marker.read_text() != stamp):
+                or done_marker.read_text() != stamp
+                or not all((yolo / folder / f"rate_{rate_token(rate)}").is_dir() for rate in exported[folder])):
             done_marker.unlink(missing_ok=True)
-            export_yolo(data_dir, yolo / split, rates=[0.0], image_format="png", overwrite=True,
-                        classes=recipe.classes)
+            export_yolo(data_dir, yolo / folder, rates=list(exported[folder]), image_format="png",
+                        overwrite=True, classes=recipe.classes)
             done_marker.write_text(stamp)
     if not export:
-        return _dataset_yaml(out / "shards.yaml", out / "data", train_folders[0], "val", recipe.classes)
-    return _dataset_yaml(out / "dataset.yaml", yolo, "train/rate_0/images", "val/rate_0/images",
-                         recipe.classes)
+        return _dataset_yaml(out / "shards.yaml", out / "data", first, "val", recipe.classes)
+    return _dataset_yaml(out / "dataset.yaml", yolo, f"{first}/rate_{rate_token(exported[first][0])}/images",
+                         "val/rate_0/images", recipe.classes)
 
 
 def train_data_dirs(recipe: Recipe, out: str | Path) -> dict[str, Path]:
@@ -341,29 +351,57 @@ def _dataset_yaml(path: Path, root: Path, train_images: str, val_images: str,
     return path
 
 
-def prepare_tiles(out: str | Path, config: TileConfig,
-                  classes: tuple[int, ...] = TRAIN_CLASSES) -> Path:
+def tile_rain(recipe: Recipe) -> dict[str, Any] | None:
+    """The rain of ``recipe``'s training tiles, as its model card records it
+    (:func:`_rain_record`), or None for clean tiles (no curriculum beyond the clean default, no
+    RandomRain): part of the tile set's folder name and stamp (:func:`prepare_tiles`)."""
+    if recipe.curriculum == RainCurriculum() and recipe.random_rain is None:
+        return None
+    return _rain_record(recipe)
+
+
+def prepare_tiles(recipe: Recipe, out: str | Path, config: TileConfig) -> Path:
     """Cut the exported YOLO folders of :func:`prepare_data` (``OUT/yolo``) into tiles under
-    ``OUT/<config.token()>/{train,val}`` (sampled training tiles, a covering grid for validation);
-    returns that tile set's ultralytics dataset yaml. An export that matches the config and the
-    source export is kept."""
+    ``OUT/<config.token(rain)>/{train,val}`` (sampled training tiles, a covering grid for
+    validation; ``rain`` is :func:`tile_rain`); returns that tile set's ultralytics dataset yaml.
+
+    Training tiles carry ``recipe``'s rain (:func:`~rainbench.experiments.tiles.export_tiles`):
+    with a rain curriculum, each tile's pixels are cut from the export of a (rain model, rate)
+    entry drawn with the curriculum's weights (labels from the first entry's export: the same
+    frames); with ``random_rain``, RandomRain on that share of them. Validation tiles are cut
+    from the clean validation frames. A tile set whose stamp (the config, the rain and the
+    source exports' stamps) matches is kept; a clean recipe's stamp and tiles are those of
+    earlier versions."""
     out = Path(out)
-    root = out / config.token()
+    rain = tile_rain(recipe)
+    token = config.token(rain)
+    root = out / token
+    train_sets = recipe.train_datasets()
+    entries = [(out / "yolo" / train_sets[model][0], rate, weight)
+               for (model, rate), weight in zip(recipe.curriculum.entries, recipe.curriculum.weights)]
     for split in ("train", "val"):
-        source = out / "yolo" / split / "rate_0"
-        source_marker = out / "yolo" / split / ".exported"
-        if not source_marker.is_file():
-            raise TrainError(f"{source}: no finished export to cut into tiles; run prepare_data first")
-        stamp = json.dumps({"tiles": dataclasses.asdict(config), "source": source_marker.read_text()})
+        exports = entries if split == "train" else [(out / "yolo" / "val", 0.0, 1.0)]
+        markers = {}
+        for export, _, _ in exports:
+            marker = export / ".exported"
+            if not marker.is_file():
+                raise TrainError(f"{export}: no finished export to cut into tiles; run prepare_data first")
+            markers[export.name] = marker.read_text()
+        sources = [(export / f"rate_{rate_token(rate)}", weight) for export, rate, weight in exports]
+        rainy = split == "train" and rain is not None
+        stamp = {"tiles": dataclasses.asdict(config), "source": markers[exports[0][0].name]}
+        if rainy:
+            stamp.update(rain=rain, sources=markers)
         done_marker = root / split / ".exported"
-        if done_marker.is_file() and done_marker.read_text() == stamp:
+        if done_marker.is_file() and done_marker.read_text() == json.dumps(stamp):
             continue
         done_marker.unlink(missing_ok=True)
-        export_tiles(source, root / split, config, grid=split == "val",
-                     num_classes=len(yolo_names(classes)))
-        done_marker.write_text(stamp)
-    return _dataset_yaml(out / f"{config.token()}.yaml", root, "train/images", "val/images",
-                         classes)
+        export_tiles(sources[0][0], root / split, config, grid=split == "val",
+                     num_classes=len(yolo_names(recipe.classes)),
+                     rain_sources=sources if rainy and recipe.curriculum != RainCurriculum() else None,
+                     random_rain=recipe.random_rain if rainy else None)
+        done_marker.write_text(json.dumps(stamp))
+    return _dataset_yaml(out / f"{token}.yaml", root, "train/images", "val/images", recipe.classes)
 
 
 def _finished(path: Path) -> bool:
@@ -407,7 +445,7 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     shards_yaml = prepare_data(recipe, out, workers=workers, export=False, progress=progress) if from_shards else None
     export_yaml = prepare_data(recipe, out, workers=workers, progress=progress) if needs_export else None
     stage_data = [(shards_yaml if from_shards else export_yaml) if tiles is None
-                  else prepare_tiles(out, tiles, recipe.classes) for tiles in tiles_of]
+                  else prepare_tiles(recipe, out, tiles) for tiles in tiles_of]
     shard_trainer = (shard_trainer_class(recipe.curriculum, recipe.classes, recipe.random_rain,
                                          rain_data=train_data_dirs(recipe, out)) if from_shards else None)
     best = None
@@ -491,7 +529,6 @@ def model_card(recipe: Recipe, out: str | Path, device: str, stages: list[dict[s
         except PackageNotFoundError:
             software[package] = None
     source = Path(recipe.source)
-    own_model = recipe.train_data.rain_model
     return {
         "name": recipe.name,
         "architecture": recipe.architecture,
@@ -499,10 +536,7 @@ def model_card(recipe: Recipe, out: str | Path, device: str, stages: list[dict[s
         "recipe": {"file": source.name, "sha256": sha256_of(source) if source.is_file() else None},
         "data": data,
         "reader": recipe.reader,
-        "rain_curriculum": [{"rain_model": model or own_model, "rate": rate, "weight": weight}
-                            for (model, rate), weight in zip(recipe.curriculum.entries, recipe.curriculum.weights)],
-        "random_rain": (None if recipe.random_rain is None
-                        else {"p": recipe.random_rain.p, **dict(recipe.random_rain.options)}),
+        **_rain_record(recipe),
         "init_weights": (None if recipe.init_weights is None
                          else {"file": recipe.init_weights.name, "sha256": sha256_of(recipe.init_weights)}),
         "stages": [_stage_record(_stage_dir(out, stage), arguments) for stage, arguments in enumerate(stages)],
@@ -510,6 +544,18 @@ def model_card(recipe: Recipe, out: str | Path, device: str, stages: list[dict[s
         "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores" + _gpu_name(device),
         "software": software,
         "checkpoint_sha256": sha256_of(out / f"{recipe.name}.pt") if (out / f"{recipe.name}.pt").is_file() else None,
+    }
+
+
+def _rain_record(recipe: Recipe) -> dict[str, Any]:
+    """``recipe``'s rain as its model card records it: ``rain_curriculum`` (a list of ``{rain_model,
+    rate, weight}``, the own rain model named) and ``random_rain`` (``{p, **options}`` or None)."""
+    own_model = recipe.train_data.rain_model
+    return {
+        "rain_curriculum": [{"rain_model": model or own_model, "rate": rate, "weight": weight}
+                            for (model, rate), weight in zip(recipe.curriculum.entries, recipe.curriculum.weights)],
+        "random_rain": (None if recipe.random_rain is None
+                        else {"p": recipe.random_rain.p, **dict(recipe.random_rain.options)}),
     }
 
 

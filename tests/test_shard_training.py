@@ -1,11 +1,15 @@
 """Training straight from shards (issue 19, part 1): the ultralytics dataset over the one reader,
-rain curricula, and a tiny training run that reads rainy shards."""
+rain curricula, a tiny training run that reads rainy shards, and a recipe's rain in its tile
+stages (curriculum exports and RandomRain on training tiles)."""
 
 import collections
 import dataclasses
+import json
 import random
 import re
+import shutil
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -266,7 +270,6 @@ def test_a_recipe_with_a_rain_curriculum_generates_its_rates_and_trains_from_the
     err = capsys.readouterr().err
     assert code == 0, err
     assert (out / "tiny-rain.pt").is_file() and not (out / "yolo").exists()  # no export step
-    import json
     manifest = json.loads((out / "data" / "train" / "manifest.json").read_text())
     assert manifest["config"]["rates"] == [0.0, 50.0] and manifest["config"]["rain_model"] == "physical"
     import yaml
@@ -350,7 +353,6 @@ def test_a_recipe_curriculum_over_rain_models_trains_on_each_models_data(tmp_pat
     out = tmp_path / "run"
     code = cli.main(["train", "--recipe", str(recipe_path), "--out", str(out), "--device", "cpu"])
     assert code == 0, capsys.readouterr().err
-    import json
     configs = {folder: json.loads((out / "data" / folder / "manifest.json").read_text())["config"]
                for folder in ("train", "train-jeon2022")}
     assert configs["train"]["rain_model"] == "physical" and configs["train"]["rates"] == [0.0, 50.0]
@@ -454,3 +456,104 @@ def test_a_fine_tune_starts_from_its_init_weights(tmp_path, capsys):
     assert len(unchanged) >= 0.95 * len(before), len(unchanged)
     moved = {n for n in before if (before[n].float() - after[n].float()).abs().max().item() >= 0.01}
     assert moved <= {f"model.23.cv3.{level}.2.{kind}" for level in range(3) for kind in ("weight", "bias")}, moved
+
+
+def _fake_export(out, folder, rates, frames=12, size=(120, 160)):
+    """``OUT/yolo/<folder>`` as prepare_data exports it: one ``rate_<token>`` YOLO folder per rate of
+    ``rates`` (rate -> base), image ``i`` the constant ``base + i``, each with the same labels (a
+    person box per frame), and the export's stamp."""
+    height, width = size
+    for rate, base in rates.items():
+        root = out / "yolo" / folder / f"rate_{rate}"
+        (root / "images").mkdir(parents=True)
+        (root / "labels").mkdir()
+        for index in range(frames):
+            cv2.imwrite(str(root / "images" / f"{index:06d}.png"), np.full((height, width, 3), base + index, np.uint8))
+            (root / "labels" / f"{index:06d}.txt").write_text(
+                f"0 {(20 + 10 * index) / width:.6f} {60 / height:.6f} {16 / width:.6f} {30 / height:.6f}\n")
+    (out / "yolo" / folder / ".exported").write_text(f"stamp of {folder}")
+
+
+def _recipe(tmp_path, name, rain):
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(RAINY_RECIPE.replace("rain_curriculum: {0: 1, 50: 1}", rain))
+    return train.load_recipe(path)
+
+
+def _files(folder):
+    return {path.relative_to(folder): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()
+            and path.name != ".exported"}
+
+
+def test_tile_stages_cut_the_recipes_rain_into_training_tiles_only(tmp_path):
+    """A curriculum recipe's training tiles come from its (rain model, rate) exports in its
+    proportions; a RandomRain recipe's get RandomRain on about p of them; validation tiles and
+    every tile's place and labels are the clean recipe's; the rain names the tile set."""
+    from rainbench.experiments.tiles import TileConfig
+
+    out = tmp_path / "run"
+    bases = {("physical", 0.0): 10, ("physical", 50.0): 90, ("jeon2022", 50.0): 170}
+    _fake_export(out, "train", {0: 10, 50: 90})
+    _fake_export(out, "train-jeon2022", {50: 170})
+    _fake_export(out, "val", {0: 240}, frames=2)
+    config = TileConfig(size=32, per_image=16, background=0.3)
+    clean = _recipe(tmp_path, "clean", "")
+    curriculum = _recipe(tmp_path, "curriculum", "rain_curriculum: {physical: {0: 2, 50: 1}, jeon2022: {50: 1}}")
+    clean_yaml = train.prepare_tiles(clean, out, config)
+    assert clean_yaml == out / "tiles_s32_x1_n16_b0.3_a0.1_r0.yaml" and train.tile_rain(clean) is None
+    rain_yaml = train.prepare_tiles(curriculum, out, config)
+    root, clean_root = rain_yaml.with_suffix(""), clean_yaml.with_suffix("")
+    assert root.name == config.token(train.tile_rain(curriculum)) and root.name.startswith(clean_root.name + "_rain")
+    stamp = json.loads((root / "train" / ".exported").read_text())
+    assert stamp["rain"]["rain_curriculum"][2] == {"rain_model": "jeon2022", "rate": 50.0, "weight": 1.0}
+    assert stamp["sources"] == {"train": "stamp of train", "train-jeon2022": "stamp of train-jeon2022"}
+    drawn = collections.Counter()
+    for path in sorted((root / "train" / "images").iterdir()):
+        value = int(cv2.imread(str(path))[0, 0, 0]) - int(path.stem[:6])
+        drawn[next(entry for entry, base in bases.items() if base == value)] += 1
+    assert sum(drawn.values()) == 12 * 16
+    for entry, share in zip(curriculum.curriculum.entries, curriculum.curriculum.shares):
+        sigma = (192 * share * (1 - share)) ** 0.5
+        assert abs(drawn[entry] - 192 * share) < 4 * sigma, drawn
+    clean_files, rain_files = _files(clean_root), _files(root)
+    assert {name: data for name, data in rain_files.items() if name.parts[1] == "labels"} == \
+        {name: data for name, data in clean_files.items() if name.parts[1] == "labels"}
+    assert {name: data for name, data in rain_files.items() if name.parts[0] == "val"} == \
+        {name: data for name, data in clean_files.items() if name.parts[0] == "val"}
+    # RandomRain on the clean frames: about p of the training tiles change, no validation tile.
+    random_rain = _recipe(tmp_path, "random", "random_rain: {p: 0.5}")
+    random_root = train.prepare_tiles(random_rain, out, config).with_suffix("")
+    assert random_root.name not in (root.name, clean_root.name)
+    random_files = _files(random_root)
+    assert {name: data for name, data in random_files.items() if name.parts[0] == "val"} == \
+        {name: data for name, data in clean_files.items() if name.parts[0] == "val"}
+    changed = sum(random_files[name] != data for name, data in clean_files.items()
+                  if name.parts[:2] == ("train", "images"))
+    assert abs(changed - 96) < 4 * 48 ** 0.5, changed
+    # The same recipe keeps its tiles; other weights are another tile set.
+    before = (root / "train" / "images" / "000000_t00.png").stat().st_mtime_ns
+    assert train.prepare_tiles(curriculum, out, config) == rain_yaml
+    assert (root / "train" / "images" / "000000_t00.png").stat().st_mtime_ns == before
+    reweighted = _recipe(tmp_path, "reweighted", "rain_curriculum: {physical: {0: 1, 50: 1}, jeon2022: {50: 1}}")
+    assert train.prepare_tiles(reweighted, out, config) not in (rain_yaml, clean_yaml)
+
+
+def test_a_curriculum_without_clean_frames_exports_each_rain_model_and_rate_for_its_tiles(tmp_path):
+    """prepare_data exports every (rain model, rate) of the curriculum (no rate 0 needed), redoes
+    an export whose rate folder is missing, and the tile stage cuts from them."""
+    from rainbench.experiments.tiles import TileConfig
+
+    recipe = _recipe(tmp_path, "no-clean", "rain_curriculum: {physical: {50: 1}, jeon2022: {50: 1}}")
+    out = tmp_path / "run"
+    dataset_yaml = train.prepare_data(recipe, out)
+    yolo = out / "yolo"
+    assert sorted(str(path.relative_to(yolo)) for path in yolo.glob("*/rate_*")) == [
+        "train-jeon2022/rate_50", "train/rate_50", "val/rate_0"]
+    assert "train: train/rate_50/images" in dataset_yaml.read_text()
+    shutil.rmtree(yolo / "train" / "rate_50")
+    train.prepare_data(recipe, out)
+    assert len(list((yolo / "train" / "rate_50" / "images").glob("*.png"))) == 3
+    tile_yaml = train.prepare_tiles(recipe, out, TileConfig(size=64, per_image=2))
+    root = tile_yaml.with_suffix("")
+    assert len(list((root / "train" / "images").glob("*.png"))) == 3 * 2
+    assert len(list((root / "val" / "images").glob("*.png"))) == 2 * 6  # 160x120 in 3x2 tiles of 64

@@ -1,5 +1,8 @@
 """Training tiles (rainbench.experiments.tiles): labels cut exactly, placements inside the image and on
-the picked objects, the covering grid, seeded exports, and one-line errors for bad settings."""
+the picked objects, the covering grid, seeded exports, rain on training tiles (rain sources drawn
+by weight, RandomRain) that moves no tile, and one-line errors for bad settings."""
+
+import dataclasses
 
 import cv2
 import numpy as np
@@ -125,3 +128,87 @@ def test_export_tiles_rescales_crops_and_is_seeded(tmp_path):
                (tmp_path / "a" / "labels" / n.replace(".png", ".txt")).read_text() for n in names)
     with pytest.raises(tiles.TileError, match="no .png images"):
         tiles.export_tiles(tmp_path / "empty", tmp_path / "e", config, grid=True, num_classes=4)
+
+
+def _marked_copy(source, root, base):
+    """``source``'s frames as another YOLO folder whose image ``i`` is the constant ``base + i``
+    (so a tile tells its folder and frame apart), with the same labels."""
+    (root / "images").mkdir(parents=True)
+    (root / "labels").mkdir()
+    for index, path in enumerate(sorted((source / "images").glob("*.png"))):
+        shape = cv2.imread(str(path)).shape
+        cv2.imwrite(str(root / "images" / path.name), np.full(shape, base + index, np.uint8))
+        label = path.with_suffix(".txt").name
+        (root / "labels" / label).write_text((source / "labels" / label).read_text())
+    return root
+
+
+def _tile_files(folder):
+    return {path.relative_to(folder): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
+
+
+def test_rain_sources_are_drawn_per_tile_in_their_weights_by_seed(tmp_path):
+    """Each training tile is cut from one rain source, drawn with the weights (2:1:1) from the
+    tile seed's own generator: the tiles' places and labels are the clean cut's."""
+    clean = _yolo_folder(tmp_path / "src", 30)
+    bases = (10, 90, 170)  # frame i of source k is the constant bases[k] + i (i < 30)
+    folders = [_marked_copy(clean, tmp_path / f"rate{k}", base) for k, base in enumerate(bases)]
+    config = tiles.TileConfig(size=32, scale=0.5, per_image=8, background=0.3, seed=3)
+    rain_sources = list(zip(folders, (2.0, 1.0, 1.0)))
+    assert tiles.export_tiles(folders[0], tmp_path / "a", config, grid=False, num_classes=4,
+                              rain_sources=rain_sources) == 240
+    tiles.export_tiles(folders[0], tmp_path / "clean", config, grid=False, num_classes=4)
+    drawn = []
+    for path in sorted((tmp_path / "a" / "images").iterdir()):
+        image, frame = cv2.imread(str(path)), int(path.stem.split("_")[0])
+        assert (image == image[0, 0, 0]).all()
+        drawn.append(bases.index(int(image[0, 0, 0]) - frame))  # the frame's own pixels, of one source
+    counts = np.bincount(drawn, minlength=3)
+    for count, share in zip(counts, (0.5, 0.25, 0.25)):
+        assert abs(count - 240 * share) < 4 * (240 * share * (1 - share)) ** 0.5, counts
+    files = _tile_files(tmp_path / "a")
+    labels = {name: data for name, data in files.items() if name.parts[0] == "labels"}
+    assert labels == {name: data for name, data in _tile_files(tmp_path / "clean").items()
+                      if name.parts[0] == "labels"}  # rain moves no tile
+    tiles.export_tiles(folders[0], tmp_path / "b", config, grid=False, num_classes=4, rain_sources=rain_sources)
+    assert _tile_files(tmp_path / "b") == files  # the same seed, the same files
+    tiles.export_tiles(folders[0], tmp_path / "c", dataclasses.replace(config, seed=4), grid=False,
+                       num_classes=4, rain_sources=rain_sources)
+    assert [cv2.imread(str(p))[0, 0, 0] - int(p.stem[:6]) for p in sorted((tmp_path / "c" / "images").iterdir())] \
+        != [bases[k] for k in drawn]
+    with pytest.raises(tiles.TileError, match="rain is for training tiles only"):
+        tiles.export_tiles(folders[0], tmp_path / "g", config, grid=True, num_classes=4, rain_sources=rain_sources)
+    (folders[2] / "labels" / "000003.txt").write_text("")
+    with pytest.raises(tiles.TileError, match=r"rate2/labels/000003.txt: labels differ from .*rate0/labels/000003.txt"):
+        tiles.export_tiles(folders[0], tmp_path / "d", config, grid=False, num_classes=4, rain_sources=rain_sources)
+    (folders[2] / "images" / "000003.png").unlink()
+    with pytest.raises(tiles.TileError, match=r"rate2/images: holds other images than .*rate0/images"):
+        tiles.export_tiles(folders[0], tmp_path / "d", config, grid=False, num_classes=4, rain_sources=rain_sources)
+
+
+def test_random_rain_rains_on_about_p_of_the_training_tiles_by_seed(tmp_path):
+    from rainbench.experiments.shard_training import RandomRainAugment
+
+    source = _yolo_folder(tmp_path / "src", 20)
+    config = tiles.TileConfig(size=32, scale=0.5, per_image=6, background=0.3, seed=1)
+    rain = RandomRainAugment(p=0.3)
+    tiles.export_tiles(source, tmp_path / "clean", config, grid=False, num_classes=4)
+    tiles.export_tiles(source, tmp_path / "rain", config, grid=False, num_classes=4, random_rain=rain)
+    clean, rained = _tile_files(tmp_path / "clean"), _tile_files(tmp_path / "rain")
+    assert clean.keys() == rained.keys()
+    assert all(rained[name] == data for name, data in clean.items() if name.parts[0] == "labels")
+    changed = sum(rained[name] != data for name, data in clean.items() if name.parts[0] == "images")
+    assert abs(changed - 120 * 0.3) < 4 * (120 * 0.3 * 0.7) ** 0.5, changed
+    tiles.export_tiles(source, tmp_path / "again", config, grid=False, num_classes=4, random_rain=rain)
+    assert _tile_files(tmp_path / "again") == rained
+    with pytest.raises(tiles.TileError, match="rain is for training tiles only"):
+        tiles.export_tiles(source, tmp_path / "g", config, grid=True, num_classes=4, random_rain=rain)
+
+
+def test_a_tile_sets_name_tells_its_rain():
+    config = tiles.TileConfig()
+    assert config.token() == config.token(None) == "tiles_s320_x1_n2_b0.2_a0.1_r0"
+    rain = {"rain_curriculum": [{"rain_model": "physical", "rate": 50.0, "weight": 1.0}], "random_rain": None}
+    other = {"rain_curriculum": [{"rain_model": "physical", "rate": 50.0, "weight": 2.0}], "random_rain": None}
+    assert config.token(rain).startswith("tiles_s320_x1_n2_b0.2_a0.1_r0_rain")
+    assert config.token(rain) == config.token(dict(rain)) != config.token(other)

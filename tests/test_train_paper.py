@@ -58,6 +58,27 @@ def test_shipped_recipes_load_and_keep_seeds_apart():
             recipe.arguments(cuda=True)["imgsz"]
 
 
+def test_rain_recipes_differ_from_their_controls_only_in_the_rain():
+    import dataclasses
+
+    from rainbench.experiments.shard_training import RainCurriculum
+
+    rain = train.load_recipe("rainbench-yolo11n-rain")
+    randomrain = train.load_recipe("rainbench-yolo11n-randomrain")
+    clean = train.load_recipe(Path(__file__).resolve().parent.parent / "bench" / "recipes" / "rainbench-yolo11n-cleanft.yaml")
+    nano = train.load_recipe("rainbench-yolo11n")
+    for recipe in (rain, randomrain, clean):
+        assert recipe.init_weights == registry.WEIGHTS_DIR / "rainbench-yolo11n.pt"
+        assert recipe.classes == nano.classes and recipe.eval_imgsz == nano.eval_imgsz and recipe.reader == "shards"
+        assert recipe.stages(cuda=False) == rain.stages(cuda=False) and recipe.stages(cuda=True) == rain.stages(cuda=True)
+        scenes = dataclasses.replace(recipe.train_data, rain_model=nano.train_data.rain_model, rates=(0.0,))
+        assert scenes == nano.train_data and recipe.val_data == nano.val_data  # the clean model's scenes
+    assert clean.random_rain is None and randomrain.curriculum == clean.curriculum == RainCurriculum()
+    clean_share = sum(share for (_, rate), share in zip(rain.curriculum.entries, rain.curriculum.shares) if rate == 0)
+    assert randomrain.random_rain.p == pytest.approx(1 - clean_share, abs=0.01)  # rain on the same share
+    assert rain.stages(cuda=False)[-1]["tiles"]["size"] == 320  # the tile stage sees the rain too
+
+
 def test_bad_recipes_are_one_line_errors(tmp_path):
     def write(text):
         path = tmp_path / "r.yaml"
