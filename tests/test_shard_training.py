@@ -55,6 +55,17 @@ def _pixel_boxes(item):
 
 
 @pytest.mark.parametrize("keep_classes", [None, [0, 2]])
+
+def _load_epochs(dataset, drawn: list, seed: int, count: int) -> list:
+    """What ``drawn`` records over ``count`` epochs of ``dataset.load_image`` with Python's
+    ``random`` seeded by ``seed`` (the generator ultralytics seeds per worker)."""
+    random.seed(seed)
+    drawn.clear()
+    for _ in range(count):
+        for index in range(len(dataset)):
+            dataset.load_image(index)
+    return list(drawn)
+
 def test_the_dataset_yields_exactly_the_shards_boxes_after_the_letterbox(shards, keep_classes):
     dataset = _dataset(shards, keep_classes=keep_classes)
     assert len(dataset) == 3
@@ -84,21 +95,13 @@ def test_a_curriculum_draws_its_rates_in_its_proportions_and_by_seed(shards, mon
     monkeypatch.setattr(dataset.store, "read_rgb",
                         lambda handle, image, rate: drawn.append(rate) or real_read(handle, image, rate))
 
-    def epochs(seed, count):
-        random.seed(seed)
-        drawn.clear()
-        for _ in range(count):
-            for index in range(len(dataset)):
-                dataset.load_image(index)
-        return list(drawn)
-
-    first = epochs(0, 1000)  # 3000 loads
+    first = _load_epochs(dataset, drawn, 0, 1000)  # 3000 loads
     counts = collections.Counter(first)
     assert set(counts) == {0.0, 50.0, 100.0}
     for rate, share in zip(curriculum.rates, curriculum.shares):
         sigma = (len(first) * share * (1 - share)) ** 0.5
         assert abs(counts[rate] - len(first) * share) < 4 * sigma, (rate, counts)
-    assert epochs(0, 1000) == first and epochs(1, 1000) != first  # deterministic by seed
+    assert _load_epochs(dataset, drawn, 0, 1000) == first and _load_epochs(dataset, drawn, 1, 1000) != first  # deterministic by seed
 
 
 def test_augmented_items_keep_their_boxes_inside_the_image(shards):
@@ -179,22 +182,14 @@ def test_a_two_model_curriculum_draws_each_pair_in_its_proportions_and_by_seed(t
         monkeypatch.setattr(store, "read_rgb", lambda handle, image, rate, model=model, real_read=real_read:
                             drawn.append((model, rate)) or real_read(handle, image, rate))
 
-    def epochs(seed, count):
-        random.seed(seed)
-        drawn.clear()
-        for _ in range(count):
-            for index in range(len(dataset)):
-                dataset.load_image(index)
-        return list(drawn)
-
-    first = epochs(0, 1000)  # 3000 loads
+    first = _load_epochs(dataset, drawn, 0, 1000)  # 3000 loads
     counts = collections.Counter(first)
     curriculum = dataset.curriculum
     assert set(counts) == set(curriculum.entries)
     for entry, share in zip(curriculum.entries, curriculum.shares):
         sigma = (len(first) * share * (1 - share)) ** 0.5
         assert abs(counts[entry] - len(first) * share) < 4 * sigma, (entry, counts)
-    assert epochs(0, 1000) == first and epochs(1, 1000) != first  # deterministic by seed
+    assert _load_epochs(dataset, drawn, 0, 1000) == first and _load_epochs(dataset, drawn, 1, 1000) != first  # deterministic by seed
 
 
 @pytest.mark.parametrize("model, rate", [(model, rate) for model, rates in TWO_MODEL_RATES.items()
