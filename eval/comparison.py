@@ -17,6 +17,7 @@ import numpy as np
 from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES
 
 from .metrics.bootstrap import robustness_intervals
+from .metrics.coco import DEFAULT_BACKEND
 
 
 def comparison_references(models: Sequence[str], chosen: Sequence[tuple[str, str]] = ()) -> dict[str, str]:
@@ -45,7 +46,7 @@ ROBUSTNESS_SEED = 0
 
 def comparison_rows(gt_dict: Mapping[str, Any], detections: Mapping[str, Mapping[float, Sequence[Mapping[str, Any]]]],
                     classes: Sequence[int] = PAPER_CLASSES, n_boot: int = 1000,
-                    references: Mapping[str, str] | None = None) -> list[dict]:
+                    references: Mapping[str, str] | None = None, backend: str = DEFAULT_BACKEND) -> list[dict]:
     """Rows of the rain-robustness comparison of several models on one dataset.
 
     Per model (in the order of ``detections``) and class (ids ``classes``): AP@0.5 at rate 0, at
@@ -60,6 +61,7 @@ def comparison_rows(gt_dict: Mapping[str, Any], detections: Mapping[str, Mapping
         classes: Class ids.
         n_boot: Resamples.
         references: ``{model: reference model}`` (:func:`comparison_references`).
+        backend: Metrics backend of the matching (:data:`rainbench.eval.metrics.coco.METRICS_BACKENDS`).
 
     Returns:
         Rows ``{model, class, n_gt, reference, heavy_rate}`` plus, for each of ``clean``,
@@ -67,7 +69,7 @@ def comparison_rows(gt_dict: Mapping[str, Any], detections: Mapping[str, Mapping
         ``{key}_low`` and ``{key}_high`` (nan where there is no value).
     """
     intervals = robustness_intervals(gt_dict, detections, n_boot, rng=np.random.default_rng(ROBUSTNESS_SEED),
-                                     class_ids=classes, references=references)
+                                     class_ids=classes, references=references, backend=backend)
     n_gt = {c: sum(1 for a in gt_dict["annotations"] if a["category_id"] == c and not a["iscrowd"]) for c in classes}
     rates = sorted(float(rate) for rate in next(iter(detections.values())))
     heavy = max(rates)

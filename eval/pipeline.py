@@ -31,7 +31,7 @@ from rainbench.store.rates import rate_token
 from rainbench.store.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES, class_list, parse_classes
 from .comparison import comparison_references, comparison_rows
 from .metrics.bootstrap import bootstrap_ci
-from .metrics.coco import coco_detections, coco_ground_truth
+from .metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS, coco_detections, coco_ground_truth
 from .metrics.evaluation import evaluate
 from .report.figures import plot_detection_strip
 from .report.markdown import render_report_md
@@ -233,7 +233,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
              class_map: str | None = None, device: str | None = None, force: bool = False,
              progress: bool = True, trust_pickle: bool | None = None,
              classes: str | Sequence[int | str] | None = None,
-             references: Sequence[tuple[str, str]] = ()) -> EvalOutputs:
+             references: Sequence[tuple[str, str]] = (), metrics: str = DEFAULT_BACKEND) -> EvalOutputs:
     """Evaluate every model at every rain rate of a dataset and write the outputs under ``out_dir``.
 
     Detections come either from ``predictions_dir`` (``<model>/rate_<rate_token>.json`` COCO
@@ -256,13 +256,18 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     ``references``: ``(model, reference)`` pairs of the robustness comparison (``--compare``;
     :func:`rainbench.eval.comparison.comparison_references`), checked before any inference.
 
+    ``metrics``: the implementation of COCO's matching and AP (``--metrics``;
+    :data:`rainbench.eval.metrics.coco.METRICS_BACKENDS`): "numpy" (default, vectorised) or
+    "pycocotools" (the reference ``COCOeval``); the outputs are the same (to 1e-9).
+
     Outputs: ``metrics.json``, ``metrics.csv``, ``images.json``, ``report.md``,
     ``ap50_vs_rate.png``, ``f1_vs_rate.png``, ``detections_strip.png``, and with rate 0 and a
     rainy rate ``robustness.json`` (:func:`rainbench.eval.comparison.comparison_rows`: mPC and
     rPC with bootstrap intervals, paired differences between models; also in ``report.md``).
     """
     class_ids = _check_settings(predictions_dir, weights, imgsz=imgsz, batch=batch, max_det=max_det,
-                                n_boot=n_boot, conf=conf, iou=iou, report_conf=report_conf, classes=classes)
+                                n_boot=n_boot, conf=conf, iou=iou, report_conf=report_conf, classes=classes,
+                                metrics=metrics)
     dataset = open_dataset(data_dir)
     rates = list(dataset.rates)
     image_ids = {image.image_id for image in dataset.images}
@@ -282,11 +287,11 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
             progress=progress, trust_pickle=trust_pickle, class_ids=class_ids,
             classes_given=classes is not None, references=references)
     records = _score(gt, detections, models, rates, class_ids=class_ids, report_conf=report_conf,
-                     n_boot=n_boot, progress=progress)
+                     n_boot=n_boot, progress=progress, backend=metrics)
     robustness = []
     if 0.0 in rates and len(rates) > 1:
         robustness = comparison_rows(gt, {model: {rate: detections[(model, rate)] for rate in rates} for model in models},
-                                     class_ids, n_boot, _references(models, references))
+                                     class_ids, n_boot, _references(models, references), backend=metrics)
     paths = _write_outputs(records, dataset, gt, detections, models, out_dir, class_ids=class_ids,
                            report_conf=report_conf, robustness=robustness)
     return EvalOutputs(records=records, paths=paths, inference_runs=inference_runs, robustness=robustness)
@@ -302,10 +307,12 @@ def _references(models: Sequence[str], chosen: Sequence[tuple[str, str]]) -> dic
 
 
 def _check_settings(predictions_dir, weights, *, imgsz, batch, max_det, n_boot, conf, iou, report_conf,
-                    classes) -> tuple[int, ...]:
+                    classes, metrics) -> tuple[int, ...]:
     """Refuse bad evaluator settings before any work; returns the class ids to score."""
     if (predictions_dir is None) == (not weights):
         raise EvalError("expected exactly one of --weights or --predictions")
+    if metrics not in METRICS_BACKENDS:
+        raise EvalError(f"--metrics: expected one of {', '.join(METRICS_BACKENDS)}, got {metrics!r}")
     for name, value in (("--imgsz", imgsz), ("--batch", batch), ("--max-det", max_det), ("n_boot", n_boot)):
         if value is not None and int(value) < 1:
             raise EvalError(f"{name}: expected >= 1, got {value}")
@@ -389,9 +396,10 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
 
 
 def _score(gt: dict, detections: dict, models: Sequence[str], rates: Sequence[float], *,
-           class_ids: Sequence[int], report_conf: float, n_boot: int, progress: bool) -> list[dict[str, Any]]:
+           class_ids: Sequence[int], report_conf: float, n_boot: int, progress: bool,
+           backend: str) -> list[dict[str, Any]]:
     """Metric records (:func:`rainbench.eval.report.records.metric_records`) of every model and rate,
-    with bootstrap intervals of AP50 and AP50:95."""
+    with bootstrap intervals of AP50 and AP50:95, computed by the metrics ``backend``."""
     from tqdm import tqdm
 
     results, ci50, ci5095 = {}, {}, {}
@@ -400,11 +408,12 @@ def _score(gt: dict, detections: dict, models: Sequence[str], rates: Sequence[fl
         for model in models:
             for rate in rates:
                 dets = detections[(model, rate)]
-                results[(model, rate)] = evaluate(gt, dets, class_ids=class_ids, conf=report_conf)
+                results[(model, rate)] = evaluate(gt, dets, class_ids=class_ids, conf=report_conf, backend=backend)
                 rng = np.random.default_rng(BOOTSTRAP_SEED)
-                ci50[(model, rate)] = bootstrap_ci(gt, dets, n_boot, rng=rng, metric="ap50", class_ids=class_ids)
+                ci50[(model, rate)] = bootstrap_ci(gt, dets, n_boot, rng=rng, metric="ap50", class_ids=class_ids,
+                                                   backend=backend)
                 ci5095[(model, rate)] = bootstrap_ci(gt, dets, n_boot, rng=rng, metric="ap50_95",
-                                                     class_ids=class_ids)
+                                                     class_ids=class_ids, backend=backend)
                 bar.update(1)
     clean_rate = 0.0 if 0.0 in rates else rates[0]
     return metric_records(results, [ci50, ci5095], clean_rate=clean_rate)

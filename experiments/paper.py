@@ -27,6 +27,7 @@ from rainbench.store import Dataset, read_frame_labels
 
 from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES, parse_classes
 from rainbench.eval.metrics.breakdown import ap_by_size, ap_by_visibility
+from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
 from rainbench.eval.metrics.robustness import half_value_rate
 from rainbench.eval.comparison import comparison_references
 from rainbench.eval.pipeline import EvalError, ground_truth, load_predictions_file, open_dataset, predictions_path, run_eval
@@ -55,6 +56,7 @@ class PaperConfig:
     breakdown_rates: tuple[float, ...] = (0.0, 50.0, 100.0)
     classes: str | tuple[int | str, ...] | None = None  # None: the paper's four; else as run_eval's
     references: tuple[tuple[str, str], ...] = ()  # (model, reference) pairs of the robustness comparison
+    metrics: str = DEFAULT_BACKEND  # COCO AP implementation (run_eval's ``metrics``: --metrics)
 
     def __post_init__(self) -> None:
         if self.classes is not None:
@@ -64,6 +66,8 @@ class PaperConfig:
                 raise EvalError(str(error)) from None
         if not self.weights:
             raise EvalError("MODELS/WEIGHTS: expected at least one model to evaluate")
+        if self.metrics not in METRICS_BACKENDS:
+            raise EvalError(f"--metrics: expected one of {', '.join(METRICS_BACKENDS)}, got {self.metrics!r}")
         unknown = sorted(set(self.rain_models) - set(RAIN_MODELS))
         if unknown or not self.rain_models:
             raise EvalError(f"rain models: expected some of {', '.join(RAIN_MODELS)}, got {list(self.rain_models)}")
@@ -122,10 +126,10 @@ def table_one(data_dir: Path, classes: Sequence[int] = PAPER_CLASSES) -> dict[st
 
 
 def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[float],
-               classes: Sequence[int] = PAPER_CLASSES) -> dict:
+               classes: Sequence[int] = PAPER_CLASSES, metrics: str = DEFAULT_BACKEND) -> dict:
     """``{"visible fraction" | "box size": {rate: {bin: {class name: BreakdownAP}}}}`` of one model
     and the class ids ``classes``, from the cached predictions of :func:`run_eval` in
-    ``results_dir``."""
+    ``results_dir``, computed by the metrics backend ``metrics``."""
     dataset = open_dataset(data_dir)
     gt = ground_truth(dataset)
     visible = np.concatenate([np.asarray(read_frame_labels(handle, image.frame)["visible_fraction"], np.float64)
@@ -138,8 +142,8 @@ def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[fl
         detections = load_predictions_file(predictions_path(results_dir / "predictions", model, rate), image_ids,
                                            classes)
         by_visibility = ap_by_visibility(gt, detections, visible, bins=VISIBILITY_BINS, unmatched="ignore",
-                                         class_ids=classes)
-        by_size = ap_by_size(gt, detections, class_ids=classes)
+                                         class_ids=classes, backend=metrics)
+        by_size = ap_by_size(gt, detections, class_ids=classes, backend=metrics)
         for what, table in (("visible fraction", by_visibility), ("box size", by_size)):
             result[what][float(rate)] = {label: {CLASS_NAMES[c]: entry for c, entry in per_class.items()}
                                          for label, per_class in table.items()}
@@ -181,7 +185,8 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
         start = time.perf_counter()
         outputs = run_eval(data_dir, out_dir / name, weights=list(config.weights), imgsz=config.imgsz,
                            batch=config.batch, n_boot=config.n_boot, device=config.device, force=force,
-                           progress=progress, classes=config.classes, references=config.references)
+                           progress=progress, classes=config.classes, references=config.references,
+                           metrics=config.metrics)
         timings[f"evaluate {name}"] = time.perf_counter() - start
         records_by_rain[name] = outputs.records
         robustness[name] = outputs.robustness
@@ -195,7 +200,8 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
                 half_rates[(rain_model, model, class_name)] = half_value_rate(values) if values else math.nan
     paper_rain = "jeon2022" if "jeon2022" in config.rain_models else config.rain_models[0]
     breakdown_rates = [r for r in config.breakdown_rates if r in data.rates]
-    tables = breakdowns(data_root / paper_rain, out_dir / paper_rain, models[0], breakdown_rates, class_ids)
+    tables = breakdowns(data_root / paper_rain, out_dir / paper_rain, models[0], breakdown_rates, class_ids,
+                        config.metrics)
     counts = table_one(data_root / paper_rain, class_ids)
     paper_clip = all(getattr(data, name) == value for name, value in PAPER_CLIP.items())
     setup = [

@@ -176,6 +176,54 @@ def test_robustness_rows_pair_models_and_bad_compare_is_refused_first(data_dir, 
     assert "## Rain robustness with intervals" in (out / "report.md").read_text()
 
 
+def _noisy_records(data_dir, seed):
+    """The shard's labels, jittered, duplicated and with false positives, scores with ties."""
+    rng = np.random.default_rng(seed)
+    records = []
+    for record in _perfect_records(data_dir) * 2:
+        x, y, w, h = record["bbox"]
+        jitter = rng.normal(0, 0.15, 4) * [w, h, w, h]
+        box = [x + jitter[0], y + jitter[1], max(0.0, w + jitter[2]), max(0.0, h + jitter[3])]
+        records.append(dict(record, bbox=box, score=float(rng.choice([0.3, 0.6, 0.9]))))
+    for image_id, _, _ in _images(data_dir):
+        for _ in range(5):
+            x, y = rng.uniform(0, 80, 2)
+            records.append({"image_id": image_id, "category_id": int(rng.integers(4)), "bbox": [x, y, 8.0, 6.0],
+                            "score": float(rng.choice([0.3, 0.6]))})
+    return records
+
+
+def test_metrics_backends_write_the_same_figures(data_dir, tmp_path, capsys):
+    preds = tmp_path / "preds"
+    _write_predictions(preds, "noisy", _noisy_records(data_dir, 0))
+    _write_predictions(preds, "noisy-rain", _noisy_records(data_dir, 1))
+    outputs = {}
+    for metrics in ("numpy", "pycocotools"):
+        out = tmp_path / metrics
+        code, _, err = _run(capsys, "eval", "--data", data_dir, "--predictions", preds, "--out", out,
+                            "--n-boot", "30", "--quiet", "--metrics", metrics)
+        assert code == 0, err
+        outputs[metrics] = [json.loads((out / name).read_text()) for name in ("metrics.json", "robustness.json")]
+    for fast, reference in zip(outputs["numpy"], outputs["pycocotools"], strict=True):
+        assert len(fast) == len(reference)
+        for fast_row, reference_row in zip(fast, reference, strict=True):
+            assert list(fast_row) == list(reference_row)  # same keys, same order
+            for key, value in fast_row.items():
+                if isinstance(value, float):
+                    assert reference_row[key] == pytest.approx(value, abs=1e-9), key
+                else:
+                    assert reference_row[key] == value, key
+    assert any(0.0 < row["ap50"] < 1.0 for row in outputs["numpy"][0] if row["ap50"] is not None)
+    with pytest.raises(SystemExit) as exit_info:  # argparse refuses it, in one line
+        cli.main(["eval", "--data", str(data_dir), "--predictions", str(preds), "--out", str(tmp_path / "x"),
+                  "--metrics", "fast"])
+    assert exit_info.value.code == 2
+    _one_line_error(capsys.readouterr().err, "--metrics", "'fast'")
+    with pytest.raises(pipeline.EvalError, match=r"--metrics: expected one of numpy, pycocotools, got 'fast'"):
+        pipeline.run_eval(data_dir, tmp_path / "y", predictions_dir=preds, n_boot=5, progress=False, metrics="fast")
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
 def test_bad_prediction_files_name_the_file(data_dir, tmp_path):
     records = _perfect_records(data_dir)
     preds = tmp_path / "preds"

@@ -12,10 +12,11 @@ import pytest
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-from rainbench.eval.metrics.bootstrap import (bootstrap_ci, bootstrap_weights, interpolated_ap, resample_images,
-                                              robustness_intervals)
+from rainbench.eval.metrics.accumulate import RECALL_THRESHOLDS, image_weighted_ap, interpolated_ap
+from rainbench.eval.metrics.bootstrap import bootstrap_ci, bootstrap_weights, resample_images, robustness_intervals
 from rainbench.eval.metrics.breakdown import SIZE_RANGES, ap_by_size, ap_by_visibility
-from rainbench.eval.metrics.coco import coco_detections, coco_ground_truth, match_table
+from rainbench.eval.metrics.coco import (AREA_ALL, METRICS_BACKENDS, coco_detections, coco_ground_truth, match_table,
+                                         run_cocoeval)
 from rainbench.eval.metrics.evaluation import evaluate
 from rainbench.eval.metrics.f1 import pr_confidence_curves
 from rainbench.eval.metrics.robustness import half_value_rate, mpc, percent_drop, rpc
@@ -616,6 +617,170 @@ def test_bootstrap_ci_class_without_ground_truth_is_nan():
 
 
 # --------------------------------------------------------------------------------------------
+# metrics backends: the vectorised "numpy" backend against pycocotools, figure by figure
+# --------------------------------------------------------------------------------------------
+
+
+def hard_set(seed, n_images=40):
+    """Frames built to stress COCO's matching rules: (gt_dict, detections, visible_fraction).
+
+    Integer boxes, so IoUs tie exactly and hit the thresholds exactly (a half box has IoU 0.5, a
+    three-quarter box 0.75); duplicated ground truths (equal IoU with a detection) and two
+    persons a detection straddles with equal IoU, the one it takes (the later one) being the only
+    match of a lower-scored detection; crowd
+    (ignored) boxes, one of them large enough to absorb several detections; scores from a few
+    values (ties within and across images, also at the 100-detection cut of the crowded frame);
+    empty frames, frames with only ground truth, frames with only false positives; zero-size
+    detections; bicycle detections but no bicycle ground truth.
+    """
+    rng = np.random.default_rng(seed)
+    scores = np.array([0.0, 0.2, 0.5, 0.5, 0.8, 1.0])
+    images, detections, visible = [], [], []
+    for image_id in range(1, n_images + 1):
+        kind = image_id % 5
+        n = 0 if kind in (0, 2) else int(rng.integers(1, 9))
+        xy = rng.integers(0, 300, (n, 2))
+        wh = 4 * rng.integers(1, 20, (n, 2))
+        boxes = np.concatenate([xy, xy + wh], axis=1).astype(np.float32)
+        classes = rng.choice([PERSON, CAR, MOTORCYCLE], size=n, p=[0.3, 0.6, 0.1])
+        duplicate = rng.random(n) < 0.15
+        boxes = np.concatenate([boxes, boxes[duplicate]])
+        classes = np.concatenate([classes, classes[duplicate]])
+        ignore = rng.random(len(boxes)) < 0.15
+        if kind == 3:  # a large crowd box over a busy area; two persons with a straddling detection
+            boxes = np.concatenate([boxes, np.array([[0, 0, 200, 200], [400, 400, 410, 410], [404, 400, 414, 410]],
+                                                    np.float32)])
+            classes, ignore = np.append(classes, [CAR, PERSON, PERSON]), np.append(ignore, [True, False, False])
+            detections += [det(image_id, PERSON, [402, 400, 412, 410], 0.9),
+                           det(image_id, PERSON, [404, 400, 414, 410], 0.4)]
+        images.append((image_id, 640, 480, boxes, classes, ignore))
+        fraction = rng.random(len(boxes))
+        fraction[rng.random(len(boxes)) < 0.2] = rng.choice([np.nan, 0.25, 0.5, 1.0])
+        visible.append(fraction)
+        if kind == 1:
+            continue
+        for box, class_id in zip(boxes.astype(np.float64), classes, strict=True):
+            x1, y1, x2, y2 = box
+            variants = [box, [x1, y1, x2, y1 + (y2 - y1) / 2], [x1, y1, x2, y1 + 0.75 * (y2 - y1)],
+                        box + rng.integers(-6, 7, 4)]
+            for _ in range(int(rng.integers(0, 4))):
+                new = np.asarray(variants[int(rng.integers(len(variants)))], np.float64)
+                new[2:] = np.maximum(new[2:], new[:2])
+                label = int(class_id) if rng.random() < 0.85 else int(rng.choice([PERSON, BICYCLE, CAR]))
+                detections.append(det(image_id, label, new.tolist(), float(rng.choice(scores))))
+        for _ in range(int(rng.integers(0, 6))):
+            x, y = rng.integers(0, 600, 2).astype(float)
+            w, h = (0.0 if rng.random() < 0.2 else float(rng.integers(2, 60)), float(rng.integers(2, 60)))
+            detections.append(det(image_id, int(rng.integers(4)), [x, y, x + w, y + h], float(rng.choice(scores))))
+        if kind == 4 and image_id < 10:  # more than 100 car detections, tied scores across the cut
+            for i in range(130):
+                x = float(4 * (i % 60))
+                detections.append(det(image_id, CAR, [x, 0.0, x + 40.0, 40.0], float(scores[2 + i % 3])))
+    return coco_ground_truth(images), detections, np.concatenate(visible)
+
+
+def assert_same_figures(first, second, path="", tol=1e-9):
+    """Recursively equal: dicts, dataclasses, tuples; floats to ``tol`` (nan equals nan)."""
+    if isinstance(first, dict):
+        assert list(first) == list(second), path
+        for key in first:
+            assert_same_figures(first[key], second[key], f"{path}[{key!r}]", tol)
+    elif hasattr(first, "__dataclass_fields__"):
+        assert type(first) is type(second), path
+        for name in first.__dataclass_fields__:
+            assert_same_figures(getattr(first, name), getattr(second, name), f"{path}.{name}", tol)
+    elif isinstance(first, np.ndarray):
+        np.testing.assert_array_equal(first, second, err_msg=path)
+    elif isinstance(first, float):
+        assert (math.isnan(first) and math.isnan(second)) or abs(first - second) <= tol, (path, first, second)
+    else:
+        assert first == second, path
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_backends_give_identical_matches_and_ap(seed):
+    gt, detections, _ = hard_set(seed)
+    ranges = [AREA_ALL, *SIZE_RANGES.values()]
+    for image_ids, class_ids in ((None, (CAR, PERSON, BICYCLE, MOTORCYCLE)), (list(range(40, 0, -3)), (MOTORCYCLE,))):
+        fast, reference = (run_cocoeval(gt, detections, class_ids, image_ids, area_ranges=ranges, backend=backend)
+                           for backend in METRICS_BACKENDS)
+        assert fast.class_ids == reference.class_ids == list(class_ids)
+        np.testing.assert_array_equal(fast.image_ids, reference.image_ids)
+        for a in range(len(ranges)):
+            assert list(fast.matches[a]) == sorted(class_ids)
+            assert_same_figures(fast.matches[a], reference.matches[a])  # the arrays are identical
+            for class_id in class_ids:
+                np.testing.assert_allclose(fast.ap[a][class_id], reference.ap[a][class_id], rtol=0, atol=1e-9)
+    # the hard cases happen: exact threshold IoUs, crowd absorption, the 100-detection cut
+    car = run_cocoeval(gt, detections, (CAR,)).matches[0][CAR]
+    assert car.ignored.any() and car.true_positive[0].sum() > car.true_positive[5].sum()
+    assert len(car.scores) < sum(d["category_id"] == CAR for d in detections)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_backends_agree_on_every_figure(seed):
+    gt, detections, visible = hard_set(seed, n_images=30)
+    figures = {}
+    for backend in METRICS_BACKENDS:
+        rainy = {"m": {0: detections, 50: detections[::2], 100: detections[::3]}}
+        figures[backend] = {
+            "evaluate": evaluate(gt, detections, backend=backend),
+            "by size": ap_by_size(gt, detections, backend=backend),
+            "visibility fp": ap_by_visibility(gt, detections, visible, unmatched="fp", backend=backend),
+            "visibility ignore": ap_by_visibility(gt, detections, visible, unmatched="ignore", backend=backend),
+            "ci50": bootstrap_ci(gt, detections, 50, rng=np.random.default_rng(1), backend=backend),
+            "ci50_95": bootstrap_ci(gt, detections, 50, rng=np.random.default_rng(1), metric="ap50_95",
+                                    backend=backend),
+            "robustness": robustness_intervals(gt, rainy, 50, rng=np.random.default_rng(2), backend=backend),
+        }
+    assert_same_figures(figures["numpy"], figures["pycocotools"])
+    assert math.isnan(figures["numpy"]["evaluate"][BICYCLE].ap50)  # a class without ground truth
+    textbook = direct_cocoeval(gt, detections)
+    for class_id in (PERSON, CAR, MOTORCYCLE):
+        ap50, ap50_95 = direct_ap(textbook, class_id)
+        assert figures["numpy"]["evaluate"][class_id].ap50 == pytest.approx(ap50, abs=1e-9)
+        assert figures["numpy"]["evaluate"][class_id].ap50_95 == pytest.approx(ap50_95, abs=1e-9)
+        assert figures["numpy"]["ci50"][class_id].point == pytest.approx(ap50, abs=1e-9)
+
+
+def _looped_interpolated_ap(true_positive, ignored, det_weights, n_gt):
+    """COCOeval.accumulate's interpolation, one copy (row) at a time: the reference."""
+    ap = np.full((len(det_weights), len(true_positive)), np.nan)
+    for row, (weights, count) in enumerate(zip(det_weights, n_gt, strict=True)):
+        if count == 0:
+            continue
+        for t in range(len(true_positive)):
+            counted = ~ignored[t]
+            tp_sum = np.cumsum(weights * (true_positive[t] & counted))
+            fp_sum = np.cumsum(weights * (~true_positive[t] & counted))
+            recall = tp_sum / count
+            precision = (tp_sum / (fp_sum + tp_sum + np.spacing(1))).tolist()
+            for i in range(len(precision) - 1, 0, -1):
+                precision[i - 1] = max(precision[i - 1], precision[i])
+            indices = np.searchsorted(recall, RECALL_THRESHOLDS, side="left")
+            ap[row, t] = np.array([precision[i] if i < len(precision) else 0.0 for i in indices]).mean()
+    return ap
+
+
+def test_interpolated_ap_equals_the_per_copy_loop_bit_for_bit():
+    rng = np.random.default_rng(11)
+    for trial in range(60):
+        n_thresholds, n_dets, n_images = int(rng.integers(1, 11)), int(rng.integers(0, 120)), int(rng.integers(1, 25))
+        true_positive = rng.random((n_thresholds, n_dets)) < rng.random()
+        ignored = rng.random((n_thresholds, n_dets)) < 0.2 * rng.random()
+        image_index = rng.integers(0, n_images, n_dets)
+        n_gt_per_image = rng.integers(0, 4, n_images) if trial % 6 else np.zeros(n_images, np.int64)
+        weights = bootstrap_weights(n_images, int(rng.integers(1, 30)), rng).astype(float)
+        weights[0] = 1.0 if trial % 2 else 0.0
+        det_weights, n_gt = weights[:, image_index], weights @ n_gt_per_image
+        expected = _looped_interpolated_ap(true_positive, ignored, det_weights, n_gt)
+        np.testing.assert_array_equal(interpolated_ap(true_positive, ignored, det_weights, n_gt), expected)
+        np.testing.assert_array_equal(
+            image_weighted_ap(true_positive, ignored, image_index, weights, n_gt_per_image), expected
+        )
+
+
+# --------------------------------------------------------------------------------------------
 # bad inputs: one-line errors saying what was expected and what came
 # --------------------------------------------------------------------------------------------
 
@@ -752,6 +917,30 @@ _GT = coco_ground_truth([(1, 100, 100, _GOOD_BOXES, np.array([CAR]))])
         (
             lambda: interpolated_ap(np.zeros((1, 3), bool), np.zeros((1, 3), bool), np.ones((2, 4)), np.ones(2)),
             r"det_weights: expected shape \(B, 3\), got \(2, 4\)",
+        ),
+        (
+            lambda: interpolated_ap(np.zeros((1, 3), bool), np.zeros((1, 3), bool), -np.ones((1, 3)), np.ones(1)),
+            r"det_weights: expected non-negative integer-valued weights, got other values",
+        ),
+        (
+            lambda: interpolated_ap(np.zeros((1, 3), bool), np.zeros((1, 3), bool), np.full((1, 3), 0.5), np.ones(1)),
+            r"det_weights: expected non-negative integer-valued weights, got other values",
+        ),
+        (
+            lambda: evaluate(_GT, [], backend="fast"),
+            r"metrics backend: expected one of numpy, pycocotools, got 'fast'",
+        ),
+        (
+            lambda: bootstrap_ci(_GT, [], 10, rng=np.random.default_rng(0), backend="faster-coco-eval"),
+            r"metrics backend: expected one of numpy, pycocotools, got 'faster-coco-eval'",
+        ),
+        (
+            lambda: ap_by_size(_GT, [], backend=None),
+            r"metrics backend: expected one of numpy, pycocotools, got None",
+        ),
+        (
+            lambda: robustness_intervals(_GT, {"a": {0: [], 50: []}}, 10, rng=np.random.default_rng(0), backend="np"),
+            r"metrics backend: expected one of numpy, pycocotools, got 'np'",
         ),
     ],
 )

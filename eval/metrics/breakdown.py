@@ -8,11 +8,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from pycocotools.cocoeval import COCOeval
 
 from rainbench.store.classes import PAPER_CLASSES
 
-from .coco import ap_per_iou, class_matches, iou_index, run_cocoeval, validate_gt_dict
+from .coco import DEFAULT_BACKEND, CocoEvaluation, ap_per_iou, class_matches, iou_index, run_cocoeval, validate_gt_dict
 
 SIZE_RANGES: dict[str, tuple[float, float]] = {
     "small": (0.0, 32.0**2),
@@ -37,17 +36,16 @@ class BreakdownAP:
     n_gt: int
 
 
-def _breakdown(
-    evaluator: COCOeval, class_ids: Sequence[int], labels: Sequence[str]
-) -> dict[str, dict[int, BreakdownAP]]:
-    """Read per-(area range, class) AP50 / AP50-95 / n_gt out of an accumulated COCOeval."""
-    matches_by_range = [class_matches(evaluator, a) for a in range(len(labels))]
-    iou50 = iou_index(evaluator.params.iouThrs, 0.5)
+def _breakdown(evaluation: CocoEvaluation, labels: Sequence[str]) -> dict[str, dict[int, BreakdownAP]]:
+    """Read per-(area range, class) AP50 / AP50-95 / n_gt out of an accumulated evaluation, the
+    classes in the evaluation's order."""
+    matches_by_range = [class_matches(evaluation, a) for a in range(len(labels))]
+    iou50 = iou_index(evaluation.iou_thresholds, 0.5)
     result: dict[str, dict[int, BreakdownAP]] = {}
     for a, label in enumerate(labels):
         per_class = {}
-        for class_id in class_ids:
-            ap_by_iou = ap_per_iou(evaluator, class_id, a)
+        for class_id in evaluation.class_ids:
+            ap_by_iou = ap_per_iou(evaluation, class_id, a)
             per_class[class_id] = BreakdownAP(
                 ap50=float(ap_by_iou[iou50]),
                 ap50_95=float(np.mean(ap_by_iou)),
@@ -62,6 +60,8 @@ def ap_by_size(
     detections: Sequence[Mapping[str, Any]],
     class_ids: Sequence[int] = PAPER_CLASSES,
     image_ids: Sequence[int] | None = None,
+    *,
+    backend: str = DEFAULT_BACKEND,
 ) -> dict[str, dict[int, BreakdownAP]]:
     """COCO AP by object size (small < 32², medium 32²..96², large > 96² px², box area).
 
@@ -75,14 +75,15 @@ def ap_by_size(
         detections: COCO results records.
         class_ids: Class ids to evaluate.
         image_ids: Images to evaluate; all when None.
+        backend: Metrics backend, ``METRICS_BACKENDS``.
 
     Returns:
         ``{"small" | "medium" | "large": {class_id: BreakdownAP}}``.
     """
-    evaluator, class_ids = run_cocoeval(
-        gt_dict, detections, class_ids, image_ids, area_ranges=list(SIZE_RANGES.values())
+    evaluation = run_cocoeval(
+        gt_dict, detections, class_ids, image_ids, area_ranges=list(SIZE_RANGES.values()), backend=backend
     )
-    return _breakdown(evaluator, class_ids, list(SIZE_RANGES))
+    return _breakdown(evaluation, list(SIZE_RANGES))
 
 
 def ap_by_visibility(
@@ -93,8 +94,10 @@ def ap_by_visibility(
     unmatched: str = "fp",
     class_ids: Sequence[int] = PAPER_CLASSES,
     image_ids: Sequence[int] | None = None,
+    *,
+    backend: str = DEFAULT_BACKEND,
 ) -> dict[str, dict[int, BreakdownAP]]:
-    """COCO AP by ground-truth visible fraction, one COCOeval run with one "area range" per bin.
+    """COCO AP by ground-truth visible fraction, one COCO evaluation with one "area range" per bin.
 
     Each ground truth is put in exactly one bin (half-open ``[lo, hi)``, the last bin closed);
     within a bin the others are ignored exactly like COCO's out-of-area-range ground truths: they
@@ -120,6 +123,7 @@ def ap_by_visibility(
         unmatched: "fp" or "ignore", see above.
         class_ids: Class ids to evaluate.
         image_ids: Images to evaluate; all when None.
+        backend: Metrics backend, ``METRICS_BACKENDS``.
 
     Returns:
         ``{"lo-hi": {class_id: BreakdownAP}}`` with labels like ``"0.25-0.50"``.
@@ -145,7 +149,7 @@ def ap_by_visibility(
     gt_area = np.where(outside, -1.0, bin_index.astype(np.float64))
     labels = [f"{lo:.2f}-{hi:.2f}" for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
     ranges = [(float(i), float(i)) for i in range(len(labels))]
-    evaluator, class_ids = run_cocoeval(
+    evaluation = run_cocoeval(
         gt_dict,
         detections,
         class_ids,
@@ -153,5 +157,6 @@ def ap_by_visibility(
         area_ranges=ranges,
         gt_areas=gt_area,
         detection_area=math.nan if unmatched == "fp" else -math.inf,
+        backend=backend,
     )
-    return _breakdown(evaluator, class_ids, labels)
+    return _breakdown(evaluation, labels)

@@ -1,19 +1,21 @@
-"""COCO set-up and matching: the one place rainbench builds pycocotools objects and runs COCOeval.
+"""COCO set-up and matching: the one place rainbench evaluates detections the COCO way.
 
 :func:`coco_ground_truth` and :func:`coco_detections` turn per-image arrays into COCO dicts and
-results records; :func:`run_cocoeval` validates them, indexes them as pycocotools ``COCO``
-objects and runs ``COCOeval`` with rainbench's parameters (bbox, maxDets 100, the given area
-ranges and IoU thresholds). Every metric that needs COCO (AP, the YOLO F1 matches, the AP
-breakdowns, the bootstrap) goes through it; :func:`class_matches` and :func:`ap_per_iou` read its
-results back as arrays. Conventions: see :mod:`rainbench.eval.metrics`.
+results records; :func:`run_cocoeval` validates them and runs COCO's bbox evaluation with
+rainbench's parameters (maxDets 100, the given area ranges and IoU thresholds) through one of two
+backends (``METRICS_BACKENDS``): "numpy", the vectorised matching of
+:mod:`rainbench.eval.metrics.matching` and the accumulation of
+:mod:`rainbench.eval.metrics.accumulate` (the default), or "pycocotools", the reference
+``COCOeval``. Every metric that needs COCO (AP, the YOLO F1 matches, the AP breakdowns, the
+bootstrap) goes through it; :func:`class_matches` and :func:`ap_per_iou` read its results, the
+same arrays whatever the backend. Conventions: see :mod:`rainbench.eval.metrics`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import io
-import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,11 +25,18 @@ from pycocotools.cocoeval import COCOeval, Params
 
 from rainbench.store.classes import PAPER_CLASS_NAMES, PAPER_CLASSES
 
+from .accumulate import interpolated_ap
+from .matching import match_boxes
+
 IOU_THRESHOLDS: np.ndarray = Params(iouType="bbox").iouThrs.copy()
 """(10,) float64 COCO IoU thresholds 0.50:0.05:0.95, exactly as pycocotools builds them."""
 
-RECALL_THRESHOLDS: np.ndarray = Params(iouType="bbox").recThrs.copy()
-"""(101,) float64 COCO recall thresholds 0.00:0.01:1.00, exactly as pycocotools builds them."""
+METRICS_BACKENDS = ("numpy", "pycocotools")
+"""Implementations of COCO's bbox evaluation: "numpy" (vectorised, :mod:`.matching` and
+:mod:`.accumulate`) and "pycocotools" (``COCOeval``, the reference); same matches and AP."""
+
+DEFAULT_BACKEND = "numpy"
+"""The metrics backend used unless another is asked for (``rainbench eval --metrics``)."""
 
 MAX_DETECTIONS = 100
 """Detections kept per image and class (COCO maxDets; the largest of COCO's default [1, 10, 100])."""
@@ -244,6 +253,108 @@ def _quiet() -> contextlib.AbstractContextManager:
     return contextlib.redirect_stdout(io.StringIO())
 
 
+def check_backend(backend: Any) -> str:
+    """Return ``backend`` if it names a metrics backend, else raise a one-line ValueError."""
+    if not isinstance(backend, str) or backend not in METRICS_BACKENDS:
+        raise ValueError(f"metrics backend: expected one of {', '.join(METRICS_BACKENDS)}, got {backend!r}")
+    return backend
+
+
+@dataclass(frozen=True)
+class _DetectionTable:
+    """Validated detection records as arrays, in record order (record k has COCO id k + 1).
+
+    Attributes:
+        image_id (np.ndarray): (D,) int64 image ids.
+        category_id (np.ndarray): (D,) int64 category ids.
+        bbox (np.ndarray): (D, 4) float64 ``[x, y, w, h]`` boxes.
+        score (np.ndarray): (D,) float64 scores in [0, 1].
+        area (np.ndarray): (D,) float64 area of the area-range test (``w * h`` unless replaced).
+    """
+
+    image_id: np.ndarray
+    category_id: np.ndarray
+    bbox: np.ndarray
+    score: np.ndarray
+    area: np.ndarray
+
+
+def _detection_columns(detections: Sequence[Mapping[str, Any]]) -> tuple[list, list, list, list, int | None]:
+    """``(image_ids, category_ids, bboxes, scores, broken)``: the fields of the records before the
+    first one that is not a dict with all four fields (``broken``, its position; None when all are)."""
+    records = list(detections)
+    broken = None
+    try:
+        columns = [[record[key] for record in records] for key in ("image_id", "category_id", "bbox", "score")]
+    except (KeyError, TypeError):
+        for position, record in enumerate(records):
+            try:
+                record["image_id"], record["category_id"], record["bbox"], record["score"]
+            except (KeyError, TypeError):
+                broken = position
+                break
+        records = records[:broken]
+        columns = [[record[key] for record in records] for key in ("image_id", "category_id", "bbox", "score")]
+    return columns[0], columns[1], columns[2], columns[3], broken
+
+
+def _detection_table(
+    detections: Sequence[Mapping[str, Any]],
+    known_images: Collection[Any],
+    known_categories: Collection[Any],
+    area_override: float | None = None,
+) -> _DetectionTable:
+    """Validate COCO results records (the first bad record raises a one-line ValueError naming it)
+    and return them as arrays. ``area_override`` replaces every detection's area (used by the
+    visibility breakdown)."""
+    image_ids, category_ids, bboxes, scores, broken = _detection_columns(detections)
+    n = len(image_ids)
+    bad_image = np.fromiter((i not in known_images for i in image_ids), dtype=bool, count=n)
+    bad_category = np.fromiter((c not in known_categories for c in category_ids), dtype=bool, count=n)
+    try:
+        boxes = np.asarray(bboxes, dtype=np.float64) if n else np.zeros((0, 4))
+    except (ValueError, TypeError):
+        boxes = np.zeros((n, 0))
+    if boxes.shape == (n, 4):
+        bad_length = np.zeros(n, dtype=bool)
+    else:  # ragged: the records with four numbers are converted one by one
+        bad_length = np.fromiter((not hasattr(b, "__len__") or len(b) != 4 for b in bboxes), dtype=bool, count=n)
+        boxes = np.array([[float(v) for v in b] if not bad else [np.nan] * 4 for b, bad in zip(bboxes, bad_length)],
+                         dtype=np.float64).reshape(n, 4)
+    bad_box = ~bad_length & ~(np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= 0) & (boxes[:, 3] >= 0))
+    score = np.asarray(scores, dtype=np.float64).reshape(n)
+    bad_score = ~((score >= 0.0) & (score <= 1.0))
+    bad = np.flatnonzero(bad_image | bad_category | bad_length | bad_box | bad_score)
+    if bad.size:
+        position = int(bad[0])
+        if bad_image[position]:
+            raise ValueError(f"detections[{position}]: image_id {image_ids[position]!r} is not in the ground truth")
+        if bad_category[position]:
+            raise ValueError(f"detections[{position}]: unknown category_id {category_ids[position]!r}, "
+                             f"expected one of {sorted(known_categories)}")
+        if bad_length[position]:
+            raise ValueError(f"detections[{position}] bbox: expected [x, y, w, h], got {bboxes[position]!r}")
+        if bad_box[position]:
+            raise ValueError(f"detections[{position}] bbox: expected finite [x, y, w, h] with w, h >= 0, "
+                             f"got {bboxes[position]!r}")
+        raise ValueError(
+            f"detections[{position}] score: expected a confidence in [0, 1], got {float(score[position])!r}"
+        )
+    if broken is not None:
+        record = list(detections)[broken]
+        raise ValueError(
+            f"detections[{broken}]: expected a dict with image_id, category_id, bbox, score, got {record!r}"
+        )
+    area = boxes[:, 2] * boxes[:, 3] if area_override is None else np.full(n, float(area_override))
+    return _DetectionTable(
+        image_id=np.asarray(image_ids).astype(np.int64).reshape(n),
+        category_id=np.asarray(category_ids).astype(np.int64).reshape(n),
+        bbox=boxes,
+        score=score,
+        area=area,
+    )
+
+
 def _coco_from_gt(gt_dict: Mapping[str, Any], area_override: Sequence[float] | None = None) -> COCO:
     """Index a COCO ground-truth dict; annotation dicts are copied (COCOeval writes into them)."""
     annotations = [dict(ann) for ann in gt_dict["annotations"]]
@@ -261,56 +372,21 @@ def _coco_from_gt(gt_dict: Mapping[str, Any], area_override: Sequence[float] | N
     return coco
 
 
-def _coco_from_detections(
-    coco_gt: COCO, detections: Sequence[Mapping[str, Any]], area_override: float | None = None
-) -> COCO:
-    """Validate detections and index them as a COCO results object.
+def _coco_from_detections(coco_gt: COCO, table: _DetectionTable) -> COCO:
+    """Index validated detections as a COCO results object.
 
-    Equivalent to ``coco_gt.loadRes(detections)`` for bbox results (ids from 1, ``area = w * h``,
-    ``iscrowd = 0``) but copies the records instead of mutating them, and accepts an empty list
-    (``loadRes`` raises IndexError on one). ``area_override`` replaces every detection's area
-    (used by the visibility breakdown).
+    Equivalent to ``coco_gt.loadRes(detections)`` for bbox results (ids from 1, ``area = w * h``
+    unless replaced, ``iscrowd = 0``) but builds new records instead of mutating them, and accepts
+    no detections (``loadRes`` raises IndexError on an empty list).
     """
-    known_images = coco_gt.imgs
-    known_categories = coco_gt.cats
-    annotations = []
-    for position, record in enumerate(detections):
-        try:
-            image_id, category_id, bbox, score = (
-                record["image_id"],
-                record["category_id"],
-                record["bbox"],
-                record["score"],
-            )
-        except (KeyError, TypeError) as error:
-            raise ValueError(
-                f"detections[{position}]: expected a dict with image_id, category_id, bbox, score, got {record!r}"
-            ) from error
-        if image_id not in known_images:
-            raise ValueError(f"detections[{position}]: image_id {image_id!r} is not in the ground truth")
-        if category_id not in known_categories:
-            raise ValueError(
-                f"detections[{position}]: unknown category_id {category_id!r}, expected one of {sorted(known_categories)}"
-            )
-        if len(bbox) != 4:
-            raise ValueError(f"detections[{position}] bbox: expected [x, y, w, h], got {bbox!r}")
-        x, y, w, h = (float(v) for v in bbox)
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(w) and math.isfinite(h)) or w < 0 or h < 0:
-            raise ValueError(f"detections[{position}] bbox: expected finite [x, y, w, h] with w, h >= 0, got {bbox!r}")
-        score = float(score)
-        if not 0.0 <= score <= 1.0:
-            raise ValueError(f"detections[{position}] score: expected a confidence in [0, 1], got {score!r}")
-        annotations.append(
-            {
-                "id": position + 1,
-                "image_id": int(image_id),
-                "category_id": int(category_id),
-                "bbox": [x, y, w, h],
-                "score": score,
-                "area": w * h if area_override is None else area_override,
-                "iscrowd": 0,
-            }
+    annotations = [
+        {"id": position + 1, "image_id": image_id, "category_id": category_id, "bbox": bbox, "score": score,
+         "area": area, "iscrowd": 0}
+        for position, (image_id, category_id, bbox, score, area) in enumerate(
+            zip(table.image_id.tolist(), table.category_id.tolist(), table.bbox.tolist(), table.score.tolist(),
+                table.area.tolist(), strict=True)
         )
+    ]
     coco = COCO()
     coco.dataset = {
         "images": list(coco_gt.dataset["images"]),
@@ -322,30 +398,55 @@ def _coco_from_detections(
     return coco
 
 
-def _check_class_ids(class_ids: Sequence[int], coco_gt: COCO) -> list[int]:
+def _check_class_ids(class_ids: Sequence[int], known: Collection[Any]) -> list[int]:
     """Return ``class_ids`` as a list of ints, all present among the ground-truth categories."""
     ids = [int(c) for c in class_ids]
     if not ids:
         raise ValueError("class_ids: expected at least one class id, got none")
     if len(set(ids)) != len(ids):
         raise ValueError(f"class_ids: expected unique ids, got {ids}")
-    unknown = [c for c in ids if c not in coco_gt.cats]
+    unknown = [c for c in ids if c not in known]
     if unknown:
-        raise ValueError(f"class_ids: unknown class id(s) {unknown}, expected ids in {sorted(coco_gt.cats)}")
+        raise ValueError(f"class_ids: unknown class id(s) {unknown}, expected ids in {sorted(known)}")
     return ids
 
 
-def _check_image_ids(image_ids: Sequence[int] | None, coco_gt: COCO) -> list[int]:
-    """Return the evaluated image ids (all ground-truth images when None), validated."""
+def _check_image_ids(image_ids: Sequence[int] | None, known: Collection[Any]) -> np.ndarray:
+    """The evaluated image ids as COCOeval uses them: (N,) int64, ascending, unique (all
+    ground-truth images when None), validated."""
     if image_ids is None:
-        return sorted(coco_gt.imgs)
+        return np.unique(np.asarray(list(known), dtype=np.int64))
     ids = [int(i) for i in image_ids]
     if not ids:
         raise ValueError("image_ids: expected at least one image id, got none")
-    missing = [i for i in ids if i not in coco_gt.imgs]
+    missing = [i for i in ids if i not in known]
     if missing:
         raise ValueError(f"image_ids: {missing[:5]} not in the ground truth")
-    return ids
+    return np.unique(np.asarray(ids, dtype=np.int64))
+
+
+@dataclass(frozen=True)
+class CocoEvaluation:
+    """COCO matching (and AP) of one detection set, the same whatever the backend.
+
+    Attributes:
+        backend (str): The metrics backend that computed it (``METRICS_BACKENDS``).
+        class_ids (list[int]): The evaluated class ids, validated, in the requested order.
+        image_ids (np.ndarray): (N,) int64 evaluated image ids, ascending.
+        iou_thresholds (np.ndarray): (T,) float64 IoU thresholds.
+        matches (tuple[dict[int, ClassMatches], ...]): per area range, ``{class_id:
+            ClassMatches}`` in ascending class id order.
+        ap (tuple[dict[int, np.ndarray], ...] | None): per area range, ``{class_id: (T,) float64
+            AP per IoU threshold}`` (nan where the class has no non-ignored ground truth); None
+            when run without ``accumulate``.
+    """
+
+    backend: str
+    class_ids: list[int]
+    image_ids: np.ndarray
+    iou_thresholds: np.ndarray
+    matches: tuple[dict[int, ClassMatches], ...]
+    ap: tuple[dict[int, np.ndarray], ...] | None
 
 
 def run_cocoeval(
@@ -359,11 +460,17 @@ def run_cocoeval(
     accumulate: bool = True,
     gt_areas: Sequence[float] | None = None,
     detection_area: float | None = None,
-) -> tuple[COCOeval, list[int]]:
-    """Validate the inputs, index them as pycocotools ``COCO`` objects and run COCOeval quietly.
+    backend: str = DEFAULT_BACKEND,
+) -> CocoEvaluation:
+    """Validate the inputs and run COCO's bbox evaluation with rainbench's parameters.
 
-    The one COCO set-up of rainbench: bbox IoU, ``maxDets = [MAX_DETECTIONS]``, one area range
-    per entry of ``area_ranges`` (labelled "0", "1", ...), the given IoU thresholds.
+    The one COCO set-up of rainbench: bbox IoU, maxDets ``MAX_DETECTIONS``, one area range per
+    entry of ``area_ranges``, the given IoU thresholds. ``backend`` "numpy" matches with
+    :func:`rainbench.eval.metrics.matching.match_boxes` and accumulates with
+    :func:`rainbench.eval.metrics.accumulate.interpolated_ap`; "pycocotools" indexes the inputs as
+    pycocotools ``COCO`` objects and runs ``COCOeval`` (evaluate, accumulate) quietly, reading
+    ``evalImgs`` and ``eval["precision"]`` back. Both give the same matches and AP (the tests
+    hold them equal to 1e-9 on every figure).
 
     Args:
         gt_dict: COCO ground-truth dict (see :func:`coco_ground_truth`); copied, not modified.
@@ -373,48 +480,165 @@ def run_cocoeval(
         image_ids: Images to evaluate; all ground-truth images when None.
         area_ranges: (lo, hi) area ranges of COCOeval's area-range test, squared pixels.
         iou_thresholds: (T,) float64 IoU thresholds.
-        accumulate: Also run ``accumulate`` (fills ``eval``); ``evalImgs`` is always filled.
+        accumulate: Also compute AP (``CocoEvaluation.ap``); the matches are always computed.
         gt_areas: (A,) float areas replacing the annotations' ``area`` (aligned with
             ``gt_dict["annotations"]``), or None to keep them.
         detection_area: One area given to every detection instead of ``w * h``, or None.
+        backend: "numpy" (default) or "pycocotools" (the reference), ``METRICS_BACKENDS``.
 
     Returns:
-        (the evaluated COCOeval, ``class_ids`` as a validated list of ints in the given order).
+        The :class:`CocoEvaluation`.
     """
+    backend = check_backend(backend)
     validate_gt_dict(gt_dict)
+    known_images = {image["id"] for image in gt_dict["images"]}
+    known_categories = {category["id"] for category in gt_dict["categories"]}
+    class_ids = _check_class_ids(class_ids, known_categories)
+    evaluated_images = _check_image_ids(image_ids, known_images)
+    table = _detection_table(detections, known_images, known_categories, area_override=detection_area)
+    iou_thresholds = np.asarray(iou_thresholds, dtype=np.float64)
+    run = _numpy_evaluation if backend == "numpy" else _pycocotools_evaluation
+    matches, ap = run(gt_dict, table, sorted(class_ids), evaluated_images, area_ranges=area_ranges,
+                      iou_thresholds=iou_thresholds, accumulate=accumulate, gt_areas=gt_areas)
+    return CocoEvaluation(backend=backend, class_ids=class_ids, image_ids=evaluated_images,
+                          iou_thresholds=iou_thresholds, matches=matches, ap=ap)
+
+
+def _accumulate_order(
+    class_id: int,
+    image_ids: np.ndarray,
+    iou_thresholds: np.ndarray,
+    scores: np.ndarray,
+    true_positive: np.ndarray,
+    ignored: np.ndarray,
+    image_index: np.ndarray,
+    n_gt_per_image: np.ndarray,
+) -> ClassMatches:
+    """:class:`ClassMatches` from one class's detections given image by image (ascending images,
+    each image's by descending score): (D,) ``scores``, (T, D) ``true_positive`` / ``ignored``,
+    (D,) ``image_index``; puts them in ``COCOeval.accumulate``'s order (a stable sort by
+    descending score)."""
+    order = np.argsort(-scores, kind="mergesort")
+    return ClassMatches(
+        class_id=int(class_id),
+        image_ids=image_ids,
+        iou_thresholds=iou_thresholds,
+        scores=scores[order],
+        true_positive=true_positive[:, order],
+        ignored=ignored[:, order],
+        image_index=image_index[order],
+        n_gt_per_image=n_gt_per_image,
+    )
+
+
+def _numpy_evaluation(
+    gt_dict: Mapping[str, Any],
+    table: _DetectionTable,
+    class_ids: list[int],
+    image_ids: np.ndarray,
+    *,
+    area_ranges: Sequence[tuple[float, float]],
+    iou_thresholds: np.ndarray,
+    accumulate: bool,
+    gt_areas: Sequence[float] | None,
+) -> tuple[tuple[dict[int, ClassMatches], ...], tuple[dict[int, np.ndarray], ...] | None]:
+    """The "numpy" backend of :func:`run_cocoeval`: (matches, AP) per area range."""
+    annotations = gt_dict["annotations"]
+    n_annotations = len(annotations)
+    gt_image = np.array([ann["image_id"] for ann in annotations], dtype=np.int64).reshape(n_annotations)
+    gt_category = np.array([ann["category_id"] for ann in annotations], dtype=np.int64).reshape(n_annotations)
+    gt_boxes = np.array([ann["bbox"] for ann in annotations], dtype=np.float64).reshape(n_annotations, 4)
+    gt_crowd = np.array([bool(ann["iscrowd"]) for ann in annotations], dtype=bool).reshape(n_annotations)
+    if gt_areas is None:
+        gt_area = np.array([ann["area"] for ann in annotations], dtype=np.float64).reshape(n_annotations)
+    else:
+        gt_area = np.asarray(gt_areas, dtype=np.float64)
+        if gt_area.shape != (n_annotations,):
+            raise ValueError(f"gt_areas: expected shape ({n_annotations},) aligned with the annotations, "
+                             f"got {gt_area.shape}")
+    classes = np.asarray(class_ids, dtype=np.int64)
+    n_images = len(image_ids)
+
+    def groups(image: np.ndarray, category: np.ndarray) -> np.ndarray:
+        """(M,) int64 group ``class_index * n_images + image_index``, -1 outside the evaluation."""
+        image_index = np.minimum(np.searchsorted(image_ids, image), n_images - 1)
+        class_index = np.minimum(np.searchsorted(classes, category), len(classes) - 1)
+        inside = (image_ids[image_index] == image) & (classes[class_index] == category)
+        return np.where(inside, class_index * n_images + image_index, -1)
+
+    gt_group = groups(gt_image, gt_category)
+    det_group = groups(table.image_id, table.category_id)
+    gt_kept, det_kept = gt_group >= 0, np.flatnonzero(det_group >= 0)
+    matching = match_boxes(
+        gt_group=gt_group[gt_kept], gt_boxes=gt_boxes[gt_kept], gt_area=gt_area[gt_kept],
+        gt_crowd=gt_crowd[gt_kept], det_group=det_group[det_kept], det_boxes=table.bbox[det_kept],
+        det_score=table.score[det_kept], det_area=table.area[det_kept], n_groups=len(classes) * n_images,
+        area_ranges=np.asarray(area_ranges, dtype=np.float64), iou_thresholds=iou_thresholds,
+        max_detections=MAX_DETECTIONS,
+    )
+    scores = table.score[det_kept][matching.source]
+    class_starts = np.searchsorted(matching.group, np.arange(len(classes) + 1) * n_images, side="left")
+    all_matches, all_ap = [], []
+    for a in range(len(area_ranges)):
+        by_class, ap_by_class = {}, {}
+        for k, class_id in enumerate(class_ids):
+            dets = slice(class_starts[k], class_starts[k + 1])
+            n_gt_per_image = matching.n_gt[a, k * n_images : (k + 1) * n_images].astype(np.int64)
+            match = _accumulate_order(class_id, image_ids, iou_thresholds, scores[dets],
+                                      matching.matched[a, :, dets], matching.ignored[a, :, dets],
+                                      matching.group[dets] - k * n_images, n_gt_per_image)
+            by_class[class_id] = match
+            if accumulate:
+                n_gt = np.array([float(n_gt_per_image.sum())])
+                ap_by_class[class_id] = interpolated_ap(match.true_positive, match.ignored,
+                                                        np.ones((1, len(match.scores))), n_gt)[0]
+        all_matches.append(by_class)
+        all_ap.append(ap_by_class)
+    return tuple(all_matches), (tuple(all_ap) if accumulate else None)
+
+
+def _pycocotools_evaluation(
+    gt_dict: Mapping[str, Any],
+    table: _DetectionTable,
+    class_ids: list[int],
+    image_ids: np.ndarray,
+    *,
+    area_ranges: Sequence[tuple[float, float]],
+    iou_thresholds: np.ndarray,
+    accumulate: bool,
+    gt_areas: Sequence[float] | None,
+) -> tuple[tuple[dict[int, ClassMatches], ...], tuple[dict[int, np.ndarray], ...] | None]:
+    """The "pycocotools" backend of :func:`run_cocoeval`: (matches, AP) per area range, read from
+    ``COCOeval.evalImgs`` and ``COCOeval.eval["precision"]``."""
     coco_gt = _coco_from_gt(gt_dict, area_override=gt_areas)
-    class_ids = _check_class_ids(class_ids, coco_gt)
-    image_ids = _check_image_ids(image_ids, coco_gt)
-    coco_dt = _coco_from_detections(coco_gt, detections, area_override=detection_area)
+    coco_dt = _coco_from_detections(coco_gt, table)
     evaluator = COCOeval(coco_gt, coco_dt, iouType="bbox")
     params = evaluator.params
-    params.imgIds = list(image_ids)
+    params.imgIds = image_ids.tolist()
     params.catIds = list(class_ids)
     params.maxDets = [MAX_DETECTIONS]
     params.areaRng = [list(r) for r in area_ranges]
     params.areaRngLbl = [str(i) for i in range(len(area_ranges))]
-    params.iouThrs = np.asarray(iou_thresholds, dtype=np.float64)
+    params.iouThrs = iou_thresholds
     with _quiet():
         evaluator.evaluate()
         if accumulate:
             evaluator.accumulate()
-    return evaluator, class_ids
+    matches = tuple(_read_eval_images(evaluator, a) for a in range(len(area_ranges)))
+    if not accumulate:
+        return matches, None
+    ap = tuple({class_id: _read_precision(evaluator, k, a) for k, class_id in enumerate(params.catIds)}
+               for a in range(len(area_ranges)))
+    return matches, ap
 
 
-def class_matches(evaluator: COCOeval, area_index: int = 0) -> dict[int, ClassMatches]:
-    """Read COCOeval ``evalImgs`` into one :class:`ClassMatches` per category (accumulate's order).
-
-    Args:
-        evaluator: COCOeval after ``evaluate`` (see :func:`run_cocoeval`).
-        area_index: Index of the area range whose matches are read.
-
-    Returns:
-        ``{class_id: ClassMatches}`` for every evaluated class, in COCOeval's sorted order.
-    """
+def _read_eval_images(evaluator: COCOeval, area_index: int) -> dict[int, ClassMatches]:
+    """Read COCOeval ``evalImgs`` of one area range into one :class:`ClassMatches` per category."""
     params = evaluator.params
     n_images, n_areas = len(params.imgIds), len(params.areaRng)
     n_thresholds = len(params.iouThrs)
     image_ids = np.asarray(params.imgIds, dtype=np.int64)
+    iou_thresholds = np.asarray(params.iouThrs, dtype=np.float64)
     result = {}
     for k, class_id in enumerate(params.catIds):
         start = k * n_areas * n_images + area_index * n_images
@@ -433,28 +657,36 @@ def class_matches(evaluator: COCOeval, area_index: int = 0) -> dict[int, ClassMa
             ignored.append(np.asarray(entry["dtIgnore"]).astype(bool))
             image_index.append(np.full(n_dets, i, dtype=np.int64))
         if scores:
-            all_scores = np.concatenate(scores)
-            order = np.argsort(-all_scores, kind="mergesort")
-            all_scores = all_scores[order]
-            all_tp = np.concatenate(true_positive, axis=1)[:, order]
-            all_ignored = np.concatenate(ignored, axis=1)[:, order]
-            all_index = np.concatenate(image_index)[order]
+            arrays = (np.concatenate(scores), np.concatenate(true_positive, axis=1),
+                      np.concatenate(ignored, axis=1), np.concatenate(image_index))
         else:
-            all_scores = np.zeros(0)
-            all_tp = np.zeros((n_thresholds, 0), dtype=bool)
-            all_ignored = np.zeros((n_thresholds, 0), dtype=bool)
-            all_index = np.zeros(0, dtype=np.int64)
-        result[int(class_id)] = ClassMatches(
-            class_id=int(class_id),
-            image_ids=image_ids,
-            iou_thresholds=np.asarray(params.iouThrs, dtype=np.float64),
-            scores=all_scores,
-            true_positive=all_tp,
-            ignored=all_ignored,
-            image_index=all_index,
-            n_gt_per_image=n_gt_per_image,
-        )
+            arrays = (np.zeros(0), np.zeros((n_thresholds, 0), dtype=bool), np.zeros((n_thresholds, 0), dtype=bool),
+                      np.zeros(0, dtype=np.int64))
+        result[int(class_id)] = _accumulate_order(class_id, image_ids, iou_thresholds, *arrays, n_gt_per_image)
     return result
+
+
+def _read_precision(evaluator: COCOeval, k: int, area_index: int) -> np.ndarray:
+    """(T,) float64 AP per IoU of the k-th category (COCOeval's sorted order) and one area range:
+    ``eval["precision"][:, :, k, area_index, 0]`` ((T, R), -1 where the class has no ground truth)
+    averaged over the recall thresholds as ``COCOeval.summarize`` does; nan without ground truth."""
+    precision = evaluator.eval["precision"][:, :, k, area_index, 0]
+    valid = precision > -1
+    with np.errstate(invalid="ignore"):
+        return np.where(valid.any(axis=1), np.where(valid, precision, 0).sum(axis=1) / valid.sum(axis=1), np.nan)
+
+
+def class_matches(evaluation: CocoEvaluation, area_index: int = 0) -> dict[int, ClassMatches]:
+    """The per-class matches of one area range of an evaluation (COCO's ``evalImgs`` as arrays).
+
+    Args:
+        evaluation: The result of :func:`run_cocoeval`.
+        area_index: Index of the area range whose matches are read.
+
+    Returns:
+        ``{class_id: ClassMatches}`` for every evaluated class, in ascending class id order.
+    """
+    return evaluation.matches[area_index]
 
 
 def match_table(
@@ -463,8 +695,10 @@ def match_table(
     class_ids: Sequence[int] = PAPER_CLASSES,
     image_ids: Sequence[int] | None = None,
     iou_thresholds: np.ndarray = IOU_THRESHOLDS,
+    *,
+    backend: str = DEFAULT_BACKEND,
 ) -> dict[int, ClassMatches]:
-    """Match detections to ground truth with COCOeval and return the per-class match arrays.
+    """Match detections to ground truth (COCO's evaluate) and return the per-class match arrays.
 
     Args:
         gt_dict: COCO ground-truth dict (see :func:`coco_ground_truth`).
@@ -472,15 +706,15 @@ def match_table(
         class_ids: Class ids to match.
         image_ids: Images to evaluate; all ground-truth images when None.
         iou_thresholds: (T,) float64 IoU thresholds.
+        backend: Metrics backend, ``METRICS_BACKENDS``.
 
     Returns:
-        ``{class_id: ClassMatches}`` for the "all" area range, maxDets 100.
+        ``{class_id: ClassMatches}`` for the "all" area range, maxDets 100, in ``class_ids`` order.
     """
-    evaluator, class_ids = run_cocoeval(
-        gt_dict, detections, class_ids, image_ids, iou_thresholds=iou_thresholds, accumulate=False
-    )
-    matches = class_matches(evaluator)
-    return {class_id: matches[class_id] for class_id in class_ids}
+    evaluation = run_cocoeval(gt_dict, detections, class_ids, image_ids, iou_thresholds=iou_thresholds,
+                              accumulate=False, backend=backend)
+    matches = class_matches(evaluation)
+    return {class_id: matches[class_id] for class_id in evaluation.class_ids}
 
 
 def iou_index(iou_thresholds: np.ndarray, iou: float) -> int:
@@ -488,23 +722,20 @@ def iou_index(iou_thresholds: np.ndarray, iou: float) -> int:
     return int(np.flatnonzero(np.isclose(iou_thresholds, iou))[0])
 
 
-def ap_per_iou(evaluator: COCOeval, class_id: int, area_index: int = 0) -> np.ndarray:
-    """Per-IoU AP of one class and area range from an accumulated COCOeval.
+def ap_per_iou(evaluation: CocoEvaluation, class_id: int, area_index: int = 0) -> np.ndarray:
+    """Per-IoU AP of one class and area range of an evaluation run with ``accumulate``.
 
-    Reads the slice ``eval["precision"][:, :, k, area_index, 0]`` ((T, R) float64, -1 where the
-    class has no ground truth) of the class's position ``k`` among COCOeval's sorted category ids,
-    and averages it over the recall thresholds as ``COCOeval.summarize`` does.
+    COCO's 101-point interpolated precision averaged over the recall thresholds as
+    ``COCOeval.summarize`` does.
 
     Args:
-        evaluator: COCOeval after ``evaluate`` and ``accumulate`` (see :func:`run_cocoeval`).
+        evaluation: The result of :func:`run_cocoeval` with ``accumulate=True``.
         class_id: One of the evaluated class ids.
         area_index: Index of the area range.
 
     Returns:
         (T,) float64 AP per IoU threshold, nan where the class has no ground truth.
     """
-    k = list(evaluator.params.catIds).index(class_id)
-    precision = evaluator.eval["precision"][:, :, k, area_index, 0]
-    valid = precision > -1
-    with np.errstate(invalid="ignore"):
-        return np.where(valid.any(axis=1), np.where(valid, precision, 0).sum(axis=1) / valid.sum(axis=1), np.nan)
+    if evaluation.ap is None:
+        raise ValueError("evaluation: expected a run_cocoeval result with accumulate=True, got one without AP")
+    return evaluation.ap[area_index][class_id]

@@ -1,4 +1,4 @@
-"""Per-class evaluation of one detection set: COCO AP (pycocotools) and YOLO-style P / R / F1."""
+"""Per-class evaluation of one detection set: COCO AP and YOLO-style P / R / F1."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 
 from rainbench.store.classes import PAPER_CLASSES
 
-from .coco import IOU_THRESHOLDS, ap_per_iou, class_matches, iou_index, run_cocoeval
+from .coco import DEFAULT_BACKEND, IOU_THRESHOLDS, ap_per_iou, class_matches, iou_index, run_cocoeval
 from .f1 import DEFAULT_CONF, yolo_f1
 
 @dataclass(frozen=True)
@@ -59,12 +59,15 @@ def evaluate(
     class_ids: Sequence[int] = PAPER_CLASSES,
     image_ids: Sequence[int] | None = None,
     conf: float = DEFAULT_CONF,
+    *,
+    backend: str = DEFAULT_BACKEND,
 ) -> dict[int, ClassMetrics]:
-    """Per-class COCO AP (pycocotools) and YOLO-convention precision / recall / F1.
+    """Per-class COCO AP and YOLO-convention precision / recall / F1.
 
-    One COCOeval run (bbox, area range "all", maxDets 100, IoU 0.50:0.95) over all requested
-    classes provides AP50 / AP75 / AP50-95 (its accumulated 101-point interpolated precision,
-    averaged as COCOeval.summarize does) and the TP/FP matches at IoU 0.5 (``evalImgs``). From
+    One COCO evaluation (:func:`.coco.run_cocoeval`: bbox, area range "all", maxDets 100, IoU
+    0.50:0.95) over all requested classes provides AP50 / AP75 / AP50-95 (the accumulated
+    101-point interpolated precision, averaged as COCOeval.summarize does) and the TP/FP matches
+    at IoU 0.5 (COCO's ``evalImgs``). From
     those matches, as ultralytics ``ap_per_class`` does: precision and recall curves of every
     class over a 1000-point confidence grid, F1 = 2PR / (P + R + 1e-16), mean F1 over the
     classes with ground truth, box-smoothed (10 %), argmax -> one ``best_conf`` shared by all
@@ -80,6 +83,8 @@ def evaluate(
         class_ids: Class ids to evaluate (must be ground-truth categories).
         image_ids: Images to evaluate; all ground-truth images when None.
         conf: Fixed confidence threshold of the ``*_at_conf`` values, in [0, 1].
+        backend: Metrics backend, ``METRICS_BACKENDS`` ("numpy" or the reference "pycocotools";
+            the same values).
 
     Returns:
         ``{class_id: ClassMetrics}`` in ``class_ids`` order. A class without (non-ignored)
@@ -87,14 +92,15 @@ def evaluate(
     """
     if not 0.0 <= conf <= 1.0:
         raise ValueError(f"conf: expected a confidence in [0, 1], got {conf!r}")
-    evaluator, class_ids = run_cocoeval(gt_dict, detections, class_ids, image_ids)
-    matches = class_matches(evaluator)
+    evaluation = run_cocoeval(gt_dict, detections, class_ids, image_ids, backend=backend)
+    class_ids = evaluation.class_ids
+    matches = class_matches(evaluation)
     iou50 = iou_index(IOU_THRESHOLDS, 0.5)
     iou75 = iou_index(IOU_THRESHOLDS, 0.75)
     f1_values = yolo_f1({c: matches[c] for c in class_ids}, iou50, conf)
     result = {}
     for class_id in class_ids:
-        ap_by_iou = ap_per_iou(evaluator, class_id)
+        ap_by_iou = ap_per_iou(evaluation, class_id)
         match = matches[class_id]
         precision, recall, f1, best_conf, precision_at, recall_at, f1_at = f1_values[class_id]
         result[class_id] = ClassMetrics(
