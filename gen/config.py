@@ -238,6 +238,13 @@ class GenerateConfig(ClipConfig):
         return self.rain_model == "physical"
 
     @property
+    def needs_depth(self) -> bool:
+        """Whether each frame's depth map is used: by the physical model (streaks, extinction),
+        by tyre spray (weather following the rate) or to be stored (``store`` has ``depth``).
+        The jeon2022 model under a fixed weather draws lens water only, which needs none."""
+        return self.rain_model == "physical" or self.follows_rate or "depth" in self.store
+
+    @property
     def duration_s(self) -> float:
         """Length of the whole clip the layout is planned for (all shards of a scene share it)."""
         clip = self.clip_frames if self.clip_frames is not None else self.frame_offset + self.frames

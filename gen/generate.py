@@ -82,7 +82,7 @@ def frame_labels(renderer: FrameRenderer, data: mujoco.MjData, visible: np.ndarr
 @dataclass
 class FrameResult:
     rgb: np.ndarray  # (H, W, 3) uint8 clean, base weather
-    depth: np.ndarray  # (H, W) float32 metres, +inf sky
+    depth: np.ndarray | None  # (H, W) float32 metres, +inf sky; None when not rendered
     instance: np.ndarray  # (H, W) int32
     labels: lb.FrameLabels
     T_world_cam: np.ndarray  # (4, 4)
@@ -92,12 +92,17 @@ class FrameResult:
 
 
 def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup,
-                 label_filter: lb.LabelFilter, weathers=()) -> FrameResult:
-    """Every pass of one frame at the state in ``data``: RGB + depth, segmentation, labels,
-    then one RGB re-render per weather in ``weathers`` other than the base weather."""
+                 label_filter: lb.LabelFilter, weathers=(), depth: bool = True) -> FrameResult:
+    """Every pass of one frame at the state in ``data``: RGB, segmentation (+ depth when
+    ``depth``, else ``FrameResult.depth`` is None), labels, then one RGB re-render per weather
+    in ``weathers`` other than the base weather."""
     renderer.update(data)
     rgb = renderer.render_rgb()
-    visible, _, depth = renderer.render_instances_depth()
+    if depth:
+        visible, _, depth_map = renderer.render_instances_depth()
+    else:  # the same segmentation without reading the depth buffer back
+        visible, _ = renderer.render_instances()
+        depth_map = None
     labels = frame_labels(renderer, data, visible, setup.class_of_instance, label_filter)
     rendered: dict[tuple, np.ndarray] = {render_key(renderer.base_weather): rgb}
     others = {}
@@ -108,14 +113,17 @@ def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup
         if key not in rendered:  # weathers that differ only in light level share a render
             rendered[key] = renderer.render_weather(data, weather)
         others[weather] = rendered[key]
-    return FrameResult(rgb, depth, visible, labels, camera_pose(setup.model, data, "ego"),
+    return FrameResult(rgb, depth_map, visible, labels, camera_pose(setup.model, data, "ego"),
                        others, float(data.time))
 
 
-def render_clip(config: GenerateConfig, setup: SceneSetup | None = None, weathers=()):
+def render_clip(config: GenerateConfig, setup: SceneSetup | None = None, weathers=(),
+                depth: bool = True):
     """Yield (frame index within the shard, FrameResult, the renderer) for every frame.
 
     ``weathers``: the weathers each frame is also rendered in (see :func:`sweep_weathers`).
+    ``depth``: whether frames carry a depth map (:attr:`GenerateConfig.needs_depth` says
+    whether the generator uses one).
     """
     setup = setup or build_scene(config)
     model = setup.model
@@ -129,7 +137,7 @@ def render_clip(config: GenerateConfig, setup: SceneSetup | None = None, weather
             sim.advance(model, data, driver, t_prev, t)
             t_prev = t
             yield index, render_frame(renderer, data, setup, config.label_filter,
-                                      weathers), renderer
+                                      weathers, depth), renderer
 
 
 def sweep_weathers(config: GenerateConfig, setup: SceneSetup) -> list[Weather]:
@@ -142,7 +150,8 @@ def sweep_weathers(config: GenerateConfig, setup: SceneSetup) -> list[Weather]:
 def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int,
                     pool: ThreadPoolExecutor | None, weathers: list[Weather],
                     layout: L.Layout, base_weather: Weather):
-    """(R, H, W, 3) images and per-rate statistics of one frame.
+    """The R images of one frame (a list of (H, W, 3) uint8, in the order of the rates; rows at
+    rate 0 are the clean image itself) and its per-rate statistics.
 
     The clean image is the render of the base weather through its camera: after dark the
     auto-exposure's gain adds sensor noise to it (by day the render itself). Without weather
@@ -157,7 +166,7 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
 
     rates = config.rates
     num_rates, num_boxes = len(rates), len(frame.labels)
-    images = np.empty((num_rates,) + frame.rgb.shape, np.uint8)
+    images: list[np.ndarray | None] = [None] * num_rates
     drop_count = np.zeros(num_rates, np.int32)
     ssim = np.ones(num_rates, np.float32)
     psnr = np.full(num_rates, np.inf, np.float32)
@@ -172,11 +181,16 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
         clean = wx.camera_response(clean, base_weather, noise)
         frame = dataclasses.replace(frame, rgb=clean)
     rainy_rows = [r for r, rate in enumerate(rates) if rate > 0]
-    images[[r for r, rate in enumerate(rates) if rate == 0]] = clean
+    for row, rate in enumerate(rates):
+        if rate == 0:
+            images[row] = clean
     if not rainy_rows:
         return images, drop_count, ssim, psnr, coverage, contrast
     from rainbench import rain  # noqa: PLC0415 -- only needed when it rains
 
+    # the clean image's half of the statistics, in a pool thread while the rain is drawn here
+    references = (pool.submit if pool is not None else _call_now)(
+        lambda: (rain.SsimReference(frame.rgb), rain.BoxRainReference(frame.rgb, frame.labels.bbox)))
     rain_config = config.rain_config()
     # lens water persists over the clip: seeded by the clip, placed by the frame's time
     clock = rain.LensClock(np.random.SeedSequence([config.rain_seed, config.seed]), global_frame,
@@ -190,18 +204,24 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
         frames, coverages = _weather_rain(config, frame, K, seeds, clock, rain_config,
                                           [weathers[r] for r in rainy_rows],
                                           [rates[r] for r in rainy_rows], layout, noise)
-    reference = rain.SsimReference(frame.rgb)
+    ssim_reference, box_reference = references.result()
 
     def statistics(row_frame_coverage):
         row, rainy, rain_coverage = row_frame_coverage
         images[row] = rainy.rgb
         drop_count[row] = rainy.drop_count
-        ssim[row], psnr[row] = reference.quality(rainy.rgb)
-        coverage[row], contrast[row] = rain.box_rain_labels(frame.rgb, rainy.rgb, rain_coverage,
-                                                            frame.labels.bbox)
+        ssim[row], psnr[row] = ssim_reference.quality(rainy.rgb)
+        coverage[row], contrast[row] = box_reference.labels(rainy.rgb, rain_coverage)
 
     list((pool.map if pool is not None else map)(statistics, zip(rainy_rows, frames, coverages)))
     return images, drop_count, ssim, psnr, coverage, contrast
+
+
+def _call_now(function: Callable[[], object]) -> concurrent.futures.Future:
+    """``function()`` run in this thread, as a finished future (the pool-less path)."""
+    future: concurrent.futures.Future = concurrent.futures.Future()
+    future.set_result(function())
+    return future
 
 
 def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
@@ -311,7 +331,8 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
             stats_pool = pools.enter_context(
                 ThreadPoolExecutor(threads, thread_name_prefix="rainbench-rate"))
         try:
-            for index, frame, renderer in render_clip(config, setup, weathers):
+            for index, frame, renderer in render_clip(config, setup, weathers,
+                                                      depth=config.needs_depth):
                 if writer is None:
                     writer = ShardWriter(path, attrs=attrs, rates=np.asarray(config.rates),
                                          num_frames=config.frames, width=config.width,

@@ -342,18 +342,22 @@ class FrameRenderer:
 
     def _decode(self, seg: np.ndarray) -> np.ndarray:
         """Segmentation colours (H, W, 3) uint8 -> instance ids (H, W) int32 via the scene."""
-        geoms = self._scene.geoms[: self._scene.ngeom]
         lut = np.full(max(256, self._scene.ngeom + 2), -1, dtype=np.int32)
         geom_type = mujoco.mjtObj.mjOBJ_GEOM
-        for geom in geoms:
+        segids, objids = [], []
+        for geom in self._scene.geoms[: self._scene.ngeom]:
             if geom.objtype == geom_type and geom.segid >= 0:
-                lut[geom.segid + 1] = self._geom_instance[geom.objid]
+                segids.append(geom.segid)
+                objids.append(geom.objid)
+        lut[np.asarray(segids, dtype=np.int64) + 1] = self._geom_instance[objids]
         if lut.size == 256:  # fewer than 255 geoms: the red channel holds the whole id
-            return lut[seg[..., 0]]
+            return np.take(lut, seg[..., 0])
+        if lut.size <= 65536:  # red + 256 green: each pixel's first two bytes, little-endian
+            pairs = seg[..., :2] if seg.strides[-1] == 1 else np.ascontiguousarray(seg[..., :2])
+            return np.take(lut, pairs.view("<u2")[..., 0], mode="clip")
         code = seg[..., 0].astype(np.int32)
         code |= seg[..., 1].astype(np.int32) << 8
-        if lut.size > 65536:
-            code |= seg[..., 2].astype(np.int32) << 16
+        code |= seg[..., 2].astype(np.int32) << 16
         return lut[np.minimum(code, lut.size - 1)]
 
     def _metric_depth(self, raw: np.ndarray) -> np.ndarray:

@@ -16,13 +16,14 @@ Typical use::
 
 from rainbench.rain.config import RAIN_MODELS, RainConfig
 from rainbench.rain.lens import LensClock, LensDrops, jeon2022_drop_count
-from rainbench.rain.metrics import SsimReference, box_rain_labels, image_quality, luma, psnr, ssim_gray
+from rainbench.rain.metrics import BoxRainReference, SsimReference, box_rain_labels, image_quality, luma, psnr, ssim_gray
 from rainbench.rain.physical import AirDrops, extinction_coefficient, marshall_palmer_slope, terminal_velocity, visibility_km
 from rainbench.rain.render import Drops, RainFrame, render_rain, render_rain_sweep, sample_drops
 
 __all__ = [
     "RAIN_MODELS",
     "AirDrops",
+    "BoxRainReference",
     "Drops",
     "LensClock",
     "LensDrops",

@@ -217,6 +217,8 @@ def box_rain_labels(clean: np.ndarray, rainy: np.ndarray, coverage: np.ndarray, 
       ``std(Y_clean) < 1e-6`` (a flat box has no contrast to lose).
 
     A box containing no pixel centre (degenerate or outside the image) gets 0 for both.
+    ``BoxRainReference(clean, boxes).labels(rainy, coverage)`` gives the same numbers and
+    computes the clean image's half once for many rainy images.
 
     Args:
         clean, rainy: (H, W, 3) uint8 images.
@@ -227,28 +229,56 @@ def box_rain_labels(clean: np.ndarray, rainy: np.ndarray, coverage: np.ndarray, 
         (rain_coverage (M,) float32, contrast_loss (M,) float32).
     """
     _check_rgb_pair(clean, rainy)
-    height, width = clean.shape[:2]
+    _check_coverage(coverage, *clean.shape[:2])
+    return BoxRainReference(clean, boxes).labels(rainy, coverage)
+
+
+def _check_coverage(coverage: np.ndarray, height: int, width: int) -> None:
     if not isinstance(coverage, np.ndarray) or coverage.shape != (height, width):
         raise ValueError(f"coverage must be an ({height}, {width}) array, got {getattr(coverage, 'shape', type(coverage).__name__)}")
-    boxes_array = np.asarray(boxes)
-    if boxes_array.size == 0:
-        return np.zeros(0, dtype=np.float32), np.zeros(0, dtype=np.float32)
-    if boxes_array.ndim != 2 or boxes_array.shape[1] != 4:
-        raise ValueError(f"boxes must be an (M, 4) array of x1, y1, x2, y2, got shape {boxes_array.shape}")
-    if not np.all(np.isfinite(boxes_array)):
-        raise ValueError("boxes must be finite, got NaN or inf coordinates")
-    ranges = box_pixel_ranges(boxes_array, height, width)
-    rain_coverage = np.zeros(len(ranges), dtype=np.float32)
-    contrast_loss = np.zeros(len(ranges), dtype=np.float32)
-    for index, (col0, row0, col1, row1) in enumerate(ranges):
-        if col1 <= col0 or row1 <= row0:
-            continue
-        rain_coverage[index] = np.float32(coverage[row0:row1, col0:col1].mean(dtype=np.float64))
-        # Luma of the box's pixels only: boxes cover a small part of a frame, and this runs
-        # once per box per rate (the same per-pixel arithmetic as a whole-image luma).
-        std_clean = float(luma(clean[row0:row1, col0:col1]).std())
-        if std_clean < _CLEAN_STD_FLOOR:
-            continue
-        std_rainy = float(luma(rainy[row0:row1, col0:col1]).std())
-        contrast_loss[index] = np.float32(min(max(1.0 - std_rainy / std_clean, 0.0), 1.0))
-    return rain_coverage, contrast_loss
+
+
+class BoxRainReference:
+    """The clean image's half of :func:`box_rain_labels` (each box's pixel range and clean luma
+    standard deviation), computed once; a sweep of rates against one clean frame then measures
+    only the rainy side of each box per rate.
+
+    Args:
+        clean: (H, W, 3) uint8 RGB.
+        boxes: (M, 4) float x1, y1, x2, y2 pixel-edge coordinates (x2 = last column + 1).
+    """
+
+    def __init__(self, clean: np.ndarray, boxes: np.ndarray) -> None:
+        _check_rgb_pair(clean, clean)
+        self.clean = clean
+        boxes_array = np.asarray(boxes)
+        if boxes_array.size and (boxes_array.ndim != 2 or boxes_array.shape[1] != 4):
+            raise ValueError(f"boxes must be an (M, 4) array of x1, y1, x2, y2, got shape {boxes_array.shape}")
+        if boxes_array.size and not np.all(np.isfinite(boxes_array)):
+            raise ValueError("boxes must be finite, got NaN or inf coordinates")
+        height, width = clean.shape[:2]
+        self.ranges = box_pixel_ranges(boxes_array, height, width) if boxes_array.size else np.zeros((0, 4), np.int64)
+        # std(Y_clean) of each box with pixels, None for a box without any
+        self.clean_std: list[float | None] = []
+        for col0, row0, col1, row1 in self.ranges:
+            empty = col1 <= col0 or row1 <= row0
+            # Luma of the box's pixels only: boxes cover a small part of a frame (the same
+            # per-pixel arithmetic as a whole-image luma).
+            self.clean_std.append(None if empty else float(luma(clean[row0:row1, col0:col1]).std()))
+
+    def labels(self, rainy: np.ndarray, coverage: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rain_coverage (M,) float32, contrast_loss (M,) float32) of ``rainy`` (H, W, 3)
+        uint8 with per-pixel opacity ``coverage`` (H, W) float32, as :func:`box_rain_labels`."""
+        _check_rgb_pair(self.clean, rainy)
+        _check_coverage(coverage, *rainy.shape[:2])
+        rain_coverage = np.zeros(len(self.ranges), dtype=np.float32)
+        contrast_loss = np.zeros(len(self.ranges), dtype=np.float32)
+        for index, ((col0, row0, col1, row1), std_clean) in enumerate(zip(self.ranges, self.clean_std)):
+            if std_clean is None:
+                continue
+            rain_coverage[index] = np.float32(coverage[row0:row1, col0:col1].mean(dtype=np.float64))
+            if std_clean < _CLEAN_STD_FLOOR:
+                continue
+            std_rainy = float(luma(rainy[row0:row1, col0:col1]).std())
+            contrast_loss[index] = np.float32(min(max(1.0 - std_rainy / std_clean, 0.0), 1.0))
+        return rain_coverage, contrast_loss

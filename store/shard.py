@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -139,21 +140,30 @@ class ShardWriter:
         if not self._committed:
             self.abort()
 
-    def write_frame(self, index: int, rgb_by_rate: np.ndarray, labels: FrameLabels,
+    def write_frame(self, index: int, rgb_by_rate: np.ndarray | Sequence[np.ndarray],
+                    labels: FrameLabels,
                     T_world_cam: np.ndarray, *, depth: np.ndarray | None = None,
                     instance: np.ndarray | None = None, drop_count=None, ssim=None, psnr=None,
                     rain_coverage: np.ndarray | None = None,
                     contrast_loss: np.ndarray | None = None) -> None:
-        """Store frame ``index``: rgb_by_rate (R, H, W, 3) uint8 in the order of ``rates``;
-        per-rate statistics (R,); per-box rain labels (R, M) for the M labels of the frame."""
+        """Store frame ``index``: rgb_by_rate, its images in the order of ``rates``, an
+        (R, H, W, 3) uint8 array or a sequence of R (H, W, 3) uint8 arrays; per-rate statistics
+        (R,); per-box rain labels (R, M) for the M labels of the frame."""
         f = self._file
-        expected = (self._rates.shape[0],) + f["rgb"].shape[2:]
-        if rgb_by_rate.shape != expected or rgb_by_rate.dtype != np.uint8:
-            raise ValueError(f"rgb_by_rate: expected {expected} uint8, got "
-                             f"{rgb_by_rate.shape} {rgb_by_rate.dtype}")
         rgb = f["rgb"]
+        num_rates, image_shape = self._rates.shape[0], rgb.shape[2:]
+        if isinstance(rgb_by_rate, np.ndarray):
+            if rgb_by_rate.shape != (num_rates,) + image_shape or rgb_by_rate.dtype != np.uint8:
+                raise ValueError(f"rgb_by_rate: expected {(num_rates,) + image_shape} uint8, got "
+                                 f"{rgb_by_rate.shape} {rgb_by_rate.dtype}")
+        elif len(rgb_by_rate) != num_rates or not all(
+                isinstance(image, np.ndarray) and image.shape == image_shape
+                and image.dtype == np.uint8 for image in rgb_by_rate):
+            raise ValueError(f"rgb_by_rate: expected {num_rates} images of {image_shape} uint8, "
+                             f"got {len(rgb_by_rate)} images "
+                             f"{[getattr(image, 'shape', None) for image in rgb_by_rate][:3]}")
         chunks = (self._pool.map if self._pool is not None else map)(
-            _deflate, [rgb_by_rate[r] for r in range(expected[0])])
+            _deflate, [rgb_by_rate[r] for r in range(num_rates)])
         for rate_index, chunk in enumerate(chunks):
             # A pre-compressed chunk is exactly what the gzip filter stores (filter mask 0), so
             # plain h5py reads it.

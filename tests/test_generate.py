@@ -12,8 +12,9 @@ import pytest
 from rainbench.gen import labels as lb
 from rainbench.gen import sim
 from rainbench.gen.config import GenerateConfig
-from rainbench.gen.generate import build_scene, frame_labels, generate_shard
+from rainbench.gen.generate import build_scene, frame_labels, generate_shard, render_clip
 from rainbench.gen.render import FrameRenderer
+from rainbench.store.labels import FrameLabels
 from rainbench.store.shard import ShardFormatError, ShardWriter, open_shard, read_frame_labels
 from rainbench.mjcf import layout as L
 from rainbench.mjcf.scene import build_spec, export_scene
@@ -211,6 +212,52 @@ def test_writer_leaves_no_file_when_aborted(tmp_path):
         with pytest.raises(RuntimeError, match=r"frames \[0, 1\] were never written"):
             writer.commit()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_writer_takes_the_images_of_a_frame_as_one_array_or_one_per_rate(tmp_path):
+    """A list of (H, W, 3) images, one per rate, is stored as the (R, H, W, 3) array is: the
+    same file bytes."""
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, (2, 3, 16, 16, 3), dtype=np.uint8)  # (frames, rates, H, W, 3)
+    labels = FrameLabels(bbox=np.zeros((0, 4), np.float32), bbox_amodal=np.zeros((0, 4), np.float32),
+                         class_id=np.zeros(0, np.int32), instance_id=np.zeros(0, np.int32),
+                         visible_fraction=np.zeros(0, np.float32), truncation=np.zeros(0, np.float32))
+    digests = []
+    for name, as_list in (("array.h5", False), ("list.h5", True)):
+        with ShardWriter(tmp_path / name, attrs={}, rates=np.array([0.0, 10.0, 20.0]),
+                         num_frames=2, width=16, height=16, K=np.eye(3), threads=2) as writer:
+            for frame in range(2):
+                rgb = list(images[frame]) if as_list else images[frame]
+                writer.write_frame(frame, rgb, labels, np.eye(4))
+            digests.append(hashlib.sha256(writer.commit().read_bytes()).hexdigest())
+    assert digests[0] == digests[1]
+    with ShardWriter(tmp_path / "bad.h5", attrs={}, rates=np.array([0.0, 10.0]), num_frames=1,
+                     width=16, height=16, K=np.eye(3)) as writer:
+        with pytest.raises(ValueError, match="rgb_by_rate: expected 2 images of"):
+            writer.write_frame(0, [images[0, 0]], labels, np.eye(4))
+        with pytest.raises(ValueError, match="rgb_by_rate: expected 2 images of"):
+            writer.write_frame(0, [images[0, 0], images[0, 1, :8]], labels, np.eye(4))
+
+
+def test_depth_is_rendered_only_where_it_is_used():
+    """jeon2022 under a fixed weather reads no depth back; the physical model, weather that
+    follows the rate (spray) and stored depth do. Without it the frame is otherwise the same."""
+    assert not GenerateConfig(frames=1).needs_depth
+    assert not GenerateConfig(frames=1, store=("instance",)).needs_depth
+    assert GenerateConfig(frames=1, store=("depth",)).needs_depth
+    assert GenerateConfig(frames=1, rain_model="physical").needs_depth
+    assert GenerateConfig(frames=1, rain_model="physical", weather_follows_rate=False).needs_depth
+    assert GenerateConfig(frames=1, weather_follows_rate=True).needs_depth
+    config = GenerateConfig(seed=5, frames=2, width=160, height=120)
+    setup = build_scene(config)
+    with_depth = list(frame.__dict__ for _, frame, _ in render_clip(config, setup))
+    without = list(frame.__dict__ for _, frame, _ in render_clip(config, setup, depth=False))
+    for full, lean in zip(with_depth, without):
+        assert full["depth"].shape == (120, 160) and lean["depth"] is None
+        assert np.array_equal(full["rgb"], lean["rgb"])
+        assert np.array_equal(full["instance"], lean["instance"])
+        assert full["labels"].bbox.tobytes() == lean["labels"].bbox.tobytes()
+        assert full["labels"].visible_fraction.tobytes() == lean["labels"].visible_fraction.tobytes()
 
 
 def test_open_shard_rejects_bad_files(tmp_path, small_shard):

@@ -12,6 +12,7 @@ import pytest
 
 from rainbench.rain import (
     RAIN_MODELS,
+    BoxRainReference,
     RainConfig,
     box_rain_labels,
     image_quality,
@@ -21,7 +22,7 @@ from rainbench.rain import (
 )
 from rainbench.rain import lens as lens_mod
 from rainbench.rain import physical as phys
-from rainbench.rain.metrics import luma, psnr
+from rainbench.rain.metrics import box_pixel_ranges, luma, psnr
 from rainbench.store.rates import RatesError, parse_rates
 from testframe import intrinsics, street_frame
 
@@ -497,6 +498,40 @@ def test_box_rain_labels_definitions():
         box_rain_labels(clean, rainy, coverage, np.zeros((2, 3), np.float32))
     with pytest.raises(ValueError, match=r"coverage must be an \(20, 30\) array, got \(30, 20\)"):
         box_rain_labels(clean, rainy, coverage.T, boxes)
+
+
+def test_box_rain_reference_gives_the_numbers_of_box_rain_labels():
+    """The clean side computed once (BoxRainReference) and reused for several rainy images gives
+    the numbers of the definition exactly: ordinary, flat, degenerate and outside boxes."""
+    rng = np.random.default_rng(3)
+    clean = rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    clean[40:50, 10:30] = 7  # a flat patch
+    boxes = np.array([[0, 0, 80, 60], [10.4, 5.6, 30.2, 22.9], [10, 40, 30, 50], [5, 5, 5, 9],
+                      [90, 70, 99, 80], [70.5, 50.5, 71.4, 51.4]], np.float32)
+    reference = BoxRainReference(clean, boxes)
+    for _ in range(3):
+        rainy = rng.integers(0, 256, clean.shape, dtype=np.uint8)
+        coverage = rng.random(clean.shape[:2], dtype=np.float32)
+        expected = np.zeros((2, len(boxes)), np.float32)
+        for index, (col0, row0, col1, row1) in enumerate(box_pixel_ranges(boxes, 60, 80)):
+            if col1 <= col0 or row1 <= row0:
+                continue
+            expected[0, index] = coverage[row0:row1, col0:col1].mean(dtype=np.float64)
+            std_clean = luma(clean[row0:row1, col0:col1]).std()
+            if std_clean >= 1e-6:
+                std_rainy = luma(rainy[row0:row1, col0:col1]).std()
+                expected[1, index] = min(max(1.0 - std_rainy / std_clean, 0.0), 1.0)
+        got = reference.labels(rainy, coverage)
+        for want, have in zip(expected, got):
+            assert have.dtype == np.float32 and have.tobytes() == want.tobytes()
+        assert all(a.tobytes() == b.tobytes() for a, b in zip(got, box_rain_labels(clean, rainy, coverage, boxes)))
+    assert expected[0, 3] == expected[0, 4] == 0 and expected[1, 2] == 0  # degenerate, outside, flat
+    empty = BoxRainReference(clean, np.zeros((0, 4), np.float32)).labels(rainy, coverage)
+    assert [a.shape for a in empty] == [(0,), (0,)]
+    with pytest.raises(ValueError, match="coverage must be an"):
+        reference.labels(rainy, coverage.T)
+    with pytest.raises(ValueError, match="boxes must be an"):
+        BoxRainReference(clean, np.zeros((2, 3), np.float32))
 
 
 # --------------------------------------------------------------------------------------------
