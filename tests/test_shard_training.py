@@ -54,8 +54,6 @@ def _pixel_boxes(item):
     return ops.scale_boxes((height, width), xyxy, item["ori_shape"], ratio_pad=item["ratio_pad"]).numpy()
 
 
-@pytest.mark.parametrize("keep_classes", [None, [0, 2]])
-
 def _load_epochs(dataset, drawn: list, seed: int, count: int) -> list:
     """What ``drawn`` records over ``count`` epochs of ``dataset.load_image`` with Python's
     ``random`` seeded by ``seed`` (the generator ultralytics seeds per worker)."""
@@ -66,6 +64,8 @@ def _load_epochs(dataset, drawn: list, seed: int, count: int) -> list:
             dataset.load_image(index)
     return list(drawn)
 
+
+@pytest.mark.parametrize("keep_classes", [None, [0, 2]])
 def test_the_dataset_yields_exactly_the_shards_boxes_after_the_letterbox(shards, keep_classes):
     dataset = _dataset(shards, keep_classes=keep_classes)
     assert len(dataset) == 3
@@ -437,6 +437,7 @@ def test_a_fine_tune_starts_from_its_init_weights(tmp_path, capsys):
 
     recipe_path = tmp_path / "fine.yaml"
     recipe_path.write_text(RAINY_RECIPE.replace("name: tiny-rain", "name: tiny-fine") + "init_weights: rainbench-yolo11n\n"
+                           + "classes: [person, bicycle, car, motorcycle, bus, truck]\n"  # the shipped model's
                            + "cpu: {optimizer: AdamW, lr0: 0.0, warmup_epochs: 0, warmup_bias_lr: 0.0}\n")
     out = tmp_path / "run"
     code = cli.main(["train", "--recipe", str(recipe_path), "--out", str(out), "--device", "cpu"])
