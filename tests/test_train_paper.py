@@ -2,8 +2,6 @@
 
 import json
 from pathlib import Path
-import math
-import shutil
 
 import numpy as np
 import pytest
