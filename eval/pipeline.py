@@ -306,13 +306,19 @@ def _references(models: Sequence[str], chosen: Sequence[tuple[str, str]]) -> dic
         raise EvalError(str(error)) from None
 
 
+def check_metrics(metrics: Any) -> str:
+    """``metrics`` if it names a metrics backend (``--metrics``), else a one-line :class:`EvalError`."""
+    if metrics not in METRICS_BACKENDS:
+        raise EvalError(f"--metrics: expected one of {', '.join(METRICS_BACKENDS)}, got {metrics!r}")
+    return metrics
+
+
 def _check_settings(predictions_dir, weights, *, imgsz, batch, max_det, n_boot, conf, iou, report_conf,
                     classes, metrics) -> tuple[int, ...]:
     """Refuse bad evaluator settings before any work; returns the class ids to score."""
     if (predictions_dir is None) == (not weights):
         raise EvalError("expected exactly one of --weights or --predictions")
-    if metrics not in METRICS_BACKENDS:
-        raise EvalError(f"--metrics: expected one of {', '.join(METRICS_BACKENDS)}, got {metrics!r}")
+    check_metrics(metrics)
     for name, value in (("--imgsz", imgsz), ("--batch", batch), ("--max-det", max_det), ("n_boot", n_boot)):
         if value is not None and int(value) < 1:
             raise EvalError(f"{name}: expected >= 1, got {value}")

@@ -27,10 +27,10 @@ from rainbench.store import Dataset, read_frame_labels
 
 from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES, parse_classes
 from rainbench.eval.metrics.breakdown import ap_by_size, ap_by_visibility
-from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
+from rainbench.eval.metrics.coco import DEFAULT_BACKEND
 from rainbench.eval.metrics.robustness import half_value_rate
 from rainbench.eval.comparison import comparison_references
-from rainbench.eval.pipeline import EvalError, ground_truth, load_predictions_file, open_dataset, predictions_path, run_eval
+from rainbench.eval.pipeline import EvalError, check_metrics, ground_truth, load_predictions_file, open_dataset, predictions_path, run_eval
 from rainbench.eval.report.markdown import render_paper_md
 
 PAPER_RATES = tuple(float(r) for r in range(0, 101, 10))
@@ -66,8 +66,7 @@ class PaperConfig:
                 raise EvalError(str(error)) from None
         if not self.weights:
             raise EvalError("MODELS/WEIGHTS: expected at least one model to evaluate")
-        if self.metrics not in METRICS_BACKENDS:
-            raise EvalError(f"--metrics: expected one of {', '.join(METRICS_BACKENDS)}, got {self.metrics!r}")
+        check_metrics(self.metrics)
         unknown = sorted(set(self.rain_models) - set(RAIN_MODELS))
         if unknown or not self.rain_models:
             raise EvalError(f"rain models: expected some of {', '.join(RAIN_MODELS)}, got {list(self.rain_models)}")
