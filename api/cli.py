@@ -272,22 +272,24 @@ def cmd_paper(args: argparse.Namespace) -> int:
     _choose_gl(None)
     import torch
 
-    from rainbench.experiments.paper import PaperConfig, default_models, run_paper
+    from rainbench.experiments.paper import PaperConfig, default_models, default_references, run_paper
 
     models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
+    weights = models + tuple(args.weights or ())
+    references = default_references(weights, [_compare_pair(text) for text in args.compare or ()])
     config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
-                         weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
+                         weights=weights, imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device, classes=args.classes,
-                         references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics)
+                         references=references, metrics=args.metrics)
     print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
                     force=args.force, progress=not args.quiet))
     return 0
 
 
-def _add_compare_arg(parser: argparse.ArgumentParser) -> None:
+def _add_compare_arg(parser: argparse.ArgumentParser, default: str = "the model its name extends, else the first") -> None:
     parser.add_argument("--compare", action="append", default=None, metavar="MODEL=REFERENCE",
                         help="robustness comparison: the model's paired mPC difference is taken from "
-                             "REFERENCE (repeatable; default: the model its name extends, else the first)")
+                             f"REFERENCE (repeatable; default: {default})")
 
 
 def _add_metrics_arg(parser: argparse.ArgumentParser) -> None:
@@ -523,7 +525,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="generation processes")
     paper.add_argument("--classes", default=None,
                        help="classes to report, names or ids (default: the paper's four; e.g. add bus,truck)")
-    _add_compare_arg(paper)
+    _add_compare_arg(paper, "X-rain against X-randomrain when both are evaluated, else the model its "
+                            "name extends, else the first")
     _add_metrics_arg(paper)
     paper.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
     paper.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -10,15 +10,20 @@ way: it measures, it does not judge.
 
 Usage: ``python bench/quality.py [--weights rainbench-yolo11n ...] [--data data/quality]
 [--json OUT] [--seed 100] [--scenes 5] [--frames 40] [--layouts street,highway,...]
-[--rain physical|jeon2022 [--compare MODEL=REFERENCE ...]]``
-(``--layouts`` checks each road layout on its own data: the bar must hold per layout.)
+[--rain physical|jeon2022 [--compare MODEL=REFERENCE ...]] [--force]``
+(``--layouts`` checks each road layout on its own data: the bar must hold per layout. Predictions
+are cached per model under ``--out`` and reused while the weights file (path, size, mtime) and
+the settings are unchanged, so adding a model to a comparison infers only that model; ``--force``
+infers every model again.)
 
 ``--rain MODEL`` measures robustness instead (issue 19): the same scenes at rates 0:100:10 with
 that rain model (``physical`` with the weather following the rate, ``jeon2022`` over the
 unchanged scene, each model's default), and per model and class clean AP@0.5, AP@0.5 at 50 and
 100 mm/h, mPC (mean AP@0.5 over 10..100 mm/h) and rPC = mPC / clean AP@0.5, all with bootstrap
-intervals, and each model's paired mPC difference from the model it extends by name (else the
-first; ``rainbench.eval.comparison.comparison_rows``, as in ``make paper``'s report),
+intervals, and each model's paired mPC difference from its reference (as in ``make paper``'s report:
+``X-rain`` against ``X-randomrain`` when both are evaluated, else the model it extends by name,
+else the first; ``--compare`` chooses; ``rainbench.experiments.paper.default_references``,
+``rainbench.eval.comparison.comparison_rows``),
 against the rain-robust target (rPC >= 0.90 for car and person).
 """
 
@@ -61,12 +66,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="measure robustness at rates 0:100:10 under this rain model instead")
     parser.add_argument("--compare", action="append", default=None, metavar="MODEL=REFERENCE",
                         help="with --rain: take MODEL's paired mPC difference from REFERENCE (repeatable)")
+    parser.add_argument("--force", action="store_true",
+                        help="infer again even where cached predictions of the same weights file and settings exist")
     parser.add_argument("--json", default=None, help="write the figures here")
     args = parser.parse_args(argv)
     if args.seed < 0 or args.seed + args.scenes > 1_000_000:
         parser.error("--seed/--scenes: the check must use evaluation seeds (below 1000000)")
 
     from rainbench.eval.pipeline import run_eval
+    from rainbench.experiments.paper import default_references
     from rainbench.gen.config import DatasetConfig
     from rainbench.gen.dataset import run_dataset
 
@@ -77,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or not model or not reference:
             parser.error(f"--compare: expected MODEL=REFERENCE, got {text!r}")
         references.append((model, reference))
+    references = default_references(weights, references)  # X-rain against X-randomrain, as make paper
     rows, seconds = [], {}
     for layout in args.layouts.split(","):
         chosen = {} if layout == "seed" else {"layout": layout, "time_of_day": "day"}
@@ -90,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         seconds[f"generate {layout}"] = time.perf_counter() - started
         started = time.perf_counter()
         result = run_eval(data, out, weights=weights, imgsz=args.imgsz, n_boot=N_BOOT,
-                          device="cpu", progress=False, force=True, references=references)
+                          device="cpu", progress=False, force=args.force, references=references)
         seconds[f"eval {layout}"] = time.perf_counter() - started
         if args.rain is not None:
             rows += [{"layout": layout, **row} for row in result.robustness]

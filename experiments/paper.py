@@ -100,14 +100,40 @@ seed paper's COCO detectors', so the report shows whether the paper's size of dr
 detector of the paper's strength."""
 
 
+RAIN_TRAINED = ("-randomrain", "-rain")
+"""Suffixes of the shipped rain-trained twins of a clean-trained model (issue 19,
+docs/models.md): ``<model>-randomrain`` (albumentations RandomRain, the usual practice) and
+``<model>-rain`` (rainbench's rain curriculum)."""
+
+
 def default_models(cuda: bool) -> tuple[str, ...]:
-    """The shipped models ``make paper`` evaluates: the nano one, the small one (when shipped) on
-    a GPU, and the weak control (when shipped)."""
+    """The shipped models ``make paper`` evaluates, those of them that are shipped: on a GPU the
+    nano and the small model, each followed by its rain-trained twins (:data:`RAIN_TRAINED`), and
+    the weak control; on a CPU the nano model and the weak control only (each model adds about 7
+    minutes per dataset there; ``MODELS=`` evaluates the twins too, docs/models.md)."""
     from rainbench.eval.weights import shipped_models
 
-    wanted = ("rainbench-yolo11n", "rainbench-yolo11s") if cuda else ("rainbench-yolo11n",)
-    wanted += (CONTROL_MODEL,)
-    return tuple(name for name in wanted if name in shipped_models()) or ("rainbench-yolo11n",)
+    if cuda:
+        wanted = tuple(size + suffix for size in ("rainbench-yolo11n", "rainbench-yolo11s")
+                       for suffix in ("", *RAIN_TRAINED))
+    else:
+        wanted = ("rainbench-yolo11n",)
+    return tuple(name for name in wanted + (CONTROL_MODEL,) if name in shipped_models()) or ("rainbench-yolo11n",)
+
+
+def default_references(models: Sequence[str], chosen: Sequence[tuple[str, str]] = ()) -> tuple[tuple[str, str], ...]:
+    """The robustness comparison's ``(model, reference)`` pairs of ``make paper`` (and
+    ``bench/quality.py --rain``): the user's ``chosen`` pairs (``--compare``), and for each
+    evaluated ``<model>-rain`` whose ``<model>-randomrain`` is evaluated too and that ``chosen``
+    does not name, the pair ``(<model>-rain, <model>-randomrain)`` (the question of issue 19: does
+    rendered rain beat the usual augmentation?). ``models`` are model names or weights files (a
+    file's model name is its stem). Every other model keeps
+    :func:`rainbench.eval.comparison.comparison_references`' default."""
+    names = [Path(str(model)).stem for model in models]
+    named = {model for model, _ in chosen}
+    bases = dict.fromkeys(name.removesuffix("-rain") for name in names if name.endswith("-rain"))
+    return tuple((base + "-rain", base + "-randomrain") for base in bases
+                 if base + "-randomrain" in names and base + "-rain" not in named) + tuple(chosen)
 
 
 def table_one(data_dir: Path, classes: Sequence[int] = PAPER_CLASSES) -> dict[str, tuple[int, int]]:
