@@ -454,6 +454,25 @@ def test_paper_pairs_each_rain_trained_model_with_its_randomrain_twin(monkeypatc
         ("m-rain", "m-randomrain"), ("m-randomrain", "m"))
 
 
+def test_paper_report_pairs_the_shipped_rain_twins(tmp_path, capsys):
+    """`rainbench paper` with the nano model and its shipped twins: the rain-trained model's
+    reference is its RandomRain twin, the twin's the clean model; --compare wins."""
+    models = ("rainbench-yolo11n", "rainbench-yolo11n-randomrain", "rainbench-yolo11n-rain")
+    common = ["--frames", 2, "--width", 192, "--height", 144, "--rates", "0,100", "--rain-models", "physical",
+              "--n-boot", 2, "--imgsz", 192, "--data", tmp_path / "data", "--quiet"]
+    for model in models:
+        common += ["--model", model]
+    for out, compare, expected in (
+            ("o1", [], "rainbench-yolo11n-randomrain"),
+            ("o2", ["--compare", "rainbench-yolo11n-rain=rainbench-yolo11n"], "rainbench-yolo11n")):
+        code, _, err = _run(capsys, "paper", *common, *compare, "--out", tmp_path / out)
+        assert code == 0, err
+        rows = json.loads((tmp_path / out / "physical" / "robustness.json").read_text())
+        assert [(row["model"], row["reference"]) for row in rows if row["class"] == "car"] == [
+            (models[0], None), (models[1], models[0]), (models[2], expected)]
+        assert f"vs {expected} |" in (tmp_path / out / "report.md").read_text()
+
+
 def test_shipped_model_without_onnx_builds_its_copy_once_into_the_cache(tmp_path, monkeypatch):
     """Shipped models ship their .pt only: the ONNX copy is exported on first use into the user
     cache, reused after, and detects what the checkpoint detects."""
