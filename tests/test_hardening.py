@@ -148,8 +148,11 @@ def _live_group(pgid):
 
 def _start(out, *extra):
     argv = [sys.executable, "-m", "rainbench.cli", *GEN, "--out", str(out), *extra]
+    # Ctrl-C with its default disposition, as in a terminal: a test run started in the background
+    # of a non-interactive shell (`make test &`) inherits SIGINT ignored, and so would the child.
     return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _wait_for_temporary(process, out, timeout=180):
