@@ -272,15 +272,13 @@ def cmd_paper(args: argparse.Namespace) -> int:
     _choose_gl(None)
     import torch
 
-    from rainbench.experiments.paper import PaperConfig, default_models, default_references, run_paper
+    from rainbench.experiments.paper import PaperConfig, default_models, run_paper
 
     models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
-    weights = models + tuple(args.weights or ())
-    references = default_references(weights, [_compare_pair(text) for text in args.compare or ()])
     config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
-                         weights=weights, imgsz=args.imgsz, batch=args.batch,
+                         weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device, classes=args.classes,
-                         references=references, metrics=args.metrics)
+                         references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics)
     print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
                     force=args.force, progress=not args.quiet))
     return 0

@@ -55,7 +55,8 @@ class PaperConfig:
     device: str | None = None
     breakdown_rates: tuple[float, ...] = (0.0, 50.0, 100.0)
     classes: str | tuple[int | str, ...] | None = None  # None: the paper's four; else as run_eval's
-    references: tuple[tuple[str, str], ...] = ()  # (model, reference) pairs of the robustness comparison
+    # (model, reference) pairs of the robustness comparison (--compare); run_paper adds default_references
+    references: tuple[tuple[str, str], ...] = ()
     metrics: str = DEFAULT_BACKEND  # COCO AP implementation (run_eval's ``metrics``: --metrics)
 
     def __post_init__(self) -> None:
@@ -191,8 +192,9 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
             detector = load_detector(spec, device=config.device, classes=class_ids)
             check_model_classes(detector, resolve_weights(spec, config.device)[1], class_ids)
             del detector
-    if config.references:  # a --compare naming no evaluated model fails before generating
-        comparison_references([resolve_weights(spec, config.device)[1] for spec in config.weights], config.references)
+    references = default_references(config.weights, config.references)
+    if references:  # a --compare naming no evaluated model fails before generating
+        comparison_references([resolve_weights(spec, config.device)[1] for spec in config.weights], references)
     data = config.dataset
     records_by_rain: dict[str, list] = {}
     robustness: dict[str, list] = {}
@@ -210,7 +212,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
         start = time.perf_counter()
         outputs = run_eval(data_dir, out_dir / name, weights=list(config.weights), imgsz=config.imgsz,
                            batch=config.batch, n_boot=config.n_boot, device=config.device, force=force,
-                           progress=progress, classes=config.classes, references=config.references,
+                           progress=progress, classes=config.classes, references=references,
                            metrics=config.metrics)
         timings[f"evaluate {name}"] = time.perf_counter() - start
         records_by_rain[name] = outputs.records

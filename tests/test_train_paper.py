@@ -265,23 +265,31 @@ SHIPPED_GUARD = {
 }
 
 
+@pytest.fixture(scope="module")
+def guard_scene(tmp_path_factory):
+    """The guard scene's clean shard, rendered once for every shipped model's guard. Seed 7: an
+    evaluation seed (< 1000000), never used in training or validation. Every fifth frame of a
+    20 s clip at 10 fps."""
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import generate_shard
+
+    data = tmp_path_factory.mktemp("guard") / "data"
+    generate_shard(GenerateConfig(seed=7, frames=20, fps=1.0, width=800, height=600, rates=(0.0,),
+                                  layout="street", time_of_day="day"), data)
+    return data
+
+
 @pytest.mark.parametrize("name", sorted(SHIPPED_GUARD))
-def test_shipped_weights_load_by_name_and_find_cars(tmp_path, name):
+def test_shipped_weights_load_by_name_and_find_cars(tmp_path, guard_scene, name):
     """A guard against shipping broken or older weights: an unseen clean scene, car and person
     AP@0.5 above each model's floor."""
     from rainbench.eval import pipeline
-    from rainbench.gen.config import GenerateConfig
-    from rainbench.gen.generate import generate_shard
 
     assert name in registry.shipped_models()
     detector = backends.load_detector(name, device="cpu")
     assert detector.name == name
-    data = tmp_path / "data"
-    # Seed 7: an evaluation seed (< 1000000), never used in training or validation. Every fifth
-    # frame of a 20 s clip at 10 fps.
-    generate_shard(GenerateConfig(seed=7, frames=20, fps=1.0, width=800, height=600, rates=(0.0,),
-                                  layout="street", time_of_day="day"), data)
-    result = pipeline.run_eval(data, tmp_path / "out", weights=[name], n_boot=1, device="cpu", progress=False)
+    result = pipeline.run_eval(guard_scene, tmp_path / "out", weights=[name], n_boot=1, device="cpu",
+                               progress=False)
     # On CPU the shipped name runs its ONNX copy, at the card's letterbox size.
     card = json.loads((registry.WEIGHTS_DIR / f"{name}.json").read_text())
     assert card["imgsz"] == train.load_recipe(name).eval_imgsz
