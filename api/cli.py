@@ -249,7 +249,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
                        max_det=args.max_det, report_conf=args.report_conf, n_boot=args.n_boot,
                        class_map=args.class_map, device=args.device, force=args.force,
                        progress=not args.quiet, trust_pickle=args.trust_pickle or None, classes=args.classes,
-                       references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics)
+                       references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics,
+                       pt_backend=args.pt_backend, workers=args.workers)
     print(outputs.paths["report.md"])
     return 0
 
@@ -278,7 +279,8 @@ def cmd_paper(args: argparse.Namespace) -> int:
     config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device, classes=args.classes,
-                         references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics)
+                         references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics,
+                       pt_backend=args.pt_backend, workers=args.workers)
     print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
                     force=args.force, progress=not args.quiet))
     return 0
@@ -484,6 +486,13 @@ def build_parser() -> argparse.ArgumentParser:
                           help="classes to score, names or ids, e.g. person,car,bus,truck (default: the "
                                "paper's person,bicycle,car,motorcycle; also bus, truck)")
     evaluate.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
+    evaluate.add_argument("--pt-backend", choices=("batched", "ultralytics"), default="batched",
+                          help="how a .pt runs: batched (torch in batches, letterbox and NMS on the device, "
+                               "fp16 on CUDA; default) or ultralytics (its own predict, the reference); "
+                               "shipped models run their ONNX copy on CPU either way")
+    evaluate.add_argument("--workers", type=_positive_int("WORKERS", 1024, 0), default=None,
+                          help="processes decoding shards for the batched backend (default: "
+                               "min(8, cores - 1))")
     _add_compare_arg(evaluate)
     _add_metrics_arg(evaluate)
     evaluate.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")

@@ -7,8 +7,16 @@ rectangular; the shipped nano model's card size is 960: 960x736).
 Timed (best of ``--repeats``):
 
 - baseline: ``ultralytics.YOLO(weights).predict(frames, imgsz=IMGSZ, conf=0.001)`` directly;
-- ultralytics backend: ``load_detector(weights).predict`` (the same model through rainbench:
-  BGR conversion, class filtering, clipping);
+- ultralytics backend: ``load_detector(weights, pt_backend="ultralytics").predict`` (the same
+  model through rainbench: BGR conversion, class filtering, clipping);
+- batched backend: ``load_detector(weights).predict`` (the default for a ``.pt``: torch in
+  batches, letterbox and NMS on the device, fp16 on CUDA, channels-last), and how its detections
+  agree with the baseline's (share of the baseline's detections scoring >= 0.25 that have a twin:
+  the same class, every edge within 1 px, the score within 0.02);
+- forward pass alone: the batched backend's network on a ready (B, 3, h, w) batch, for scale;
+- eval from shards: the batched backend over a shard of the same frames at 11 rates
+  (``jeon2022``), as ``rainbench eval`` runs it (parallel decoding, letterbox, network, NMS,
+  COCO records), images/s over all rates;
 - onnx backend: the same model exported to ONNX (``rainbench.eval.weights.export_onnx``, dynamic input), run by
   onnxruntime: what a shipped model runs on CPU;
 - darknet backend: a YOLOv4-tiny-sized Darknet network (random weights, built here: no download)
@@ -17,8 +25,11 @@ Timed (best of ``--repeats``):
 ``weights`` is the shipped model ``--weights`` (default ``rainbench-yolo11n``; both shipped
 models have a 960 px card) when present, else a yolo11n from its yaml.
 
+The model runs on ``--device`` (default: CUDA when present, else the CPU); ONNX and Darknet run
+on the CPU.
+
 Usage: ``python bench/inference.py [--weights rainbench-yolo11n] [--json OUT] [--imgsz 640]
-[--images 32] [--batch 32] [--repeats 2]``
+[--images 32] [--batch 32] [--repeats 2] [--device cpu]``
 """
 
 from __future__ import annotations
@@ -88,6 +99,62 @@ def best_rate(run, images: list[np.ndarray], batch: int, repeats: int) -> float:
     return len(images) / best
 
 
+def agreement(reference: list, other: list) -> float:
+    """Share of ``reference``'s detections scoring >= 0.25 (over all images) with a twin in
+    ``other``: the same class, every box edge within 1 px, the score within 0.02."""
+    wanted = twins = 0
+    for (ref_boxes, ref_scores, ref_ids), (boxes, scores, ids) in zip(reference, other, strict=True):
+        for index in np.flatnonzero(ref_scores >= 0.25):
+            wanted += 1
+            close = ((np.abs(boxes - ref_boxes[index]).max(axis=1) < 1.0) & (ids == ref_ids[index])
+                     & (np.abs(scores - ref_scores[index]) < 0.02))
+            twins += bool(close.any())
+    return twins / max(wanted, 1)
+
+
+def forward_rate(detector, images: list[np.ndarray], imgsz: int, batch: int, repeats: int) -> float:
+    """Images per second of the batched backend's network alone on a ready letterboxed batch."""
+    from rainbench.eval.backends.letterbox import rect_shape
+    from rainbench.eval.backends.torch_batched import letterbox_batch
+
+    height, width = images[0].shape[:2]
+    block = torch.from_numpy(np.stack(images[:batch])).to(detector.device)
+    with torch.inference_mode():
+        canvas, _, _ = letterbox_batch(block, rect_shape(height, width, imgsz), detector.dtype)
+        step = len(canvas) if detector.device.type == "cuda" else 1  # as predict_frames runs it
+
+        def run(_):
+            for start in range(0, len(canvas), step):
+                detector.network(canvas[start:start + step])
+            if detector.device.type == "cuda":
+                torch.cuda.synchronize()
+        return best_rate(run, [None] * len(canvas), len(canvas), repeats)
+
+
+def shard_rate(detector, count: int, imgsz: int, batch: int, repeats: int, folder: Path) -> float:
+    """Images per second of ``rainbench eval``'s inference over a shard of ``count`` frames at 11
+    rates (``jeon2022``), from the shard to COCO records."""
+    from rainbench.eval import pipeline
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import generate_shard
+
+    generate_shard(GenerateConfig(seed=0, frames=count, fps=count / 20.0, layout="street", time_of_day="day",
+                                  rates=tuple(float(r) for r in range(0, 101, 10)), rain_model="jeon2022"),
+                   folder / "shard")
+    dataset = pipeline.open_dataset(folder / "shard")
+
+    class Bar:
+        def update(self, _):
+            pass
+
+    def run(_):
+        for rate in dataset.rates:
+            pipeline._infer(detector, dataset, rate, batch=batch, imgsz=imgsz, conf=0.001, iou=0.7, max_det=300,
+                            bar=Bar(), classes=(0, 1, 2, 3), workers=pipeline.default_read_workers())
+    images = len(dataset.images) * len(dataset.rates)
+    return best_rate(run, [None] * images, images, repeats)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--weights", default="rainbench-yolo11n", help="shipped model name")
@@ -96,7 +163,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--images", type=int, default=32)
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--device", default=None, help="torch device (default: CUDA when present, else cpu)")
     args = parser.parse_args(argv)
+    device = args.device or ("0" if torch.cuda.is_available() else "cpu")
+    threads = torch.get_num_threads()
 
     from ultralytics import YOLO
 
@@ -117,10 +187,20 @@ def main(argv: list[str] | None = None) -> int:
         direct = YOLO(weights)
         bgr = [np.ascontiguousarray(image[..., ::-1]) for image in images]
         rates = {"baseline ultralytics predict": best_rate(
-            lambda chunk: direct.predict(chunk, verbose=False, **settings), bgr, args.batch, args.repeats)}
-        detector = backends.load_detector(weights, device="cpu")  # a .pt path: the ultralytics backend
+            lambda chunk: direct.predict(chunk, verbose=False, device=device, **settings), bgr, args.batch,
+            args.repeats)}
+        torch.set_num_threads(threads)  # ultralytics' predict set it to cores - 1 on the CPU
+        detector = backends.load_detector(weights, device=device, pt_backend="ultralytics")
         rates["ultralytics backend"] = best_rate(lambda chunk: detector.predict(chunk, **settings), images,
                                                  args.batch, args.repeats)
+        batched = backends.load_detector(weights, device=device)  # a .pt path: the batched backend
+        rates["batched backend"] = best_rate(lambda chunk: batched.predict(chunk, **settings), images,
+                                             args.batch, args.repeats)
+        agreed = agreement(detector.predict(images, **settings), batched.predict(images, **settings))
+        rates["forward pass alone (batched backend's network)"] = forward_rate(
+            batched, images, args.imgsz, args.batch, args.repeats)
+        rates["eval from shards, 11 rates (batched backend)"] = shard_rate(
+            batched, args.images, args.imgsz, args.batch, args.repeats, folder)
         onnx_detector = backends.load_detector(registry.export_onnx(weights, folder / "model.onnx"))
         rates["onnx backend"] = best_rate(lambda chunk: onnx_detector.predict(chunk, **settings), images,
                                           args.batch, args.repeats)
@@ -131,7 +211,9 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "benchmark": "inference", "model": label, "images": len(images), "batch": args.batch,
         "imgsz": args.imgsz, "machine": platform.machine(), "cpus": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(), "cuda": torch.cuda.is_available(),
+        "torch_threads": threads, "cuda": torch.cuda.is_available(), "device": device,
+        "batched_precision": "fp16" if batched.half else "fp32",
+        "batched_agreement_with_baseline": round(agreed, 4),
         "images_per_s": {k: round(v, 2) for k, v in rates.items()},
         "ratio_vs_baseline": {k: round(v / baseline, 3) for k, v in rates.items()},
     }

@@ -203,20 +203,43 @@ class EvalOutputs:
     without rate 0 and a rainy rate."""
 
 
-def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map, classes) -> dict[str, Any]:
+def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map, classes, pt_backend="batched",
+                    device=None) -> dict[str, Any]:
     stat = weights.stat()
-    return {"weights": str(weights.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
-            "imgsz": imgsz, "conf": conf, "iou": iou, "max_det": max_det, "class_map": class_map,
-            "classes": list(classes)}
+    settings = {"weights": str(weights.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
+                "imgsz": imgsz, "conf": conf, "iou": iou, "max_det": max_det, "class_map": class_map,
+                "classes": list(classes)}
+    if weights.suffix.lower() == ".pt":  # how it runs changes its detections (fp16 on CUDA)
+        from .weights import _on_cuda
+
+        settings["pt_backend"] = pt_backend
+        settings["cuda"] = _on_cuda(device)
+    return settings
+
+
+def default_read_workers(cpu_count: int | None = None) -> int:
+    """Shard-decoding worker processes of the batched torch backend when ``workers`` is not given:
+    one core is left to the process that runs the network, at most 8 (``min(8, cores - 1)``, 0 on
+    one core)."""
+    cores = cpu_count if cpu_count is not None else (os.cpu_count() or 1)
+    return max(0, min(8, cores - 1))
 
 
 def _infer(detector, dataset: Dataset, rate: float, *, batch, imgsz, conf, iou, max_det, bar,
-           classes: Sequence[int]) -> list[dict]:
+           classes: Sequence[int], workers: int = 0) -> list[dict]:
     """COCO results records of ``detector`` on ``images`` at one rate, of the rainbench ids
-    ``classes`` only."""
+    ``classes`` only. A batched torch detector gets (B, H, W, 3) blocks decoded by ``workers``
+    processes; the others get lists of arrays read here."""
+    if hasattr(detector, "predict_frames"):
+        from .backends.torch_batched import frame_batches
+
+        batches = frame_batches(dataset, rate, batch, workers, pin_memory=detector.device.type == "cuda")
+        predict = detector.predict_frames
+    else:
+        batches, predict = _read_rgb(dataset, rate, batch), detector.predict
     records: list[dict] = []
-    for image_ids, arrays in _read_rgb(dataset, rate, batch):
-        outputs = detector.predict(arrays, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det)
+    for image_ids, arrays in batches:
+        outputs = predict(arrays, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det)
         for image_id, (boxes, scores, class_ids) in zip(image_ids, outputs, strict=True):
             class_ids = np.asarray(class_ids, np.int64).reshape(-1)
             keep = np.isin(class_ids, np.asarray(classes, np.int64))
@@ -233,7 +256,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
              class_map: str | None = None, device: str | None = None, force: bool = False,
              progress: bool = True, trust_pickle: bool | None = None,
              classes: str | Sequence[int | str] | None = None,
-             references: Sequence[tuple[str, str]] = (), metrics: str = DEFAULT_BACKEND) -> EvalOutputs:
+             references: Sequence[tuple[str, str]] = (), metrics: str = DEFAULT_BACKEND,
+             pt_backend: str = "batched", workers: int | None = None) -> EvalOutputs:
     """Evaluate every model at every rain rate of a dataset and write the outputs under ``out_dir``.
 
     Detections come either from ``predictions_dir`` (``<model>/rate_<rate_token>.json`` COCO
@@ -256,6 +280,12 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     ``references``: ``(model, reference)`` pairs of the robustness comparison (``--compare``;
     :func:`rainbench.eval.comparison.comparison_references`), checked before any inference.
 
+    ``pt_backend``: how ``.pt`` weights run (``--pt-backend``;
+    :data:`rainbench.eval.backends.PT_BACKENDS`): "batched" (default: torch in batches, letterbox
+    and NMS on the device, fp16 on CUDA) or "ultralytics" (its own predict, the reference).
+    ``workers``: processes decoding shards for the batched backend (``--workers``; None:
+    :func:`default_read_workers`).
+
     ``metrics``: the implementation of COCO's matching and AP (``--metrics``;
     :data:`rainbench.eval.metrics.coco.METRICS_BACKENDS`): "numpy" (default, vectorised) or
     "pycocotools" (the reference ``COCOeval``); the outputs are the same (to 1e-9).
@@ -267,7 +297,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     """
     class_ids = _check_settings(predictions_dir, weights, imgsz=imgsz, batch=batch, max_det=max_det,
                                 n_boot=n_boot, conf=conf, iou=iou, report_conf=report_conf, classes=classes,
-                                metrics=metrics)
+                                metrics=metrics, pt_backend=pt_backend, workers=workers)
     dataset = open_dataset(data_dir)
     rates = list(dataset.rates)
     image_ids = {image.image_id for image in dataset.images}
@@ -285,7 +315,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
             dataset, list(weights), out_dir / "predictions", image_ids=image_ids, imgsz=imgsz, batch=batch,
             conf=conf, iou=iou, max_det=max_det, class_map=class_map, device=device, force=force,
             progress=progress, trust_pickle=trust_pickle, class_ids=class_ids,
-            classes_given=classes is not None, references=references)
+            classes_given=classes is not None, references=references, pt_backend=pt_backend,
+            workers=default_read_workers() if workers is None else workers)
     records = _score(gt, detections, models, rates, class_ids=class_ids, report_conf=report_conf,
                      n_boot=n_boot, progress=progress, backend=metrics)
     robustness = []
@@ -314,11 +345,17 @@ def check_metrics(metrics: Any) -> str:
 
 
 def _check_settings(predictions_dir, weights, *, imgsz, batch, max_det, n_boot, conf, iou, report_conf,
-                    classes, metrics) -> tuple[int, ...]:
+                    classes, metrics, pt_backend="batched", workers=None) -> tuple[int, ...]:
     """Refuse bad evaluator settings before any work; returns the class ids to score."""
+    from .backends import PT_BACKENDS
+
     if (predictions_dir is None) == (not weights):
         raise EvalError("expected exactly one of --weights or --predictions")
     check_metrics(metrics)
+    if pt_backend not in PT_BACKENDS:
+        raise EvalError(f"--pt-backend: expected one of {', '.join(PT_BACKENDS)}, got {pt_backend!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
+        raise EvalError(f"--workers: expected an integer >= 0, got {workers!r}")
     for name, value in (("--imgsz", imgsz), ("--batch", batch), ("--max-det", max_det), ("n_boot", n_boot)):
         if value is not None and int(value) < 1:
             raise EvalError(f"{name}: expected >= 1, got {value}")
@@ -333,7 +370,8 @@ def _check_settings(predictions_dir, weights, *, imgsz, batch, max_det, n_boot, 
 
 def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, image_ids: set[int], imgsz, batch,
                         conf, iou, max_det, class_map, device, force, progress, trust_pickle,
-                        class_ids: Sequence[int], classes_given: bool, references: Sequence[tuple[str, str]] = ()
+                        class_ids: Sequence[int], classes_given: bool, references: Sequence[tuple[str, str]] = (),
+                        pt_backend: str = "batched", workers: int = 0
                         ) -> tuple[list[str], dict[tuple[str, float], list[dict]], int]:
     """Detections of every weights file at every rate of ``dataset``: (model names, {(model, rate):
     COCO results records}, number of (model, rate) pairs inferred in this run). Backend
@@ -360,7 +398,7 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
     for spec, (path, model) in zip(specs, resolved, strict=True):
         model_imgsz = registry.model_imgsz(spec) if imgsz is None else imgsz
         settings = _cache_settings(path, imgsz=model_imgsz, conf=conf, iou=iou, max_det=max_det,
-                                   class_map=class_map, classes=class_ids)
+                                   class_map=class_map, classes=class_ids, pt_backend=pt_backend, device=device)
         meta_path = cache_root / model / "settings.json"
         try:
             cached_settings = json.loads(meta_path.read_text(encoding="utf-8"))
@@ -369,7 +407,9 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
         reuse = not force and cached_settings == settings
         detector = None
         if not all(reuse and predictions_path(cache_root, model, rate).is_file() for rate in rates):
-            extra = {} if trust_pickle is None else {"trust_pickle": trust_pickle}
+            extra = {"pt_backend": pt_backend}
+            if trust_pickle is not None:
+                extra["trust_pickle"] = trust_pickle
             if classes_given:
                 extra["classes"] = class_ids
             detector = backends.load_detector(spec, class_map=class_map, device=device, **extra)
@@ -389,7 +429,7 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
             with tqdm(total=len(dataset), unit="img", desc=f"{model} {rate_token(rate)} mm/h",
                       disable=not progress, dynamic_ncols=True) as bar:
                 records = _infer(detector, dataset, rate, batch=batch, imgsz=model_imgsz, conf=conf,
-                                 iou=iou, max_det=max_det, bar=bar, classes=class_ids)
+                                 iou=iou, max_det=max_det, bar=bar, classes=class_ids, workers=workers)
             if classes_given:  # an ONNX file without names learns its classes at its first batch
                 backends.check_model_classes(detector, model, class_ids)
             _write_json(cache, records)

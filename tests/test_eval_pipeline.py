@@ -266,7 +266,7 @@ def test_backend_detections_are_cached_and_reused(data_dir, tmp_path, monkeypatc
                 by_bytes[handle["rgb"][rate_index, frame].tobytes()] = (labels["bbox"], labels["class_id"])
     loads = []
 
-    def fake_load(weights, *, class_map=None, device=None):
+    def fake_load(weights, *, class_map=None, device=None, pt_backend="batched"):
         detector = _FakeDetector(weights.stem, lambda image: by_bytes[np.asarray(image).tobytes()])
         loads.append(detector)
         return detector
@@ -288,6 +288,12 @@ def test_backend_detections_are_cached_and_reused(data_dir, tmp_path, monkeypatc
     # Other settings invalidate the cache.
     pipeline.run_eval(data_dir, out, weights=[weights], n_boot=5, conf=0.2, progress=False)
     assert len(loads) == 3
+    # So does the way a .pt runs (its detections differ slightly).
+    pipeline.run_eval(data_dir, out, weights=[weights], n_boot=5, conf=0.2, pt_backend="ultralytics",
+                      progress=False)
+    assert len(loads) == 4
+    settings = json.loads((out / "predictions" / "fake" / "settings.json").read_text())
+    assert settings["pt_backend"] == "ultralytics" and settings["cuda"] is False
 
 
 def test_class_map_logic_with_fake_names():
@@ -306,6 +312,9 @@ def test_class_map_logic_with_fake_names():
             parse_class_map(spec)
 
 
+COCO_NAMES = ["person", "bicycle", "car", "motorcycle"] + [f"coco{i}" for i in range(4, 80)]
+
+
 @pytest.fixture(scope="module")
 def tiny_yolo(tmp_path_factory):
     """A yolo11n with random weights and COCO-80 names, saved as a .pt (no download)."""
@@ -314,14 +323,18 @@ def tiny_yolo(tmp_path_factory):
 
     path = tmp_path_factory.mktemp("weights") / "tiny11n.pt"
     model = YOLO("yolo11n.yaml")
-    coco = ["person", "bicycle", "car", "motorcycle"] + [f"coco{i}" for i in range(4, 80)]
-    model.model.names = dict(enumerate(coco))
+    model.model.names = dict(enumerate(COCO_NAMES))
     model.save(str(path))
     return path
 
 
-def test_ultralytics_backend_end_to_end(data_dir, tiny_yolo, tmp_path):
-    detector = backends.load_detector(tiny_yolo, device="cpu")
+@pytest.mark.parametrize("pt_backend", ["batched", "ultralytics"])
+def test_ultralytics_backend_end_to_end(data_dir, tiny_yolo, tmp_path, pt_backend):
+    from rainbench.eval.backends.torch_batched import TorchDetector
+    from rainbench.eval.backends.ultralytics import UltralyticsDetector
+
+    detector = backends.load_detector(tiny_yolo, device="cpu", pt_backend=pt_backend)
+    assert isinstance(detector, TorchDetector if pt_backend == "batched" else UltralyticsDetector)
     assert detector.name == "tiny11n"
     images = []
     for _, shard, frame in _images(data_dir):
@@ -338,12 +351,12 @@ def test_ultralytics_backend_end_to_end(data_dir, tiny_yolo, tmp_path):
         assert (boxes[:, 2] >= boxes[:, 0]).all() and (boxes[:, 3] >= boxes[:, 1]).all()
     # The whole pipeline on the real backend.
     result = pipeline.run_eval(data_dir, tmp_path / "out", weights=[tiny_yolo], imgsz=96, n_boot=5,
-                               device="cpu", progress=False)
+                               device="cpu", progress=False, pt_backend=pt_backend, workers=1)
     assert result.inference_runs == len(RATES)
     assert {r["model"] for r in result.records} == {"tiny11n"}
     # Non-COCO names need a class map.
     with pytest.raises(backends.BackendError, match="not COCO-80"):
-        class_lookup(detector.model.names | {0: "ped"}, None, "x")
+        class_lookup(dict(enumerate(COCO_NAMES)) | {0: "ped"}, None, "x")
 
 
 def test_cli_one_line_errors(data_dir, tmp_path, capsys):
@@ -373,3 +386,17 @@ def test_cli_one_line_errors(data_dir, tmp_path, capsys):
     code, _, err = _run(capsys, "eval", "--data", data_dir, "--out", out)
     assert code == 2
     _one_line_error(err, "exactly one of --weights")
+    for flags, message in ((["--workers", "-1"], "WORKERS: expected >= 0, got -1"),
+                           (["--pt-backend", "onnx"], "--pt-backend: invalid choice: 'onnx'")):
+        with pytest.raises(SystemExit) as exit_info:  # argparse refuses it, in one line
+            _run(capsys, "eval", "--data", data_dir, "--weights", garbage, "--out", out, *flags)
+        assert exit_info.value.code == 2
+        _one_line_error(capsys.readouterr().err, message)
+
+
+def test_cli_refuses_a_device_it_cannot_use(data_dir, tiny_yolo, tmp_path, capsys):
+    code, _, err = _run(capsys, "eval", "--data", data_dir, "--weights", tiny_yolo, "--out", tmp_path / "out",
+                        "--device", "tpu", "--quiet")
+    assert code == 2
+    _one_line_error(err, "--device: expected cpu, a CUDA index (0) or cuda:N, got 'tpu'")
+    assert not (tmp_path / "out" / "metrics.json").exists()

@@ -305,6 +305,36 @@ def test_shipped_weights_load_by_name_and_find_cars(tmp_path, guard_scene, name)
     assert person["n_gt"] >= 20 and person["ap50"] >= person_floor, person
 
 
+def test_batched_backend_agrees_with_ultralytics_predict_on_the_guard_scene(tmp_path, guard_scene):
+    """The shipped nano checkpoint through the batched torch backend and through ultralytics'
+    predict (the reference), on the guard scene at the card's 960 px: AP@0.5 per class within
+    0.005 (the resize's one-grey-level rounding is the only difference on the CPU), and each
+    confident reference detection has a twin of the same class (every edge within 1 px, score
+    within 0.02)."""
+    from rainbench.eval import pipeline
+
+    checkpoint = registry.WEIGHTS_DIR / "rainbench-yolo11n.pt"
+    results = {}
+    for pt_backend in ("ultralytics", "batched"):
+        out = tmp_path / pt_backend
+        results[pt_backend] = pipeline.run_eval(guard_scene, out, weights=[checkpoint], imgsz=960, n_boot=1,
+                                                device="cpu", progress=False, pt_backend=pt_backend)
+        results[pt_backend + " records"] = json.loads(
+            (out / "predictions" / "rainbench-yolo11n" / "rate_0.json").read_text())
+    reference = {r["class"]: r for r in results["ultralytics"].records}
+    for record in results["batched"].records:
+        if record["n_gt"] >= 20:
+            assert record["ap50"] == pytest.approx(reference[record["class"]]["ap50"], abs=0.005), record
+    batched = results["batched records"]
+    confident = [r for r in results["ultralytics records"] if r["score"] >= 0.25]
+    assert len(confident) >= 100
+    for wanted in confident:
+        twins = [r for r in batched if r["image_id"] == wanted["image_id"] and r["category_id"] == wanted["category_id"]
+                 and max(abs(a - b) for a, b in zip(r["bbox"], wanted["bbox"])) < 1.0
+                 and abs(r["score"] - wanted["score"]) < 0.02]
+        assert twins, wanted
+
+
 # Per shipped rain-trained twin of the nano model (issue 19): the rain models its curriculum
 # draws rainy images from, its card's `random_rain`, and whether it must beat the clean model under
 # `physical` rain on the guard scene at 60 mm/h by RAIN_GUARD_MARGIN for car and person (the

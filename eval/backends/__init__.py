@@ -6,8 +6,12 @@
 - a shipped model by name (``rainbench-yolo11n``, :mod:`rainbench.eval.weights`): its ONNX copy
   on CPU (``<name>.onnx`` beside the checkpoint, or built on first use into the user cache,
   :func:`rainbench.eval.weights.cached_onnx`), ``<name>.pt`` on a CUDA device;
-- an ultralytics checkpoint ``.pt`` (YOLOv3u/v5u/v8/v9/v10/11/12...): ``ultralytics.YOLO(path)``
-  (:mod:`rainbench.eval.backends.ultralytics`);
+- an ultralytics checkpoint ``.pt`` (YOLOv3u/v5u/v8/v9/v10/11/12...): read by
+  ``ultralytics.YOLO(path)`` (:mod:`rainbench.eval.backends.ultralytics`) and run in batches by
+  torch, letterbox and NMS on the model's device, fp16 on CUDA
+  (:mod:`rainbench.eval.backends.torch_batched`), or by ultralytics' own predict
+  (``pt_backend="ultralytics"``, and for heads the batched path does not run: end-to-end YOLOv10
+  and YOLO26, RT-DETR);
 - an ONNX export ``.onnx`` through onnxruntime: YOLOv5/YOLOv7-style outputs ``(B, N, 5 + nc)``
   (cx, cy, w, h, objectness, class scores) and YOLOv8+-style ``(B, 4 + nc, N)`` (no objectness)
   (:mod:`rainbench.eval.backends.onnx`);
@@ -70,9 +74,15 @@ class Detector(Protocol):
         ...
 
 
+PT_BACKENDS = ("batched", "ultralytics")
+"""How an ultralytics ``.pt`` runs (``--pt-backend``): ``batched``, the network in batches by torch
+with letterbox and NMS on its device (:mod:`rainbench.eval.backends.torch_batched`; models it does
+not support fall back to ultralytics); ``ultralytics``, ``ultralytics.YOLO.predict`` (the reference)."""
+
+
 def load_detector(weights: str | Path, *, class_map: str | None = None,
                   device: str | None = None, trust_pickle: bool | None = None,
-                  classes: Sequence[int] = PAPER_CLASSES) -> Detector:
+                  classes: Sequence[int] = PAPER_CLASSES, pt_backend: str = "batched") -> Detector:
     """Load a detector from a weights spec (:func:`rainbench.eval.weights.resolve_weights`);
     ``.name`` is the model name.
 
@@ -83,6 +93,9 @@ def load_detector(weights: str | Path, *, class_map: str | None = None,
     A ``.pt`` is read with ultralytics' safe loading; one that needs Python's full unpickler is
     refused unless ``trust_pickle`` (None: the ``RAINBENCH_TRUST_PICKLE=1`` environment
     variable), see the module docstring.
+
+    ``pt_backend``: how a ``.pt`` runs (:data:`PT_BACKENDS`): "batched" (default; fp16 on CUDA,
+    fp32 on the CPU) or "ultralytics" (its own predict).
 
     Raises :class:`BackendError` (one line, naming the file) for a missing file, an unsupported
     format, a file that does not load, a .pt that needs the unsafe loader without trust, a
@@ -106,7 +119,15 @@ def load_detector(weights: str | Path, *, class_map: str | None = None,
         raise BackendError(f"--weights: {path}: unsupported format {path.suffix or '(none)'!r}; expected "
                            "an ultralytics .pt, an .onnx export, Darknet .cfg/.weights, or a shipped model "
                            f"name ({', '.join(registry.shipped_models()) or 'none shipped'})")
-    return _load_ultralytics(path, class_map, device, trust_pickle, classes, name)
+    if pt_backend not in PT_BACKENDS:
+        raise BackendError(f"--pt-backend: expected one of {', '.join(PT_BACKENDS)}, got {pt_backend!r}")
+    detector = _load_ultralytics(path, class_map, device, trust_pickle, classes, name)
+    if pt_backend == "batched":
+        from rainbench.eval.backends.torch_batched import supports, torch_detector
+
+        if supports(detector.model.model):
+            return torch_detector(detector.model, detector.name, device, (detector.full_lookup, detector.lookup))
+    return detector
 
 
 def model_classes(detector: Any) -> tuple[int, ...] | None:

@@ -72,7 +72,13 @@ class UltralyticsDetector:
                       classes=np.flatnonzero(self.lookup >= 0).tolist())
         if self.device is not None:
             kwargs["device"] = self.device
-        results = self.model.predict(bgr, **kwargs)
+        import torch
+
+        threads = torch.get_num_threads()
+        try:
+            results = self.model.predict(bgr, **kwargs)
+        finally:  # ultralytics sets torch's threads to cores - 1 for CPU work; not for the rest of the run
+            torch.set_num_threads(threads)
         outputs = []
         for image, result in zip(images, results, strict=True):
             height, width = np.asarray(image).shape[:2]

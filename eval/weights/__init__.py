@@ -102,8 +102,8 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
 
     A shipped name resolves to its ONNX copy (``<name>.onnx``, run by onnxruntime: 2.3 to 2.8
     times ultralytics' speed on CPU, the same detections) unless ``device`` is a CUDA device,
-    where it resolves to the ``.pt`` (ultralytics on the GPU). The model name is the shipped name
-    or the file stem. Darknet models resolve to their ``.weights`` file (the ``.cfg`` must sit
+    where it resolves to the ``.pt`` (the batched torch backend in fp16 on the GPU). The model
+    name is the shipped name or the file stem. Darknet models resolve to their ``.weights`` file (the ``.cfg`` must sit
     beside it). Raises :class:`BackendError` for a missing file.
     """
     text = str(spec)
