@@ -336,3 +336,37 @@ def test_onnx_and_darknet_backends_through_run_eval_on_a_tiny_shard(tmp_path):
     const = json.loads((tmp_path / "out" / "predictions" / "const" / "rate_0.json").read_text())
     car = next(d for d in const if d["category_id"] == 2)
     np.testing.assert_allclose(car["bbox"], [12, 6, 24, 24], atol=1e-3)  # (100, 50, 300, 250) x 0.12
+
+
+def test_onnx_on_the_cpu_runs_small_batches(tmp_path, monkeypatch):
+    """onnxruntime on the CPU gets at most CPU_BATCH images per call (faster than the eval's 32);
+    the detections do not depend on it."""
+    from rainbench.eval.backends import onnx as onnx_backend
+
+    rows = _head_rows(0.8, (0.0, 0.0), 80, objectness=False)
+    path = _export(ConstantHead(rows.T), tmp_path / "const.onnx", (480, 640), True)
+    detector = backends.load_detector(path)
+    sizes = []
+
+    class CountingSession:  # the real session, with the images of each call counted
+        def __init__(self, session):
+            self.session = session
+
+        def __getattr__(self, name):
+            return getattr(self.session, name)
+
+        def run(self, outputs, feeds):
+            sizes.append(len(next(iter(feeds.values()))))
+            return self.session.run(outputs, feeds)
+
+    detector.session = CountingSession(detector.session)
+    images = [_image()] * 6
+    settings = dict(imgsz=640, conf=0.25, iou=0.7, max_det=300)
+    small = detector.predict(images, **settings)
+    assert sizes == [onnx_backend.CPU_BATCH, 6 - onnx_backend.CPU_BATCH] and onnx_backend.CPU_BATCH == 4
+    monkeypatch.setattr(onnx_backend, "CPU_BATCH", 6)
+    whole = detector.predict(images, **settings)
+    assert sizes[2:] == [6]
+    for a, b in zip(small, whole, strict=True):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
