@@ -279,8 +279,7 @@ def cmd_paper(args: argparse.Namespace) -> int:
     config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device, classes=args.classes,
-                         references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics,
-                       pt_backend=args.pt_backend, workers=args.workers)
+                         references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics)
     print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
                     force=args.force, progress=not args.quiet))
     return 0

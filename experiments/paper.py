@@ -176,6 +176,42 @@ def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[fl
     return result
 
 
+def same_clean_frames(first: Path, other: Path) -> bool:
+    """Whether two datasets hold rate 0 and the same rate-0 images, byte for byte, in the same
+    image-id order (every condition of :func:`run_paper` renders the same clip, and rate 0 is its
+    clean render under the base weather whatever the rain model)."""
+    a, b = Dataset(first), Dataset(other)
+    if 0.0 not in a.rates or 0.0 not in b.rates or len(a.images) != len(b.images):
+        return False
+    for (image_a, handle_a), (image_b, handle_b) in zip(a.walk(), b.walk(), strict=True):
+        if image_a.image_id != image_b.image_id or not np.array_equal(a.read_rgb(handle_a, image_a, 0.0),
+                                                                      b.read_rgb(handle_b, image_b, 0.0)):
+            return False
+    return True
+
+
+def share_clean_predictions(first_results: Path, results: Path, models: Sequence[str]) -> list[str]:
+    """Copy each model's cached rate-0 predictions (``predictions/<model>/rate_0.json`` and its
+    ``settings.json``, :func:`rainbench.eval.pipeline.run_eval`'s cache) from ``first_results`` to
+    ``results``, where that model has no cache of its own yet; ``run_eval`` then reuses them when
+    its settings are the same (weights file, letterbox size, thresholds, classes) and infers the
+    other rates. Only for datasets with the same rate-0 images (:func:`same_clean_frames`).
+    Returns the models whose predictions were copied."""
+    import shutil
+
+    shared = []
+    for model in models:
+        source, target = first_results / "predictions" / model, results / "predictions" / model
+        clean = predictions_path(first_results / "predictions", model, 0.0)
+        if not ((source / "settings.json").is_file() and clean.is_file()) or (target / "settings.json").exists():
+            continue
+        target.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(clean, predictions_path(results / "predictions", model, 0.0))
+        shutil.copyfile(source / "settings.json", target / "settings.json")
+        shared.append(model)
+    return shared
+
+
 def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *, workers: int = 1,
               force: bool = False, progress: bool = True) -> Path:
     """Generate, evaluate and report; returns ``OUT/report.md``. Datasets go to
@@ -200,6 +236,8 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     robustness: dict[str, list] = {}
     timings: dict[str, float] = {}
     skies = set()
+    first: tuple[str, Path] | None = None  # the first condition: its rate-0 predictions are shared
+    shared: dict[str, list[str]] = {}
     for name, rain_model, follows in conditions(config.rain_models):
         data_dir = data_root / name
         start = time.perf_counter()
@@ -210,6 +248,11 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
             with written.open(shard) as handle:
                 skies.add(str(handle.attrs.get("sky", "clear (format v1)")))
         start = time.perf_counter()
+        if first is None:
+            first = (name, data_dir)
+        elif not force and same_clean_frames(first[1], data_dir):
+            names = [resolve_weights(spec, config.device)[1] for spec in config.weights]
+            shared[name] = share_clean_predictions(out_dir / first[0], out_dir / name, names)
         outputs = run_eval(data_dir, out_dir / name, weights=list(config.weights), imgsz=config.imgsz,
                            batch=config.batch, n_boot=config.n_boot, device=config.device, force=force,
                            progress=progress, classes=config.classes, references=references,
@@ -247,6 +290,10 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
         f"Machine: {platform.machine()}, {platform.processor() or 'cpu'}; device {config.device or 'auto'}. "
         "Wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()) + ".",
     ]
+    if any(shared.values()):
+        setup += ["", f"Rate 0 is the same clean render in every condition (byte for byte, checked): its "
+                  f"detections were inferred on {first[0]} and reused for "
+                  + ", ".join(f"{name} ({', '.join(models)})" for name, models in shared.items() if models) + "."]
     text = render_paper_md(setup_lines=setup, table_one=counts, records_by_rain=records_by_rain,
                            half_rates=half_rates, breakdowns=tables, breakdown_model=models[0],
                            paper_rain_model=paper_rain, robustness=robustness)

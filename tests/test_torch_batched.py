@@ -220,3 +220,9 @@ def test_cpu_runs_the_network_one_image_at_a_time(monkeypatch, tmp_path):
     for a, b in zip(one_by_one, together, strict=True):
         for x, y in zip(a, b):
             np.testing.assert_allclose(x, y, atol=1e-3)
+
+
+def test_default_read_workers_leave_a_core_to_the_network():
+    from rainbench.eval.pipeline import default_read_workers
+
+    assert [default_read_workers(cores) for cores in (1, 2, 4, 16, 64)] == [0, 1, 3, 8, 8]

@@ -435,6 +435,12 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
             assert row["clean"] == pytest.approx(ap[0], abs=1e-9)
             assert row["mpc"] == pytest.approx((ap[50] + ap[100]) / 2, abs=1e-9)
             assert row["mpc_low"] <= row["mpc"] <= row["mpc_high"]
+    # Rate 0 is the same clean render in every condition: inferred once, its detections reused.
+    assert "Rate 0 is the same clean render in every condition" in report
+    for model in ("rainbench-yolo11n", "rainbench-yolo11n-weak"):
+        clean = (tmp_path / "out" / "jeon2022" / "predictions" / model / "rate_0.json").read_bytes()
+        for rain in ("physical", "physical-fixed-weather"):
+            assert (tmp_path / "out" / rain / "predictions" / model / "rate_0.json").read_bytes() == clean
     # Table I counts equal the shard's labels.
     from rainbench.experiments.paper import table_one
 
@@ -451,6 +457,36 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
                             "--out", tmp_path / "o3")
         assert code == 2 and message in err and len(err.strip().splitlines()) == 1
         assert not (tmp_path / "d3" / "jeon2022").exists()  # refused before generating
+
+
+def test_clean_predictions_are_shared_only_between_identical_clean_frames(tmp_path):
+    """Datasets of another seed (other rate-0 images) or without rate 0 share nothing; a model
+    that already has its own cache keeps it."""
+    from rainbench.experiments.paper import same_clean_frames, share_clean_predictions
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import generate_shard
+
+    def shard(name, **changes):
+        config = dict(seed=0, frames=2, width=64, height=48, rates=(0.0, 50.0), layout="street", time_of_day="day")
+        generate_shard(GenerateConfig(**(config | changes)), tmp_path / name)
+        return tmp_path / name
+
+    first = shard("a")
+    assert same_clean_frames(first, shard("b", rain_model="physical"))  # rain differs, rate 0 does not
+    assert not same_clean_frames(first, shard("c", seed=1))
+    assert not same_clean_frames(first, shard("d", rates=(50.0,)))
+    source = tmp_path / "results-a" / "predictions"
+    for model in ("m1", "m2"):
+        (source / model).mkdir(parents=True)
+        (source / model / "settings.json").write_text('{"imgsz": 64}')
+        (source / model / "rate_0.json").write_text(f'["{model}"]')
+    (source / "m3").mkdir()  # no cache: nothing to share
+    mine = tmp_path / "results-b" / "predictions" / "m2"
+    mine.mkdir(parents=True)
+    (mine / "settings.json").write_text('{"imgsz": 96}')
+    assert share_clean_predictions(tmp_path / "results-a", tmp_path / "results-b", ["m1", "m2", "m3"]) == ["m1"]
+    assert (tmp_path / "results-b" / "predictions" / "m1" / "rate_0.json").read_text() == '["m1"]'
+    assert (mine / "settings.json").read_text() == '{"imgsz": 96}' and not (mine / "rate_0.json").exists()
 
 
 def test_comparison_references_follow_names_unless_chosen():
