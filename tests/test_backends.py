@@ -164,7 +164,7 @@ def test_onnx_export_of_an_ultralytics_model_matches_its_checkpoint(tmp_path):
     # boxes NMS keeps then depends on rounding; with NMS almost off this compares decoding and the
     # letterbox (NMS itself is checked on the synthetic heads above). 960 px checks that the
     # anchors follow the input size rather than the traced one.
-    pt_detector = backends.load_detector(pt_path, device="cpu")
+    pt_detector = backends.load_detector(pt_path, device="cpu", pt_backend="ultralytics")
     onnx_detector = backends.load_detector(onnx_path)
     assert onnx_detector.names == dict(enumerate(names))
     for imgsz in (640, 960):

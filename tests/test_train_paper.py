@@ -178,7 +178,7 @@ def test_tiny_training_run_writes_weights_the_evaluator_loads(tmp_path, capsys):
     assert manifest["complete"] and [s["scene_seed"] for s in manifest["shards"]] == [1000000, 1000001]
     assert manifest["config"]["scenario"]["num_motorcycles"] == 1
     detector = backends.load_detector(weights, device="cpu")
-    assert [detector.model.names[i] for i in range(4)] == list(CLASS_NAMES[:4])
+    assert [detector.names[i] for i in range(4)] == list(CLASS_NAMES[:4])
     image = np.zeros((120, 160, 3), np.uint8)
     boxes, scores, ids = detector.predict([image], imgsz=64, conf=0.0, iou=0.7, max_det=10)[0]
     assert boxes.shape[1] == 4 and set(ids.tolist()) <= {0, 1, 2, 3}
@@ -389,7 +389,7 @@ def test_shipped_onnx_copy_matches_the_shipped_checkpoint(tmp_path, name):
     config = GenerateConfig(seed=7, frames=1, fps=1.0, width=800, height=600, rates=(0.0,))
     image = [frame.rgb.copy() for _, frame, _ in render_clip(config)][0]
     settings = dict(imgsz=registry.model_imgsz(name), conf=0.001, iou=0.7, max_det=300)
-    checkpoint = backends.load_detector(registry.WEIGHTS_DIR / f"{name}.pt", device="cpu")
+    checkpoint = backends.load_detector(registry.WEIGHTS_DIR / f"{name}.pt", device="cpu", pt_backend="ultralytics")
     onnx_copy = backends.load_detector(name, device="cpu")
     assert isinstance(onnx_copy, OnnxDetector) and onnx_copy.name == name
     assert_same_detections(checkpoint.predict([image], **settings)[0], onnx_copy.predict([image], **settings)[0],
@@ -567,7 +567,7 @@ def test_shipped_model_without_onnx_builds_its_copy_once_into_the_cache(tmp_path
     config = GenerateConfig(seed=7, frames=1, fps=1.0, width=800, height=600, rates=(0.0,))
     image = [frame.rgb.copy() for _, frame, _ in render_clip(config)][0]
     settings = dict(imgsz=registry.model_imgsz(name), conf=0.001, iou=0.7, max_det=300)
-    checkpoint = backends.load_detector(registry.WEIGHTS_DIR / f"{name}.pt", device="cpu")
+    checkpoint = backends.load_detector(registry.WEIGHTS_DIR / f"{name}.pt", device="cpu", pt_backend="ultralytics")
     onnx_copy = backends.load_detector(name, device="cpu")
     assert isinstance(onnx_copy, OnnxDetector)
     assert_same_detections(checkpoint.predict([image], **settings)[0],

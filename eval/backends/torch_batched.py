@@ -149,6 +149,11 @@ class TorchDetector:
         self._lookup = torch.as_tensor(self.lookup, dtype=torch.int64, device=self.device)
 
     @property
+    def names(self) -> dict[int, str]:
+        """The model's class names (its checkpoint's ``names``)."""
+        return dict(self.network.names)
+
+    @property
     def dtype(self) -> torch.dtype:
         return torch.float16 if self.half else torch.float32
 
