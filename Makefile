@@ -98,6 +98,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/inference.py --json results/bench/inference.json
 	$(BIN)/python bench/inference.py --imgsz 960 --json results/bench/inference_960.json
 	$(BIN)/python bench/inference.py --weights rainbench-yolo11s --imgsz 960 --json results/bench/inference_11s_960.json
+	$(BIN)/python bench/backend_agreement.py --data $(OUT)/paper/jeon2022 --json results/bench/backend_agreement.json
 	$(BIN)/python bench/quality.py --weights rainbench-yolo11n --weights rainbench-yolo11s \
 		--layouts street,intersection,curved,highway,residential --json results/bench/quality.json
 

@@ -1,7 +1,8 @@
-"""The batched torch backend (rainbench.eval.backends.torch_batched), on the CPU: its letterbox
-against the OpenCV one, its NMS against ultralytics' own, box mapping, the parallel shard reader,
-which models it runs, and device errors. The shipped model's detections against ultralytics'
-predict are checked on the guard scene in test_train_paper.py. No file is downloaded."""
+"""The batched torch backend (rainbench.eval.backends.torch_batched), on the CPU: its letterboxes
+(the GPU's, and the CPU's OpenCV one) against the numpy one, its NMS against ultralytics' own,
+box mapping, the parallel shard reader, which models it runs, and device errors. The shipped
+model's detections against ultralytics' predict are checked on the guard scene in
+test_train_paper.py. No file is downloaded."""
 
 import numpy as np
 import pytest
@@ -50,6 +51,20 @@ def test_letterbox_batch_matches_the_opencv_letterbox(imgsz):
     top = int(pad[1])
     if top:  # the grey border
         assert (levels[:, :top] == LETTERBOX_FILL).all()
+
+
+def test_cpu_letterbox_gives_the_network_ultralytics_own_pixels():
+    """On the CPU the canvas is OpenCV's letterbox (ultralytics' LetterBox) exactly, as floats."""
+    from rainbench.eval.backends.torch_batched import letterbox_frames
+
+    frames = np.stack([_frame(seed=0), _frame(seed=1)])
+    shape = rect_shape(600, 800, 960)
+    canvas, gain, pad = letterbox_frames(torch.from_numpy(frames), shape)
+    assert canvas.is_contiguous(memory_format=torch.channels_last) and canvas.dtype == torch.float32
+    for frame, ours in zip(frames, canvas):
+        reference, reference_gain, reference_pad = letterbox(frame, shape)
+        assert (gain, pad) == (reference_gain, reference_pad)
+        torch.testing.assert_close(ours.permute(1, 2, 0), torch.from_numpy(reference).float() / 255.0, rtol=0, atol=0)
 
 
 def test_letterbox_batch_refuses_frames_that_are_not_uint8_rgb():

@@ -3,10 +3,12 @@
 What ``ultralytics.YOLO.predict`` does image by image on the CPU (letterbox with OpenCV, NMS in a
 Python loop, box mapping), this backend does for a whole batch with torch on the model's device:
 
-- letterbox (:func:`letterbox_batch`): (B, H, W, 3) uint8 frames -> (B, 3, h, w) in 0..1, resized
-  bilinearly with half-pixel centres (OpenCV's ``INTER_LINEAR``: the same sampling, rounded to
-  uint8 levels as OpenCV does) and padded with grey 114 to the smallest multiple of 32 around the
-  image (ultralytics' rectangular inference shape, :func:`rainbench.eval.backends.letterbox.rect_shape`);
+- letterbox: (B, H, W, 3) uint8 frames -> (B, 3, h, w) in 0..1, padded with grey 114 to the
+  smallest multiple of 32 around the image (ultralytics' rectangular inference shape,
+  :func:`rainbench.eval.backends.letterbox.rect_shape`). On CUDA on the GPU
+  (:func:`letterbox_batch`: bilinear with half-pixel centres, OpenCV's ``INTER_LINEAR`` sampling,
+  rounded to uint8 levels); on the CPU with OpenCV's own resize (:func:`letterbox_frames`), so the
+  network sees exactly the pixels ultralytics' predict gives it;
 - the network, fused (convolution + batch norm) as ultralytics predicts, channels-last, in fp16 on
   CUDA and fp32 on the CPU;
 - NMS (:func:`select_batch`): ultralytics' ``non_max_suppression`` step for step (best class per
@@ -14,10 +16,12 @@ Python loop, box mapping), this backend does for a whole batch with torch on the
   offset, ``max_det``), on the device;
 - boxes mapped back to image pixels and clipped (:func:`unletterbox_boxes`), on the device.
 
-The same code runs on the CPU and on CUDA (the CPU is what the tests run). Against ultralytics'
-``predict`` the only differences are the resize's arithmetic (float against OpenCV's fixed point:
-a pixel differs by at most one grey level) and, on CUDA, fp16 instead of predict's default fp32;
-the detections agree to within that (``tests/test_backends.py``, ``bench/inference.py``).
+The same code runs on the CPU and on CUDA except the resize (the tests run the CPU, and check the
+GPU's resize against OpenCV's on the CPU). Against ultralytics' ``predict``: on the CPU the same
+input pixels, the same fused network (its convolutions run channels-last, one image per call, so
+sums are added in another order) and the same NMS; on CUDA the resize's float arithmetic (a pixel
+differs by at most one grey level from OpenCV's fixed point) and fp16 instead of predict's default
+fp32 (``tests/test_torch_batched.py``, ``tests/test_train_paper.py``, ``bench/backend_agreement.py``).
 
 Models it runs: ultralytics detection models with a ``Detect`` head that needs NMS (YOLOv3u,
 v5u, v8, v9, 11, 12). End-to-end heads (YOLOv10, YOLO26) and other model types (RT-DETR) are run
@@ -35,7 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from rainbench.eval.backends import BackendError
-from rainbench.eval.backends.letterbox import LETTERBOX_FILL, rect_shape
+from rainbench.eval.backends.letterbox import LETTERBOX_FILL, letterbox, rect_shape
 
 MAX_NMS = 30_000
 """Candidates kept per image before NMS, best first (ultralytics' ``max_nms``)."""
@@ -88,6 +92,16 @@ def letterbox_batch(frames: torch.Tensor, shape: tuple[int, int], dtype: torch.d
                         device=frames.device).permute(0, 3, 1, 2)
     canvas[:, :, top:top + new_h, left:left + new_w] = images.to(dtype) / 255.0
     return canvas, gain, (float(left), float(top))
+
+
+def letterbox_frames(frames: torch.Tensor, shape: tuple[int, int]) -> tuple[torch.Tensor, float, tuple[float, float]]:
+    """:func:`letterbox_batch` on the CPU with OpenCV's resize
+    (:func:`rainbench.eval.backends.letterbox.letterbox`, ultralytics' own pixels): ``frames``
+    (B, H, W, 3) uint8 CPU tensor -> (canvas (B, 3, h, w) float32 channels-last in 0..1, gain,
+    (pad_x, pad_y))."""
+    boxed = [letterbox(frame, shape) for frame in frames.numpy()]
+    block = torch.from_numpy(np.stack([canvas for canvas, _, _ in boxed]))
+    return block.permute(0, 3, 1, 2).float().div_(255.0), boxed[0][1], boxed[0][2]
 
 
 def select_batch(prediction: torch.Tensor, lookup: torch.Tensor, *, conf: float, iou: float,
@@ -183,7 +197,10 @@ class TorchDetector:
         results = []
         with torch.inference_mode():
             for start in range(0, len(frames), step):
-                canvas, gain, pad = letterbox_batch(frames[start:start + step], shape, self.dtype)
+                if self.device.type == "cuda":
+                    canvas, gain, pad = letterbox_batch(frames[start:start + step], shape, self.dtype)
+                else:  # OpenCV's resize, as ultralytics' predict: the same input pixels, faster here
+                    canvas, gain, pad = letterbox_frames(frames[start:start + step], shape)
                 raw = self.network(canvas)
                 raw = raw[0] if isinstance(raw, (tuple, list)) else raw
                 results += [(unletterbox_boxes(boxes, gain, pad, width, height), scores, ids)
