@@ -307,10 +307,10 @@ def test_shipped_weights_load_by_name_and_find_cars(tmp_path, guard_scene, name)
 
 def test_batched_backend_agrees_with_ultralytics_predict_on_the_guard_scene(tmp_path, guard_scene):
     """The shipped nano checkpoint through the batched torch backend and through ultralytics'
-    predict (the reference), on the guard scene at the card's 960 px: AP@0.5 per class within
-    0.005 (the resize's one-grey-level rounding is the only difference on the CPU), and each
-    confident reference detection has a twin of the same class (every edge within 1 px, score
-    within 0.02)."""
+    predict (the reference), on the guard scene at the card's 960 px. On the CPU both feed the
+    network OpenCV's letterbox, so only the convolutions' order of summation differs: AP@0.5 per
+    class equal (to 1e-9), and each confident reference detection has a twin of the same class
+    (every edge within 0.05 px, score within 1e-3)."""
     from rainbench.eval import pipeline
 
     checkpoint = registry.WEIGHTS_DIR / "rainbench-yolo11n.pt"
@@ -324,14 +324,14 @@ def test_batched_backend_agrees_with_ultralytics_predict_on_the_guard_scene(tmp_
     reference = {r["class"]: r for r in results["ultralytics"].records}
     for record in results["batched"].records:
         if record["n_gt"] >= 20:
-            assert record["ap50"] == pytest.approx(reference[record["class"]]["ap50"], abs=0.005), record
+            assert record["ap50"] == pytest.approx(reference[record["class"]]["ap50"], abs=1e-9), record
     batched = results["batched records"]
     confident = [r for r in results["ultralytics records"] if r["score"] >= 0.25]
     assert len(confident) >= 100
     for wanted in confident:
         twins = [r for r in batched if r["image_id"] == wanted["image_id"] and r["category_id"] == wanted["category_id"]
-                 and max(abs(a - b) for a, b in zip(r["bbox"], wanted["bbox"])) < 1.0
-                 and abs(r["score"] - wanted["score"]) < 0.02]
+                 and max(abs(a - b) for a, b in zip(r["bbox"], wanted["bbox"])) < 0.05
+                 and abs(r["score"] - wanted["score"]) < 1e-3]
         assert twins, wanted
 
 
