@@ -5,7 +5,7 @@ Python loop, box mapping), this backend does for a whole batch with torch on the
 
 - letterbox: (B, H, W, 3) uint8 frames -> (B, 3, h, w) in 0..1, padded with grey 114 to the
   smallest multiple of 32 around the image (ultralytics' rectangular inference shape,
-  :func:`rainbench.eval.backends.letterbox.rect_shape`). On CUDA on the GPU
+  :func:`rainbench.eval.backends.letterbox.rect_shape`). On CUDA, on the GPU
   (:func:`letterbox_batch`: bilinear with half-pixel centres, OpenCV's ``INTER_LINEAR`` sampling,
   rounded to uint8 levels); on the CPU with OpenCV's own resize (:func:`letterbox_frames`), so the
   network sees exactly the pixels ultralytics' predict gives it;
