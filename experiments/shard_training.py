@@ -270,8 +270,6 @@ def shard_dataset_class():
             self.random_rain = random_rain
             self._random_rain = None if random_rain is None else random_rain.transform()
             self.keep_classes = None if keep_classes is None else np.asarray(keep_classes, np.int64)
-            self._handles: dict[Dataset, dict[int, Any]] = {}
-            self._handles_pid = None
             super().__init__(*args, **kwargs)
 
         def get_img_files(self, img_path) -> list[str]:
@@ -324,16 +322,6 @@ def shard_dataset_class():
                     f"{_data_name(self.store)} ({image.shard.name}#{image.frame}); every rain model's "
                     "training data must hold the same frames")
 
-        def _handle(self, store: Dataset, shard: int):
-            import os  # noqa: PLC0415
-
-            if self._handles_pid != os.getpid():  # a data-loader worker opens its own files
-                self._handles, self._handles_pid = {}, os.getpid()
-            handles = self._handles.setdefault(store, {})
-            if shard not in handles:
-                handles[shard] = store.open(shard)
-            return handles[shard]
-
         def load_image(self, i: int, rect_mode: bool = True, resize_short: bool = False):
             """Image ``i`` (BGR, long side resized to ``imgsz``) of a rain model and at a rate
             drawn from the curriculum; returns (image, (h0, w0), (h, w)) as ultralytics'
@@ -347,7 +335,7 @@ def shard_dataset_class():
             rain_model, rate = self.curriculum.draw(random)
             store = self.stores[rain_model]
             image = store.images[i]
-            rgb = store.read_rgb(self._handle(store, image.shard_index), image, rate)
+            rgb = store.read_rgb(store.handle(image.shard_index), image, rate)
             if self.augment and self._random_rain is not None and random.random() < self.random_rain.p:
                 self._random_rain.set_random_seed(random.getrandbits(32))  # by ultralytics' seeded generator
                 rgb = self._random_rain(image=rgb)["image"]
@@ -361,11 +349,6 @@ def shard_dataset_class():
                     evicted = self.buffer.pop(0)
                     self.ims[evicted], self.im_hw0[evicted], self.im_hw[evicted] = None, None, None
             return resized, (height, width), resized.shape[:2]
-
-        def __getstate__(self) -> dict[str, Any]:
-            state = self.__dict__.copy()
-            state["_handles"], state["_handles_pid"] = {}, None  # open files never cross processes
-            return state
 
     return ShardYOLODataset
 

@@ -16,6 +16,8 @@ the evaluator and the paper report) opens a dataset through :class:`Dataset`, so
 
 from __future__ import annotations
 
+import os
+
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -106,6 +108,8 @@ class Dataset:
         self.rates: tuple[float, ...] = tuple(float(decimal) for decimal in wanted)
         self._decimals = tuple(wanted)
         self.images: tuple[Image, ...] = tuple(images)
+        self._handles: dict[int, object] = {}  # :meth:`handle`'s open files, of process _handles_pid
+        self._handles_pid: int | None = None
 
     def __len__(self) -> int:
         return len(self.images)
@@ -139,6 +143,29 @@ class Dataset:
         """Open shard number ``shard`` read-only (an ``h5py.File``; close it). Its format is
         checked again; its labels were checked when the dataset was built."""
         return open_shard(self.shards[shard])
+
+    def handle(self, shard: int):
+        """Shard number ``shard`` open read-only for random access by this process: opened on
+        first use and kept open until :meth:`close`. A forked ``DataLoader`` worker opens its own
+        (open files never cross processes, nor are they pickled), so readers built on a dataset
+        are safe with ``num_workers > 0``."""
+        if self._handles_pid != os.getpid():
+            self._handles, self._handles_pid = {}, os.getpid()
+        if shard not in self._handles:
+            self._handles[shard] = self.open(shard)
+        return self._handles[shard]
+
+    def close(self) -> None:
+        """Close the files :meth:`handle` opened in this process."""
+        if self._handles_pid == os.getpid():
+            for handle in self._handles.values():
+                handle.close()
+        self._handles = {}
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_handles"], state["_handles_pid"] = {}, None
+        return state
 
     def walk(self, images: Sequence[Image] | None = None) -> Iterator[tuple[Image, object]]:
         """Yield ``(image, handle)`` for ``images`` (default all) in their order: each shard is

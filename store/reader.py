@@ -20,7 +20,6 @@ Target keys (numpy arrays from :class:`ShardReader`, tensors from ``ShardDataset
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -49,17 +48,10 @@ class ShardReader:
         self.classes = None if classes is None else np.asarray(sorted(set(classes)), np.int64)
         self._rate_rows = [np.asarray([self.dataset.rate_row(rate, shard) for rate in self.rates])
                            for shard in range(len(self.shards))]
-        self._pid = None
-        self._handles: dict[int, object] = {}
         self._labels: dict[int, dict[str, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.dataset.images) * len(self.rates)
-
-    def __getstate__(self) -> dict:
-        state = self.__dict__.copy()
-        state["_handles"], state["_pid"] = {}, None  # handles never cross processes
-        return state
 
     def locate(self, index: int) -> tuple[int, int, int]:
         """(shard number, frame, rate number) of sample ``index``."""
@@ -68,16 +60,9 @@ class ShardReader:
         image, rate = divmod(index, len(self.rates))  # samples: images in id order, then rates
         return self.dataset.images[image].shard_index, self.dataset.images[image].frame, rate
 
-    def _handle(self, shard: int):
-        if self._pid != os.getpid():  # a forked DataLoader worker: open its own handles
-            self._handles, self._pid = {}, os.getpid()
-        if shard not in self._handles:
-            self._handles[shard] = self.dataset.open(shard)
-        return self._handles[shard]
-
     def _shard_labels(self, shard: int) -> dict[str, np.ndarray]:
         if shard not in self._labels:
-            handle = self._handle(shard)
+            handle = self.dataset.handle(shard)
             self._labels[shard] = {key: handle[f"labels/{key}"][()] for key in _LABEL_KEYS}
             self._labels[shard]["offsets"] = handle["labels/offsets"][()]
         return self._labels[shard]
@@ -85,7 +70,7 @@ class ShardReader:
     def sample(self, index: int) -> tuple[np.ndarray, dict]:
         """Image (H, W, 3) uint8 RGB and its target (numpy; keys in the module docstring)."""
         shard, frame, rate_number = self.locate(index)
-        handle = self._handle(shard)
+        handle = self.dataset.handle(shard)
         image = read_rgb(handle, int(self._rate_rows[shard][rate_number]), frame)
         labels = self._shard_labels(shard)
         rows = slice(int(labels["offsets"][frame]), int(labels["offsets"][frame + 1]))
@@ -106,6 +91,4 @@ class ShardReader:
         return image, target
 
     def close(self) -> None:
-        for handle in self._handles.values():
-            handle.close()
-        self._handles = {}
+        self.dataset.close()

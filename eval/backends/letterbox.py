@@ -24,15 +24,22 @@ def letterbox(image: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, fl
     import cv2
 
     height, width = image.shape[:2]
-    gain = min(shape[0] / height, shape[1] / width)
-    new_w, new_h = int(round(width * gain)), int(round(height * gain))
-    pad_x, pad_y = (shape[1] - new_w) / 2, (shape[0] - new_h) / 2
+    gain, (new_h, new_w), (top, left) = letterbox_geometry(height, width, shape)
     resized = image if (new_w, new_h) == (width, height) else cv2.resize(
         image, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
-    top, left = int(round(pad_y - 0.1)), int(round(pad_x - 0.1))
     canvas = np.full((shape[0], shape[1], 3), LETTERBOX_FILL, dtype=np.uint8)
     canvas[top:top + new_h, left:left + new_w] = resized
     return canvas, gain, (float(left), float(top))
+
+
+def letterbox_geometry(height: int, width: int, shape: tuple[int, int]
+                       ) -> tuple[float, tuple[int, int], tuple[int, int]]:
+    """Where a ``height`` x ``width`` image goes on a ``shape`` (h, w) letterbox canvas (ultralytics'
+    LetterBox): ``(gain, (new_h, new_w) resized size, (top, left) offset)``."""
+    gain = min(shape[0] / height, shape[1] / width)
+    new_w, new_h = int(round(width * gain)), int(round(height * gain))
+    pad_x, pad_y = (shape[1] - new_w) / 2, (shape[0] - new_h) / 2
+    return gain, (new_h, new_w), (int(round(pad_y - 0.1)), int(round(pad_x - 0.1)))
 
 
 def rect_shape(height: int, width: int, imgsz: int, stride: int = 32) -> tuple[int, int]:

@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from rainbench.eval.backends import BackendError
-from rainbench.eval.backends.letterbox import LETTERBOX_FILL, letterbox, rect_shape
+from rainbench.eval.backends.letterbox import LETTERBOX_FILL, letterbox, letterbox_geometry, rect_shape
 
 MAX_NMS = 30_000
 """Candidates kept per image before NMS, best first (ultralytics' ``max_nms``)."""
@@ -77,10 +77,7 @@ def letterbox_batch(frames: torch.Tensor, shape: tuple[int, int], dtype: torch.d
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != torch.uint8:
         raise ValueError(f"frames: expected (B, H, W, 3) uint8, got {tuple(frames.shape)} {frames.dtype}")
     count, height, width = frames.shape[:3]
-    gain = min(shape[0] / height, shape[1] / width)
-    new_w, new_h = int(round(width * gain)), int(round(height * gain))
-    pad_x, pad_y = (shape[1] - new_w) / 2, (shape[0] - new_h) / 2
-    top, left = int(round(pad_y - 0.1)), int(round(pad_x - 0.1))
+    gain, (new_h, new_w), (top, left) = letterbox_geometry(height, width, shape)
     images = frames.permute(0, 3, 1, 2)
     if (new_w, new_h) != (width, height):
         # Half-pixel centres and no antialiasing as INTER_LINEAR, then uint8 levels as OpenCV
@@ -255,36 +252,18 @@ def torch_device(device: str | None) -> torch.device:
 
 class _RateImages(torch.utils.data.Dataset):
     """The frames of a :class:`rainbench.store.Dataset` at one rate, in image-id order: item i is
-    ``(image_id, (H, W, 3) uint8 RGB)``. Shards are opened lazily, once per process, so it is safe
-    in ``DataLoader`` workers."""
+    ``(image_id, (H, W, 3) uint8 RGB)``. Shards are opened once per process
+    (:meth:`rainbench.store.Dataset.handle`), so it is safe in ``DataLoader`` workers."""
 
     def __init__(self, dataset: Any, rate: float) -> None:
         self.dataset, self.rate = dataset, rate
-        self._pid: int | None = None
-        self._handles: dict[int, Any] = {}
 
     def __len__(self) -> int:
         return len(self.dataset.images)
 
-    def __getstate__(self) -> dict:
-        state = self.__dict__.copy()
-        state["_handles"], state["_pid"] = {}, None  # handles never cross processes
-        return state
-
     def __getitem__(self, index: int) -> tuple[int, np.ndarray]:
-        import os
-
-        if self._pid != os.getpid():
-            self._handles, self._pid = {}, os.getpid()
         image = self.dataset.images[index]
-        if image.shard_index not in self._handles:
-            self._handles[image.shard_index] = self.dataset.open(image.shard_index)
-        return image.image_id, self.dataset.read_rgb(self._handles[image.shard_index], image, self.rate)
-
-    def close(self) -> None:
-        for handle in self._handles.values():
-            handle.close()
-        self._handles = {}
+        return image.image_id, self.dataset.read_rgb(self.dataset.handle(image.shard_index), image, self.rate)
 
 
 def _collate_frames(batch: list[tuple[int, np.ndarray]]) -> tuple[list[int], torch.Tensor]:
@@ -316,4 +295,4 @@ def frame_batches(dataset: Any, rate: float, batch: int, workers: int, pin_memor
     try:
         yield from loader
     finally:
-        frames.close()
+        dataset.close()
