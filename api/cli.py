@@ -242,7 +242,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if bool(args.weights) == (args.predictions is not None):
         raise CliError("eval: expected exactly one of --weights W [--weights W2 ...] or --predictions DIR")
     out = _writable_dir(Path(args.out), "--out")
-    from rainbench.eval.pipeline import run_eval
+    from rainbench.eval.pipeline import TargetFilter, run_eval
 
     outputs = run_eval(args.data, out, predictions_dir=args.predictions, weights=args.weights or (),
                        imgsz=args.imgsz, batch=args.batch, conf=args.conf, iou=args.iou,
@@ -250,7 +250,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
                        class_map=args.class_map, device=args.device, force=args.force,
                        progress=not args.quiet, trust_pickle=args.trust_pickle or None, classes=args.classes,
                        references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics,
-                       pt_backend=args.pt_backend, workers=args.workers)
+                       pt_backend=args.pt_backend, workers=args.workers, ignore_regions=args.ignore_regions,
+                       targets=TargetFilter(args.min_height, args.min_visible, args.max_truncation))
     print(outputs.paths["report.md"])
     return 0
 
@@ -492,6 +493,18 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--workers", type=_positive_int("WORKERS", 1024, 0), default=None,
                           help="processes decoding shards for the batched backend (default: "
                                "min(8, cores - 1))")
+    evaluate.add_argument("--min-height", type=_number("MIN_HEIGHT", 0, 100_000), default=0.0,
+                          help="score only labels at least this many pixels tall (KITTI moderate: 25); the "
+                               "others become ignore regions (default 0: every label)")
+    evaluate.add_argument("--min-visible", type=_number("MIN_VISIBLE", 0, 1), default=0.0,
+                          help="score only labels with at least this visible fraction; the others become "
+                               "ignore regions (default 0)")
+    evaluate.add_argument("--max-truncation", type=_number("MAX_TRUNCATION", 0, 1), default=1.0,
+                          help="score only labels at most this truncated (KITTI moderate: 0.3); the others "
+                               "become ignore regions (default 1)")
+    evaluate.add_argument("--no-ignore-regions", dest="ignore_regions", action="store_false",
+                          help="score detections of actors too small or too hidden to be labels as false "
+                               "positives (default: such actors are ignore regions, as KITTI's DontCare)")
     _add_compare_arg(evaluate)
     _add_metrics_arg(evaluate)
     evaluate.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")

@@ -10,11 +10,14 @@ way: it measures, it does not judge.
 
 Usage: ``python bench/quality.py [--weights rainbench-yolo11n ...] [--data data/quality]
 [--json OUT] [--seed 100] [--scenes 5] [--frames 40] [--layouts street,highway,...]
-[--rain physical|jeon2022 [--compare MODEL=REFERENCE ...]] [--force]``
+[--rain physical|jeon2022 [--compare MODEL=REFERENCE ...]] [--no-ignore-regions] [--min-height PX]
+[--force]``
 (``--layouts`` checks each road layout on its own data: the bar must hold per layout. Predictions
-are cached per model under ``--out`` and reused while the weights file (path, size, mtime) and
-the settings are unchanged, so adding a model to a comparison infers only that model; ``--force``
-infers every model again.)
+are cached per model under ``--out`` and reused while the weights file (path, size, mtime), the
+settings and the images are unchanged, so adding a model to a comparison infers only that model;
+``--force`` infers every model again. Scoring is ``rainbench eval``'s: the shards' ignore regions
+count neither way unless ``--no-ignore-regions``; ``--min-height`` makes labels under that height
+ignore regions too, docs/eval.md.)
 
 ``--rain MODEL`` measures robustness instead (issue 19): the same scenes at rates 0:100:10 with
 that rain model (``physical`` with the weather following the rate, ``jeon2022`` over the
@@ -68,12 +71,17 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --rain: take MODEL's paired mPC difference from REFERENCE (repeatable)")
     parser.add_argument("--force", action="store_true",
                         help="infer again even where cached predictions of the same weights file and settings exist")
+    parser.add_argument("--min-height", type=float, default=0.0,
+                        help="score only labels at least this many pixels tall (rainbench eval --min-height)")
+    parser.add_argument("--no-ignore-regions", dest="ignore_regions", action="store_false",
+                        help="count detections of actors too small or hidden to be labels as false positives "
+                             "(as before ignore regions; default: they are ignored, rainbench eval's default)")
     parser.add_argument("--json", default=None, help="write the figures here")
     args = parser.parse_args(argv)
     if args.seed < 0 or args.seed + args.scenes > 1_000_000:
         parser.error("--seed/--scenes: the check must use evaluation seeds (below 1000000)")
 
-    from rainbench.eval.pipeline import run_eval
+    from rainbench.eval.pipeline import TargetFilter, run_eval
     from rainbench.experiments.paper import default_references
     from rainbench.gen.config import DatasetConfig
     from rainbench.gen.dataset import run_dataset
@@ -99,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
         seconds[f"generate {layout}"] = time.perf_counter() - started
         started = time.perf_counter()
         result = run_eval(data, out, weights=weights, imgsz=args.imgsz, n_boot=N_BOOT,
-                          device="cpu", progress=False, force=args.force, references=references)
+                          device="cpu", progress=False, force=args.force, references=references,
+                          ignore_regions=args.ignore_regions, targets=TargetFilter(min_height=args.min_height))
         seconds[f"eval {layout}"] = time.perf_counter() - started
         if args.rain is not None:
             rows += [{"layout": layout, **row} for row in result.robustness]
@@ -110,6 +119,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"seeds {args.seed}..{args.seed + args.scenes - 1}, {args.frames} frames each over "
           f"{CLIP_SECONDS:g} s, imgsz {args.imgsz or 'per model'} "
           f"({', '.join(f'{k} {v:.0f} s' for k, v in seconds.items())})")
+    print("ignore regions (actors too small or hidden to be labels): "
+          + ("ignored" if args.ignore_regions else "absent: detections of them are false positives")
+          + (f"; labels under {args.min_height:g} px are ignore regions too" if args.min_height else ""))
     if args.rain is not None:
         _print_robustness(rows, args.rain)
     else:
@@ -118,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"rows": rows, "bar": QUALITY_BAR if args.rain is None else RAIN_RPC_TARGET,
                                                "rain": args.rain, "seconds": seconds,
+                                               "ignore_regions": args.ignore_regions,
+                                               "min_height": args.min_height,
                                                "cpu_count": os.cpu_count()}, indent=1))
     return 0
 

@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from rainbench.store import SHARD_GLOB, Dataset, DatasetError, Image, read_frame_labels, read_manifest
+from rainbench.store import (SHARD_GLOB, Dataset, DatasetError, Image, read_frame_ignore, read_frame_labels,
+                             read_manifest)
 from rainbench.store.rates import rate_token
 
 from rainbench.store.classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES, class_list, parse_classes
@@ -72,19 +73,77 @@ def open_dataset(data_dir: str | Path) -> Dataset:
     return dataset
 
 
-def ground_truth(dataset: Dataset, images: Sequence[Image] | None = None) -> dict[str, list[dict]]:
+@dataclass(frozen=True)
+class TargetFilter:
+    """Which labels are scored as targets, KITTI's difficulty levels made explicit (its
+    "moderate": at least 25 px tall, at most 30 % truncated). A label outside them becomes an
+    ignore region of the scoring (a COCO crowd box: never missed, a detection of it neither right
+    nor wrong), like the shards' own ignore regions; nothing is dropped.
+
+    - ``min_height``: box height in pixels (the shards' labels are >= 8 px already);
+    - ``min_visible``: ``visible_fraction``, visible pixels / the actor's unoccluded in-image pixels;
+    - ``max_truncation``: ``truncation``, the part of the actor outside the image.
+
+    The defaults score every label. Bad values raise :class:`EvalError` naming the option."""
+
+    min_height: float = 0.0
+    min_visible: float = 0.0
+    max_truncation: float = 1.0
+
+    def __post_init__(self) -> None:
+        for option, value, low, high in (("--min-height", self.min_height, 0.0, 100_000.0),
+                                         ("--min-visible", self.min_visible, 0.0, 1.0),
+                                         ("--max-truncation", self.max_truncation, 0.0, 1.0)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+                raise EvalError(f"{option}: expected a number in {low:g}..{high:g}, got {value!r}")
+
+    @property
+    def scores_everything(self) -> bool:
+        return self.min_height == 0.0 and self.min_visible == 0.0 and self.max_truncation == 1.0
+
+    def describe(self) -> str:
+        """The thresholds in words, e.g. ``height >= 25 px, truncation <= 0.3``."""
+        parts = [f"height >= {self.min_height:g} px" if self.min_height else "",
+                 f"visible fraction >= {self.min_visible:g}" if self.min_visible else "",
+                 f"truncation <= {self.max_truncation:g}" if self.max_truncation < 1.0 else ""]
+        return ", ".join(part for part in parts if part) or "every label"
+
+    def keeps(self, labels: dict[str, np.ndarray]) -> np.ndarray:
+        """(M,) bool: which of a frame's labels (:func:`rainbench.store.read_frame_labels`) are
+        targets."""
+        box = np.asarray(labels["bbox"], np.float64).reshape(-1, 4)
+        return ((box[:, 3] - box[:, 1] >= self.min_height)
+                & (np.asarray(labels["visible_fraction"], np.float64) >= self.min_visible)
+                & (np.asarray(labels["truncation"], np.float64) <= self.max_truncation))
+
+
+def ground_truth(dataset: Dataset, images: Sequence[Image] | None = None, *,
+                 ignore_regions: bool = True, targets: TargetFilter = TargetFilter()) -> dict[str, list[dict]]:
     """COCO ground-truth dict of ``images`` (default all) of ``dataset``; valid at every rate.
 
     Categories are every class id 0..7 (``CLASS_NAMES``), whatever the shards' ``class_names``
     (older shards list the first four; the ids mean the same), so bus (5) and truck (7) boxes
-    are ground truth too; which classes are scored is the evaluator's ``class_ids``."""
+    are ground truth too; which classes are scored is the evaluator's ``class_ids``.
+
+    Each image's annotations are its labels, then (``ignore_regions``) its ignore regions
+    (:func:`rainbench.store.read_frame_ignore`: visible actors the label filter left out) with
+    ``iscrowd = 1``: a detection lying mostly inside one is neither a true nor a false positive,
+    and none is ever missed (KITTI's DontCare). Shards written before ignore regions have none.
+    Labels that ``targets`` does not keep are crowd boxes too (:class:`TargetFilter`).
+    """
     entries = []
     for image, handle in dataset.walk(images):
         labels = read_frame_labels(handle, image.frame)
+        boxes = np.asarray(labels["bbox"], np.float32).reshape(-1, 4)
+        class_ids = np.asarray(labels["class_id"]).astype(np.int64)
+        ignore = ~targets.keeps(labels)
+        if ignore_regions:
+            regions = read_frame_ignore(handle, image.frame)
+            boxes = np.concatenate([boxes, np.asarray(regions["bbox"], np.float32).reshape(-1, 4)])
+            class_ids = np.concatenate([class_ids, np.asarray(regions["class_id"]).astype(np.int64)])
+            ignore = np.concatenate([ignore, np.ones(len(regions["class_id"]), bool)])
         height, width = dataset.size(image.shard_index)
-        entries.append((image.image_id, width, height,
-                        np.asarray(labels["bbox"], np.float32).reshape(-1, 4),
-                        np.asarray(labels["class_id"]).astype(np.int64)))
+        entries.append((image.image_id, width, height, boxes, class_ids, ignore))
     return coco_ground_truth(entries, CLASS_NAMES)
 
 
@@ -257,14 +316,15 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
              progress: bool = True, trust_pickle: bool | None = None,
              classes: str | Sequence[int | str] | None = None,
              references: Sequence[tuple[str, str]] = (), metrics: str = DEFAULT_BACKEND,
-             pt_backend: str = "batched", workers: int | None = None) -> EvalOutputs:
+             pt_backend: str = "batched", workers: int | None = None,
+             ignore_regions: bool = True, targets: TargetFilter = TargetFilter()) -> EvalOutputs:
     """Evaluate every model at every rain rate of a dataset and write the outputs under ``out_dir``.
 
     Detections come either from ``predictions_dir`` (``<model>/rate_<rate_token>.json`` COCO
     results files, one per rate) or from running each of ``weights`` through
     :func:`rainbench.eval.backends.load_detector`; backend detections are cached as
     ``out_dir/predictions/<model>/rate_<rate>.json`` and reused by later runs with the same
-    weights file and settings unless ``force``.
+    weights file and settings on the same images at that rate unless ``force``.
 
     ``imgsz``: letterbox size of every model; None gives each model its own
     (:func:`rainbench.eval.weights.model_imgsz`: a shipped model's card, else 640).
@@ -286,6 +346,12 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     ``workers``: processes decoding shards for the batched backend (``--workers``; None:
     :func:`default_read_workers`).
 
+    ``ignore_regions``: whether the shards' ignore regions (visible actors too small or too
+    hidden to be labels) take part as COCO crowd boxes (default; :func:`ground_truth`), or are
+    left out so that detections of them count as false positives (``--no-ignore-regions``).
+    ``targets``: which labels are scored (``--min-height``, ``--min-visible``,
+    ``--max-truncation``; :class:`TargetFilter`); the others become ignore regions.
+
     ``metrics``: the implementation of COCO's matching and AP (``--metrics``;
     :data:`rainbench.eval.metrics.coco.METRICS_BACKENDS`): "numpy" (default, vectorised) or
     "pycocotools" (the reference ``COCOeval``); the outputs are the same (to 1e-9).
@@ -301,7 +367,9 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     dataset = open_dataset(data_dir)
     rates = list(dataset.rates)
     image_ids = {image.image_id for image in dataset.images}
-    gt = ground_truth(dataset)
+    if not isinstance(targets, TargetFilter):
+        raise EvalError(f"targets: expected a TargetFilter, got {type(targets).__name__}")
+    gt = ground_truth(dataset, ignore_regions=ignore_regions, targets=targets)
     out_dir = Path(out_dir)
     inference_runs = 0
     if predictions_dir is not None:
@@ -324,7 +392,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
         robustness = comparison_rows(gt, {model: {rate: detections[(model, rate)] for rate in rates} for model in models},
                                      class_ids, n_boot, _references(models, references), backend=metrics)
     paths = _write_outputs(records, dataset, gt, detections, models, out_dir, class_ids=class_ids,
-                           report_conf=report_conf, robustness=robustness)
+                           report_conf=report_conf, robustness=robustness, ignore_regions=ignore_regions,
+                           targets=targets)
     return EvalOutputs(records=records, paths=paths, inference_runs=inference_runs, robustness=robustness)
 
 
@@ -375,7 +444,11 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
                         ) -> tuple[list[str], dict[tuple[str, float], list[dict]], int]:
     """Detections of every weights file at every rate of ``dataset``: (model names, {(model, rate):
     COCO results records}, number of (model, rate) pairs inferred in this run). Backend
-    detections are cached under ``cache_root/<model>/`` and reused unless ``force``."""
+    detections are cached under ``cache_root/<model>/`` and reused unless ``force``: a rate's
+    file only while the weights and settings are those of ``settings.json`` and the rate's images
+    are those it was inferred on (``settings.json``'s ``"images"``: the
+    :meth:`~rainbench.store.Dataset.images_fingerprint` of each rate token), so a dataset
+    regenerated in place (another seed, other rain) is inferred again."""
     from tqdm import tqdm
 
     from . import backends
@@ -383,6 +456,7 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
     from .backends.classes import parse_class_map
 
     rates = list(dataset.rates)
+    fingerprints = {rate_token(rate): dataset.images_fingerprint(rate) for rate in rates}
     resolved = [registry.resolve_weights(w, device) for w in specs]
     if class_map is not None:
         parse_class_map(class_map)  # fail early on a bad spec
@@ -402,11 +476,15 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
         meta_path = cache_root / model / "settings.json"
         try:
             cached_settings = json.loads(meta_path.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            cached_settings = None
+            cached_images = cached_settings.pop("images")
+        except (OSError, ValueError, AttributeError, KeyError):
+            cached_settings, cached_images = None, None
         reuse = not force and cached_settings == settings
+        fresh = {rate for rate in rates if reuse and isinstance(cached_images, dict)
+                 and cached_images.get(rate_token(rate)) == fingerprints[rate_token(rate)]
+                 and predictions_path(cache_root, model, rate).is_file()}
         detector = None
-        if not all(reuse and predictions_path(cache_root, model, rate).is_file() for rate in rates):
+        if len(fresh) < len(rates):
             extra = {"pt_backend": pt_backend}
             if trust_pickle is not None:
                 extra["trust_pickle"] = trust_pickle
@@ -415,15 +493,15 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
             detector = backends.load_detector(spec, class_map=class_map, device=device, **extra)
             if classes_given:
                 backends.check_model_classes(detector, model, class_ids)
-            if not reuse:  # settings changed or --force: older rate files are stale
-                meta_path.unlink(missing_ok=True)
-        plans.append((model, model_imgsz, settings, meta_path, reuse, detector))
+            # Rate files are about to change: until all are written again no cache is trusted.
+            meta_path.unlink(missing_ok=True)
+        plans.append((model, model_imgsz, settings, meta_path, fresh, detector))
     detections: dict[tuple[str, float], list[dict]] = {}
     inference_runs = 0
-    for model, model_imgsz, settings, meta_path, reuse, detector in plans:
+    for model, model_imgsz, settings, meta_path, fresh, detector in plans:
         for rate in rates:
             cache = predictions_path(cache_root, model, rate)
-            if reuse and cache.is_file():
+            if rate in fresh:
                 detections[(model, rate)] = load_predictions_file(cache, image_ids, class_ids)
                 continue
             with tqdm(total=len(dataset), unit="img", desc=f"{model} {rate_token(rate)} mm/h",
@@ -437,7 +515,7 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
             inference_runs += 1
         if detector is not None:
             # Written once every rate is cached, so an interrupted run re-infers what is stale.
-            _write_json(meta_path, settings)
+            _write_json(meta_path, {**settings, "images": fingerprints})
     return models, detections, inference_runs
 
 
@@ -470,14 +548,15 @@ def _strip_image(dataset: Dataset, gt: dict, class_ids: Sequence[int]) -> Image:
     first such)."""
     counts: dict[int, int] = {}
     for annotation in gt["annotations"]:
-        if annotation["category_id"] in class_ids:
+        if annotation["category_id"] in class_ids and not annotation["iscrowd"]:
             counts[annotation["image_id"]] = counts.get(annotation["image_id"], 0) + 1
     return max(dataset.images, key=lambda image: counts.get(image.image_id, 0))
 
 
 def _write_outputs(records: list[dict[str, Any]], dataset: Dataset, gt: dict, detections: dict,
                    models: Sequence[str], out_dir: Path, *, class_ids: Sequence[int],
-                   report_conf: float, robustness: list[dict[str, Any]]) -> dict[str, Path]:
+                   report_conf: float, robustness: list[dict[str, Any]],
+                   ignore_regions: bool = True, targets: TargetFilter = TargetFilter()) -> dict[str, Path]:
     """Write metrics, image list, robustness rows (when there are any), report, plots and the
     detection strip (the first model's boxes of the scored classes, across rates); returns the
     paths by output name."""
@@ -496,8 +575,15 @@ def _write_outputs(records: list[dict[str, Any]], dataset: Dataset, gt: dict, de
             [{key: json_ready(value) for key, value in row.items()} for row in robustness],
             indent=1, allow_nan=False) + "\n", encoding="utf-8")
     paths["report.md"] = out_dir / "report.md"
+    ignored: dict[str, int] | bool = False
+    if ignore_regions:
+        ignored = {CLASS_NAMES[c]: sum(1 for a in gt["annotations"] if a["iscrowd"] and a["category_id"] == c)
+                   for c in class_ids}
     paths["report.md"].write_text(render_report_md(records, paper=PAPER_TABLES, clean_rate=clean_rate,
-                                                   robustness=robustness), encoding="utf-8")
+                                                   robustness=robustness, ignore_regions=ignored,
+                                                   scored_labels=None if targets.scores_everything
+                                                   else targets.describe()),
+                                  encoding="utf-8")
     paths["ap50_vs_rate.png"] = plot_metric_vs_rate(records, "ap50", out_dir / "ap50_vs_rate.png")
     paths["f1_vs_rate.png"] = plot_metric_vs_rate(records, "f1", out_dir / "f1_vs_rate.png")
     strip = _strip_image(dataset, gt, class_ids)

@@ -23,7 +23,7 @@ import numpy as np
 
 from rainbench.gen.config import PAPER_CLIP, RAIN_MODELS, DatasetConfig
 from rainbench.gen.dataset import run_dataset
-from rainbench.store import Dataset, read_frame_labels
+from rainbench.store import Dataset, read_frame_ignore, read_frame_labels
 
 from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES, parse_classes
 from rainbench.eval.metrics.breakdown import ap_by_size, ap_by_visibility
@@ -158,8 +158,12 @@ def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[fl
     ``results_dir``, computed by the metrics backend ``metrics``."""
     dataset = open_dataset(data_dir)
     gt = ground_truth(dataset)
-    visible = np.concatenate([np.asarray(read_frame_labels(handle, image.frame)["visible_fraction"], np.float64)
-                              for image, handle in dataset.walk()] or [np.zeros(0)])
+    # aligned with ground_truth's annotations: each image's labels, then its ignore regions
+    # (no visible fraction: left out of every bin, as they are out of every score)
+    visible = np.concatenate([np.concatenate([
+        np.asarray(read_frame_labels(handle, image.frame)["visible_fraction"], np.float64),
+        np.full(len(read_frame_ignore(handle, image.frame)["class_id"]), np.nan)])
+        for image, handle in dataset.walk()] or [np.zeros(0)])
     if len(visible) != len(gt["annotations"]):
         raise EvalError(f"{data_dir}: {len(visible)} visible fractions for {len(gt['annotations'])} boxes")
     image_ids = {image.image_id for image in dataset.images}
@@ -194,8 +198,8 @@ def share_clean_predictions(first_results: Path, results: Path, models: Sequence
     """Copy each model's cached rate-0 predictions (``predictions/<model>/rate_0.json`` and its
     ``settings.json``, :func:`rainbench.eval.pipeline.run_eval`'s cache) from ``first_results`` to
     ``results``, where that model has no cache of its own yet; ``run_eval`` then reuses them when
-    its settings are the same (weights file, letterbox size, thresholds, classes) and infers the
-    other rates. Only for datasets with the same rate-0 images (:func:`same_clean_frames`).
+    its settings are the same (weights file, letterbox size, thresholds, classes) and the rate-0
+    images are (the fingerprints in ``settings.json``), and infers the other rates. Only for datasets with the same rate-0 images (:func:`same_clean_frames`).
     Returns the models whose predictions were copied."""
     import shutil
 

@@ -114,7 +114,8 @@ def make_labels(
     class_of_instance: np.ndarray,
     label_filter: LabelFilter,
 ) -> FrameLabels:
-    """Combine visible and unoccluded statistics into filtered labels.
+    """Combine visible and unoccluded statistics into filtered labels, and the ignore regions
+    of the visible actors the filter leaves out (:class:`FrameLabels`).
 
     All inputs are indexed by instance id (K,): counts int, boxes (K, 4) xyxy, classes int.
     visible_fraction = visible pixels / unoccluded in-image pixels (occlusion only, clipped to 1);
@@ -145,10 +146,9 @@ def make_labels(
     ids = np.flatnonzero(keep)
     # An amodal box always contains the visible box (rasterisation of the padded view can
     # differ from the main view by an edge pixel).
-    amodal = amodal_boxes[ids].copy()
+    amodal = _enclosing(amodal_boxes[ids], visible_boxes[ids])
     visible = visible_boxes[ids]
-    amodal[:, :2] = np.fmin(amodal[:, :2], visible[:, :2])
-    amodal[:, 2:] = np.fmax(amodal[:, 2:], visible[:, 2:])
+    ignored = np.flatnonzero(~keep & (visible_counts > 0))
     return FrameLabels(
         bbox=visible.astype(np.float32),
         bbox_amodal=amodal.astype(np.float32),
@@ -156,7 +156,18 @@ def make_labels(
         instance_id=ids.astype(np.int32),
         visible_fraction=visible_fraction[ids].astype(np.float32),
         truncation=np.clip(truncation[ids], 0.0, 1.0).astype(np.float32),
+        ignore_bbox=_enclosing(amodal_boxes[ignored], visible_boxes[ignored]).astype(np.float32),
+        ignore_class_id=class_of_instance[ignored].astype(np.int32),
+        ignore_instance_id=ignored.astype(np.int32),
     )
+
+
+def _enclosing(amodal: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """(N, 4) xyxy boxes enclosing each amodal box (NaN rows allowed) and its visible box."""
+    enclosing = amodal.copy()
+    enclosing[:, :2] = np.fmin(amodal[:, :2], visible[:, :2])
+    enclosing[:, 2:] = np.fmax(amodal[:, 2:], visible[:, 2:])
+    return enclosing
 
 
 def group_disjoint(boxes: dict[int, tuple[float, float, float, float]]) -> list[list[int]]:

@@ -23,13 +23,13 @@ from .manifest import (MANIFEST, SHARD_GLOB, DatasetError, list_shards, read_man
                        verify_dataset)
 from .rates import RatesError, parse_rates, rate_token
 from .reader import ShardReader
-from .shard import ShardFormatError, ShardWriter, open_checked, open_shard, read_frame_labels, read_rgb
+from .shard import ShardFormatError, ShardWriter, open_checked, open_shard, read_frame_ignore, read_frame_labels, read_rgb
 
 __all__ = [
     "CLASS_NAMES", "LABELLED_CLASSES", "PAPER_CLASSES", "Dataset", "DatasetError", "Frame",
     "FrameLabels", "Image", "MANIFEST", "RatesError", "SHARD_GLOB", "ShardDataset",
     "ShardFormatError", "ShardReader", "ShardWriter", "list_shards", "open_checked", "open_shard",
-    "parse_rates", "rate_token", "read_frame_labels", "read_manifest", "read_rgb",
+    "parse_rates", "rate_token", "read_frame_ignore", "read_frame_labels", "read_manifest", "read_rgb",
     "unlisted_shards", "verify_dataset",
 ]
 

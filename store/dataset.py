@@ -16,6 +16,7 @@ the evaluator and the paper report) opens a dataset through :class:`Dataset`, so
 
 from __future__ import annotations
 
+import hashlib
 import os
 
 from collections.abc import Iterator, Sequence
@@ -26,7 +27,7 @@ import numpy as np
 
 from .manifest import DatasetError, list_shards
 from .rates import MissingRate, rate_decimal, rate_rows
-from .shard import open_checked, open_shard, read_frame_labels, read_rgb
+from .shard import open_checked, open_shard, read_frame_ignore, read_frame_labels, read_rgb, rgb_checksum
 
 
 @dataclass(frozen=True)
@@ -47,13 +48,16 @@ class Frame:
     ``rgb``: one (H, W, 3) uint8 RGB image per rate of :attr:`Dataset.rates` (in that order);
     ``labels``: :func:`rainbench.store.shard.read_frame_labels` (``bbox`` (M, 4) float32 xyxy
     pixel-edge, ``class_id`` (M,) int32, ...; ``rain_coverage`` and ``contrast_loss`` (R, M)
-    sliced to the selected rates); ``size``: (height, width).
+    sliced to the selected rates); ``size``: (height, width); ``ignore``: the frame's ignore
+    regions, :func:`rainbench.store.shard.read_frame_ignore` (``bbox`` (N, 4) float32 xyxy
+    pixel-edge, ``class_id``, ``instance_id`` (N,) int32; empty for shards written before them).
     """
 
     image: Image
     rgb: list[np.ndarray]
     labels: dict[str, np.ndarray]
     size: tuple[int, int]
+    ignore: dict[str, np.ndarray]
 
 
 class Dataset:
@@ -187,13 +191,26 @@ class Dataset:
         """(H, W, 3) uint8 RGB of ``image`` at ``rate`` from its open shard ``handle``."""
         return read_rgb(handle, self.rate_row(rate, image.shard_index), image.frame)
 
+    def images_fingerprint(self, rate: float | str) -> str:
+        """sha256 hex digest of the images at ``rate`` in image-id order, from each stored chunk's
+        checksum (:func:`rainbench.store.shard.rgb_checksum`; nothing is decoded): equal for the
+        same images in the same order, whatever the shards' names, labels or other rates. Caches
+        of per-image results (``rainbench eval``'s detections) key on it."""
+        digest = hashlib.sha256()
+        for image, handle in self.walk():
+            height, width = self._sizes[image.shard_index]
+            digest.update(f"{image.image_id}:{height}x{width}:".encode())
+            digest.update(rgb_checksum(handle, self.rate_row(rate, image.shard_index), image.frame))
+        return digest.hexdigest()
+
     def frames(self, classes: Sequence[int] | None = None) -> Iterator[Frame]:
         """Every frame at the selected rates (:class:`Frame`), in image-id order; with
-        ``classes``, only the labels of those class ids."""
+        ``classes``, only the labels and ignore regions of those class ids."""
         keep_classes = None if classes is None else np.asarray(classes, np.int64)
         for image, handle in self.walk():
             rows = self._rows[image.shard_index]
             labels = read_frame_labels(handle, image.frame)
+            ignore = read_frame_ignore(handle, image.frame)
             for key in ("rain_coverage", "contrast_loss"):
                 if key in labels:
                     labels[key] = labels[key][rows]
@@ -201,5 +218,7 @@ class Dataset:
                 keep = np.isin(labels["class_id"], keep_classes)
                 labels = {key: value[:, keep] if key in ("rain_coverage", "contrast_loss")
                           else value[keep] for key, value in labels.items()}
+                keep = np.isin(ignore["class_id"], keep_classes)
+                ignore = {key: value[keep] for key, value in ignore.items()}
             rgb = [read_rgb(handle, row, image.frame) for row in rows]
-            yield Frame(image, rgb, labels, self._sizes[image.shard_index])
+            yield Frame(image, rgb, labels, self._sizes[image.shard_index], ignore)

@@ -256,7 +256,11 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
     - ``annotations``: ``id`` 1-based, ``image_id``, ``category_id`` = rainbench class id
       (COCO-80 index, 0 = person), ``bbox`` ``[x, y, w, h]`` from the shard's xyxy pixel-edge
       box, ``area`` = w * h, ``iscrowd`` 0, plus ``visible_fraction``, ``truncation``,
-      ``instance_id`` and, at this rate, ``rain_coverage`` and ``contrast_loss``;
+      ``instance_id`` and, at this rate, ``rain_coverage`` and ``contrast_loss``; then each
+      image's ignore regions (actors too small or hidden to be labels): ``bbox``, ``area``,
+      ``instance_id``, ``iscrowd`` 1 and ``ignore`` 1, so pycocotools' ``COCOeval`` neither
+      misses them nor counts a detection of one as a false positive (``rainbench eval``'s
+      scoring);
     - ``categories``: ``{"id": i, "name": CLASS_NAMES[i], "supercategory": "object"}`` for the
       COCO ids ``i`` of :func:`export_classes` (0..3, or 0..3, 5 and 7 when bus or truck labels
       are exported).
@@ -312,6 +316,17 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
                 })
                 per_rate_extra.append([(float(coverage[r, row]), float(contrast[r, row]))
                                        for r in range(len(selected))])
+            for box, class_id, instance_id in zip(frame_record.ignore["bbox"].tolist(),
+                                                  frame_record.ignore["class_id"].tolist(),
+                                                  frame_record.ignore["instance_id"].tolist()):
+                x1, y1, x2, y2 = box
+                annotation_records.append({
+                    "id": len(annotation_records) + 1, "image_id": image_id,
+                    "category_id": int(class_id), "bbox": [x1, y1, x2 - x1, y2 - y1],
+                    "area": (x2 - x1) * (y2 - y1), "iscrowd": 1, "ignore": 1,
+                    "instance_id": int(instance_id),
+                })
+                per_rate_extra.append(None)
         seen = {record["category_id"] for record in annotation_records}
         categories = [{"id": i, "name": CLASS_NAMES[i], "supercategory": "object"}
                       for i in export_classes(seen)]
@@ -321,7 +336,8 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
                 "images": [dict(record, file_name=f"rate_{token}/images/{record['id']:06d}."
                                                   f"{image_format}")
                            for record in image_records],
-                "annotations": [dict(record, rain_coverage=extra[position][0],
+                "annotations": [record if extra is None else
+                                dict(record, rain_coverage=extra[position][0],
                                      contrast_loss=extra[position][1])
                                 for record, extra in zip(annotation_records, per_rate_extra)],
                 "categories": categories,

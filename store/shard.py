@@ -8,6 +8,7 @@ every reader opens a shard, also checks its labels (:func:`check_labels`).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from collections.abc import Sequence
@@ -36,6 +37,23 @@ STORABLE = ("depth", "instance")
 def _deflate(image: np.ndarray) -> bytes:
     """One RGB chunk as HDF5's gzip filter stores it (a zlib stream); drops the GIL."""
     return deflate.zlib_compress(np.ascontiguousarray(image), RGB_COMPRESSION["compression_opts"])
+
+
+def rgb_checksum(handle: h5py.File, rate_row: int, frame: int) -> bytes:
+    """A short identity of image ``/rgb[rate_row, frame]`` read without decoding it: the stored
+    chunk's size and the Adler-32 checksum of the pixels that ends its zlib stream (the last 4
+    bytes of a gzip-filtered chunk). Images stored any other way give the sha256 of their pixels.
+    Equal images written by rainbench give equal checksums (libdeflate's bytes depend only on
+    the image); a changed image changes it but with a chance of about 2^-32."""
+    rgb = handle["rgb"]
+    if rgb.chunks == (1, 1) + rgb.shape[2:] and rgb.compression == "gzip" and not (
+            rgb.shuffle or rgb.fletcher32 or rgb.scaleoffset is not None):
+        info = rgb.id.get_chunk_info_by_coord((rate_row, frame, 0, 0, 0))
+        if info.filter_mask == 0 and info.byte_offset is not None and info.size >= 4:
+            with open(handle.filename, "rb") as raw:
+                raw.seek(info.byte_offset + info.size - 4)
+                return info.size.to_bytes(8, "little") + raw.read(4)
+    return hashlib.sha256(np.ascontiguousarray(read_rgb(handle, rate_row, frame)).tobytes()).digest()
 
 
 def read_rgb(handle: h5py.File, rate_row: int, frame: int) -> np.ndarray:
@@ -203,6 +221,13 @@ class ShardWriter:
             shape = (0, width) if width else (0,)
             data = np.concatenate(parts).astype(dtype) if counts.sum() else np.zeros(shape, dtype)
             f.create_dataset(f"labels/{key}", data=data)
+        ignore_counts = np.array([len(labels.ignore_instance_id) for labels in self._labels], np.int64)
+        f.create_dataset("ignore/offsets", data=np.concatenate([[0], np.cumsum(ignore_counts)]).astype(np.int64))
+        for key, dtype, width in _IGNORE_ARRAYS:
+            parts = [getattr(labels, f"ignore_{key}") for labels in self._labels]
+            data = (np.concatenate(parts).astype(dtype) if ignore_counts.sum()
+                    else np.zeros((0, width) if width else (0,), dtype))
+            f.create_dataset(f"ignore/{key}", data=data)
         num_rates = self._rates.shape[0]
         for position, key in ((0, "rain_coverage"), (1, "contrast_loss")):
             parts = [pair[position] for pair in self._rain_box]
@@ -269,6 +294,21 @@ def read_frame_labels(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
     return labels
 
 
+_IGNORE_ARRAYS = (("bbox", np.float32, 4), ("class_id", np.int32, 0), ("instance_id", np.int32, 0))
+"""``/ignore/<key>``: dtype and row width (0: one value a row) of the ignore regions."""
+
+
+def read_frame_ignore(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
+    """Ignore regions of ``frame``: ``bbox`` (N, 4) float32 xyxy pixel-edge, ``class_id`` and
+    ``instance_id`` (N,) int32 (:class:`~rainbench.store.labels.FrameLabels`). Shards written
+    before ignore regions have none: every array is empty."""
+    if "ignore" not in handle:
+        return {key: np.zeros((0, width) if width else (0,), dtype) for key, dtype, width in _IGNORE_ARRAYS}
+    offsets = handle["ignore/offsets"]
+    start, stop = int(offsets[frame]), int(offsets[frame + 1])
+    return {key: handle[f"ignore/{key}"][start:stop] for key, _, _ in _IGNORE_ARRAYS}
+
+
 def check_labels(handle, path: str | Path | None = None) -> None:
     """Refuse an open shard whose labels a reader would serve wrong: :class:`ShardFormatError`
     naming the file and, for a bad row, the frame.
@@ -317,21 +357,8 @@ def check_labels(handle, path: str | Path | None = None) -> None:
         if key not in arrays and key not in ("rain_coverage", "contrast_loss"):
             raise ShardFormatError(f"{path}: incomplete shard, /labels/{key} is missing")
     offsets = arrays["offsets"]
-    if offsets.shape != (frames + 1,) or not np.issubdtype(offsets.dtype, np.integer):
-        raise ShardFormatError(f"{path}: /labels/offsets has shape {offsets.shape} "
-                               f"{offsets.dtype}; expected ({frames + 1},) integers for {frames} "
-                               "frames")
     count = arrays["bbox"].shape[0] if arrays["bbox"].ndim else -1
-    if offsets[0] != 0:
-        raise ShardFormatError(f"{path}: frame 0: /labels/offsets starts at {offsets[0]}, not 0")
-    steps = np.diff(offsets)
-    if np.any(steps < 0):
-        frame = int(np.flatnonzero(steps < 0)[0])
-        raise ShardFormatError(f"{path}: frame {frame}: /labels/offsets decreases "
-                               f"({offsets[frame]} -> {offsets[frame + 1]})")
-    if offsets[-1] != count:
-        raise ShardFormatError(f"{path}: frame {frames - 1}: /labels/offsets ends at "
-                               f"{offsets[-1]} but /labels/bbox has {count} rows")
+    _check_offsets(path, "labels", offsets, frames, count)
     for key, shape in _LABEL_SHAPES.items():
         if key == "offsets" or key not in arrays:
             continue
@@ -377,6 +404,63 @@ def check_labels(handle, path: str | Path | None = None) -> None:
             if key in arrays:
                 values = arrays[key].astype(np.float64)
                 refuse(np.flatnonzero(~np.isfinite(values).all(axis=0)), f"has a non-finite {key}")
+    if "ignore" in handle:
+        _check_ignore(handle, path, frames, width, height, len(class_names))
+
+
+def _check_offsets(path, group: str, offsets: np.ndarray, frames: int, count: int) -> None:
+    """Refuse ``/<group>/offsets`` unless (frames + 1,) integers from 0, never decreasing, to
+    ``count`` (the rows of ``/<group>/bbox``)."""
+    if offsets.shape != (frames + 1,) or not np.issubdtype(offsets.dtype, np.integer):
+        raise ShardFormatError(f"{path}: /{group}/offsets has shape {offsets.shape} "
+                               f"{offsets.dtype}; expected ({frames + 1},) integers for {frames} "
+                               "frames")
+    if offsets[0] != 0:
+        raise ShardFormatError(f"{path}: frame 0: /{group}/offsets starts at {offsets[0]}, not 0")
+    steps = np.diff(offsets)
+    if np.any(steps < 0):
+        frame = int(np.flatnonzero(steps < 0)[0])
+        raise ShardFormatError(f"{path}: frame {frame}: /{group}/offsets decreases "
+                               f"({offsets[frame]} -> {offsets[frame + 1]})")
+    if offsets[-1] != count:
+        raise ShardFormatError(f"{path}: frame {frames - 1}: /{group}/offsets ends at "
+                               f"{offsets[-1]} but /{group}/bbox has {count} rows")
+
+
+def _check_ignore(handle, path, frames: int, width: int, height: int, num_classes: int) -> None:
+    """Refuse ``/ignore`` (ignore regions, optional) unless complete and consistent: offsets as
+    for labels, one row per region in every array, boxes finite and ordered inside the image,
+    class ids of labelled classes, instance ids >= 0."""
+    try:
+        group = handle["ignore"]
+        arrays = {key: group[key][()] for key in ("offsets",) + tuple(k for k, _, _ in _IGNORE_ARRAYS)}
+    except (KeyError, OSError, TypeError, ValueError) as error:
+        raise ShardFormatError(f"{path}: /ignore incomplete or unreadable "
+                               f"({type(error).__name__}: {error})") from None
+    count = arrays["bbox"].shape[0] if arrays["bbox"].ndim else -1
+    _check_offsets(path, "ignore", arrays["offsets"], frames, count)
+    for key, _, width_of_row in _IGNORE_ARRAYS:
+        expected = (count, width_of_row) if width_of_row else (count,)
+        if arrays[key].shape != expected:
+            raise ShardFormatError(f"{path}: /ignore/{key} has shape {arrays[key].shape}, expected {expected}")
+    box = arrays["bbox"].astype(np.float64)
+    class_id = arrays["class_id"]
+    tol = 1e-3
+    with np.errstate(invalid="ignore"):
+        bad = (~np.isfinite(box).all(axis=1) | (box[:, 0] >= box[:, 2]) | (box[:, 1] >= box[:, 3])
+               | (box[:, 0] < -tol) | (box[:, 1] < -tol) | (box[:, 2] > width + tol)
+               | (box[:, 3] > height + tol))
+    if not np.issubdtype(class_id.dtype, np.integer):
+        raise ShardFormatError(f"{path}: /ignore/class_id holds {class_id.dtype}, not integers")
+    bad |= ~np.isin(class_id, LABELLED_CLASSES) | (class_id >= num_classes) | (arrays["instance_id"] < 0)
+    rows = np.flatnonzero(bad)
+    if rows.size:
+        row = int(rows[0])
+        frame = int(np.searchsorted(arrays["offsets"], row, side="right") - 1)
+        raise ShardFormatError(f"{path}: frame {frame}: ignore region {row - int(arrays['offsets'][frame])} "
+                               f"has bbox {box[row].tolist()}, class_id {int(class_id[row])}, instance_id "
+                               f"{int(arrays['instance_id'][row])}; expected a finite box with 0 <= x1 < x2 <= "
+                               f"{width}, 0 <= y1 < y2 <= {height}, a labelled class, an instance id >= 0")
 
 
 _LABEL_SHAPES = {

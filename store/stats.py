@@ -4,7 +4,8 @@ What is counted (labels are per frame and shared by every rain rate, so each is 
 
 - objects: distinct actors, i.e. distinct (scene seed, instance id) pairs (instance ids are per
   scene, and a scene split over several shards keeps its ids); instances: labelled boxes over
-  all frames;
+  all frames; ignore regions: visible actors too small or hidden to be labels, over all frames
+  (``/ignore``; in total and per labelled class);
 - per class (only classes that occur, in class-id order): objects and instances, box height
   percentiles in pixels (``PERCENTILES``, numpy's linear interpolation), histograms of
   ``visible_fraction`` and ``truncation`` (``HIST_BINS`` bins of width 0.1 over [0, 1], the last
@@ -76,6 +77,7 @@ class ShardLabels:
     height_px: np.ndarray
     visible_fraction: np.ndarray
     truncation: np.ndarray
+    ignore_class_id: np.ndarray  # (N,) the class of each ignore region of the shard's frames
 
 
 def _text_attr(handle: Any, key: str, default: str) -> str:
@@ -110,7 +112,9 @@ def read_shard_labels(handle: Any, path: str | Path) -> ShardLabels:
         instance_id=handle["labels/instance_id"][()].astype(np.int64),
         height_px=boxes[:, 3] - boxes[:, 1],
         visible_fraction=handle["labels/visible_fraction"][()].astype(np.float64),
-        truncation=handle["labels/truncation"][()].astype(np.float64))
+        truncation=handle["labels/truncation"][()].astype(np.float64),
+        ignore_class_id=(handle["ignore/class_id"][()].astype(np.int64) if "ignore" in handle
+                         else np.zeros(0, np.int64)))
 
 
 def read_dataset_labels(data: str | Path | Sequence[str | Path]) -> list[ShardLabels]:
@@ -165,6 +169,7 @@ def label_stats(shards: Sequence[ShardLabels]) -> dict[str, Any]:
         return np.concatenate([getattr(shard, name) for shard in shards] or [np.zeros(0, dtype)]).astype(dtype)
 
     class_id = joined("class_id", np.int64)
+    ignore_class_id = joined("ignore_class_id", np.int64)
     instance_id = joined("instance_id", np.int64)
     height = joined("height_px", np.float64)
     visible = joined("visible_fraction", np.float64)
@@ -181,6 +186,7 @@ def label_stats(shards: Sequence[ShardLabels]) -> dict[str, Any]:
             "class": CLASS_NAMES[class_id_value] if 0 <= class_id_value < len(CLASS_NAMES) else str(class_id_value),
             "objects": len({objects[row] for row in rows.tolist()}),
             "instances": int(rows.size),
+            "ignore_regions": int(np.count_nonzero(ignore_class_id == class_id_value)),
             "height_px": {f"p{p}": float(v) for p, v in zip(PERCENTILES, percentiles)},
             "visible_fraction_hist": _histogram(visible[rows]),
             "truncation_hist": _histogram(truncation[rows]),
@@ -192,6 +198,7 @@ def label_stats(shards: Sequence[ShardLabels]) -> dict[str, Any]:
         "frames": n_frames,
         "objects": len(set(objects)),
         "instances": int(class_id.size),
+        "ignore_regions": int(ignore_class_id.size),
         "percentiles": list(PERCENTILES),
         "bins": list(BIN_EDGES),
         "classes": classes,
@@ -230,11 +237,14 @@ def render_stats(stats: dict[str, Any]) -> str:
     lines = [f"rainbench stats: {stats.get('data', '')}".rstrip(),
              f"{_plural(stats['shards'], 'shard')}, {_plural(stats['scenes'], 'scene')}, "
              f"{_plural(stats['frames'], 'frame')}; {_plural(stats['objects'], 'object')}, "
-             f"{_plural(stats['instances'], 'instance')} (labels counted once per frame, not per rain rate)", ""]
+             f"{_plural(stats['instances'], 'instance')} (labels counted once per frame, not per rain rate); "
+             f"{_plural(stats['ignore_regions'], 'ignore region')} (visible actors too small or hidden to be labels)",
+             ""]
     lines += ["Objects and instances per class (the seed paper's Table I)"]
-    rows = [[c["class"], str(c["class_id"]), str(c["objects"]), str(c["instances"])] for c in classes]
-    rows.append(["all", "", str(stats["objects"]), str(stats["instances"])])
-    lines += _text_table(["class", "id", "objects", "instances"], rows) + [""]
+    rows = [[c["class"], str(c["class_id"]), str(c["objects"]), str(c["instances"]), str(c["ignore_regions"])]
+            for c in classes]
+    rows.append(["all", "", str(stats["objects"]), str(stats["instances"]), str(stats["ignore_regions"])])
+    lines += _text_table(["class", "id", "objects", "instances", "ignore regions"], rows) + [""]
     if classes:
         lines += ["Box height (px) percentiles"]
         lines += _text_table(["class"] + [f"p{p}" for p in stats["percentiles"]],

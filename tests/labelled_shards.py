@@ -1,5 +1,6 @@
 """Tiny shards with known labels, written by the real ShardWriter (no rendering)."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -13,11 +14,13 @@ OLD_CLASS_NAMES = ["person", "bicycle", "car", "motorcycle"]
 
 
 def write_labelled_shard(folder, frames, *, scene_seed=0, frame_offset=0, width=100, height=80,
-                         rates=(0.0,), class_names=CLASS_NAMES, attrs=None):
+                         rates=(0.0,), class_names=CLASS_NAMES, attrs=None, ignore=None):
     """Write ``folder/scene{seed}_f{offset}.h5`` and return its path.
 
     ``frames``: one list per frame of ``(class_id, instance_id, (x1, y1, x2, y2), visible_fraction,
     truncation)`` labels. Images are grey with each box's outline drawn (the same at every rate).
+    ``ignore``: one list per frame of ``(class_id, instance_id, (x1, y1, x2, y2))`` ignore regions
+    (none when None).
     """
     rates = np.asarray(rates, np.float32)
     all_attrs = {"class_names": json.dumps(list(class_names)), "scene_seed": scene_seed,
@@ -38,6 +41,13 @@ def write_labelled_shard(folder, frames, *, scene_seed=0, frame_offset=0, width=
                 instance_id=np.array([i for _, i, *_ in labels], np.int32),
                 visible_fraction=np.array([v for *_, v, _ in labels], np.float32),
                 truncation=np.array([t for *_, t in labels], np.float32))
+            if ignore is not None:
+                regions = ignore[index]
+                frame_labels = dataclasses.replace(
+                    frame_labels,
+                    ignore_bbox=np.array([box for *_, box in regions], np.float32).reshape(-1, 4),
+                    ignore_class_id=np.array([c for c, *_ in regions], np.int32),
+                    ignore_instance_id=np.array([i for _, i, _ in regions], np.int32))
             writer.write_frame(index, np.repeat(image[None], len(rates), axis=0), frame_labels, np.eye(4))
         writer.commit()
     return path

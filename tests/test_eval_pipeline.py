@@ -6,6 +6,7 @@ import shutil
 
 import numpy as np
 import pytest
+from labelled_shards import write_labelled_shard
 
 from rainbench import cli
 from rainbench.eval import backends, pipeline
@@ -152,6 +153,62 @@ def test_predictions_mode_end_to_end_perfect_predictions(data_dir, tmp_path, cap
     assert "| perfect | Normal | 1.000 |" in report and "|  | % drop | 0.00 |" in report
 
 
+def test_a_detection_of_an_ignore_region_is_neither_right_nor_wrong(tmp_path, capsys):
+    # one person label, and a person too small to be one: an ignore region (KITTI's DontCare)
+    data = tmp_path / "data"
+    write_labelled_shard(data, [[(0, 0, (10, 10, 20, 40), 1.0, 0.0)]], rates=RATES,
+                         ignore=[[(0, 1, (60, 20, 63, 27))]])
+    found = {"image_id": 1, "category_id": 0, "bbox": [10, 10, 10, 30], "score": 0.5}
+    # the detector sees the small person too, a little larger than its pixels, more confidently
+    small = {"image_id": 1, "category_id": 0, "bbox": [59.5, 19.0, 4.0, 9.0], "score": 0.9}
+    preds = tmp_path / "preds"
+    _write_predictions(preds, "model", [found, small])
+    person_ap = {}
+    for flag in ((), ("--no-ignore-regions",)):
+        out = tmp_path / ("strict" if flag else "default")
+        code, _, err = _run(capsys, "eval", "--data", data, "--predictions", preds, "--out", out,
+                            "--n-boot", "5", "--quiet", *flag)
+        assert code == 0, err
+        person_ap[flag] = [(m["ap50"], m["n_gt"]) for m in json.loads((out / "metrics.json").read_text())
+                           if m["class"] == "person" and m["rate"] == 0.0]
+    assert person_ap[()] == [(pytest.approx(1.0), 1)]  # ignored: not a false positive, never missed
+    assert "COCO crowd boxes: a detection of one is neither right nor wrong, docs/eval.md): car 0, person 1," \
+        in (tmp_path / "default" / "report.md").read_text()
+    assert "Ignore regions were left out (`--no-ignore-regions`)" in (tmp_path / "strict" / "report.md").read_text()
+    assert person_ap[("--no-ignore-regions",)] == [(pytest.approx(0.5), 1)]  # a false positive first
+
+
+def test_labels_outside_the_scored_difficulty_become_ignore_regions(tmp_path, capsys):
+    # a person 30 px tall and one 12 px tall, half hidden; only the small one is missed
+    data = tmp_path / "data"
+    write_labelled_shard(data, [[(0, 0, (10, 10, 20, 40), 1.0, 0.0), (0, 1, (50, 10, 55, 22), 0.5, 0.0)]],
+                         rates=RATES)
+    found = {"image_id": 1, "category_id": 0, "bbox": [10, 10, 10, 30], "score": 0.5}
+    preds = tmp_path / "preds"
+    _write_predictions(preds, "model", [found])
+    person = {}
+    for flags in ((), ("--min-height", "25"), ("--min-visible", "0.6"), ("--max-truncation", "0.3")):
+        out = tmp_path / "out" / "-".join(flags or ("all",))
+        code, _, err = _run(capsys, "eval", "--data", data, "--predictions", preds, "--out", out, "--n-boot", "5",
+                            "--quiet", *flags)
+        assert code == 0, err
+        person[flags] = next((m["ap50"], m["n_gt"]) for m in json.loads((out / "metrics.json").read_text())
+                             if m["class"] == "person" and m["rate"] == 0.0)
+        report = (out / "report.md").read_text()
+        assert ("Scored labels:" in report) == bool(flags)
+    assert person[()] == (pytest.approx(51 / 101), 2)  # the small person is a miss: recall 0.5
+    assert person[("--min-height", "25")] == person[("--min-visible", "0.6")] == (pytest.approx(1.0), 1)
+    assert person[("--max-truncation", "0.3")] == person[()]  # neither is truncated
+    assert "Scored labels: height >= 25 px; the other labels are ignore regions" in \
+        (tmp_path / "out" / "--min-height-25" / "report.md").read_text()
+    with pytest.raises(SystemExit) as exit_info:
+        _run(capsys, "eval", "--data", data, "--predictions", preds, "--out", tmp_path / "bad", "--min-visible", "2")
+    assert exit_info.value.code == 2
+    assert "MIN_VISIBLE: expected a number in [0, 1], got '2'" in capsys.readouterr().err
+    with pytest.raises(pipeline.EvalError, match=r"--min-height: expected a number in 0\.\.100000, got -1"):
+        pipeline.TargetFilter(min_height=-1)
+
+
 def test_robustness_rows_pair_models_and_bad_compare_is_refused_first(data_dir, tmp_path, capsys):
     records = _perfect_records(data_dir)
     present = sorted({r["category_id"] for r in records if r["category_id"] in PAPER_CLASSES})
@@ -294,6 +351,32 @@ def test_backend_detections_are_cached_and_reused(data_dir, tmp_path, monkeypatc
     assert len(loads) == 4
     settings = json.loads((out / "predictions" / "fake" / "settings.json").read_text())
     assert settings["pt_backend"] == "ultralytics" and settings["cuda"] is False
+
+
+def test_a_dataset_regenerated_in_place_is_inferred_again(tmp_path, monkeypatch):
+    # make dataset SEED=1; make eval; make dataset SEED=2; make eval: the same folders, other images
+    loads = []
+
+    def fake_load(weights, *, class_map=None, device=None, pt_backend="batched"):
+        detector = _FakeDetector(weights.stem, lambda image: (np.zeros((0, 4), np.float32), np.zeros(0, np.int64)))
+        loads.append(detector)
+        return detector
+
+    monkeypatch.setattr(backends, "load_detector", fake_load)
+    weights = tmp_path / "fake.pt"
+    weights.write_bytes(b"not used")
+    data, out = tmp_path / "data", tmp_path / "out"
+    config = dict(frames=2, width=64, height=48, rates=RATES)
+    generate_shard(GenerateConfig(seed=1, **config), data)
+    pipeline.run_eval(data, out, weights=[weights], n_boot=5, batch=1, progress=False)
+    assert pipeline.run_eval(data, out, weights=[weights], n_boot=5, progress=False).inference_runs == 0
+    generate_shard(GenerateConfig(seed=1, rain_seed=7, **config), data)  # other drops, same clean frames
+    again = pipeline.run_eval(data, out, weights=[weights], n_boot=5, batch=1, progress=False)
+    assert again.inference_runs == 1 and loads[-1].calls == 2  # only 50 mm/h: its two images changed
+    generate_shard(GenerateConfig(seed=2, **config), data)  # another scene under the same file name
+    assert pipeline.run_eval(data, out, weights=[weights], n_boot=5, progress=False).inference_runs == len(RATES)
+    settings = json.loads((out / "predictions" / "fake" / "settings.json").read_text())
+    assert set(settings["images"]) == {"0", "50"}
 
 
 def test_class_map_logic_with_fake_names():

@@ -13,7 +13,7 @@ from rainbench.store import Dataset, list_shards
 from rainbench.store.rates import rate_token
 from rainbench.store.export import (ExportError, export_coco, export_yolo,
                                   read_yolo_labels)
-from rainbench.store.shard import open_shard, read_frame_labels
+from rainbench.store.shard import open_shard, read_frame_ignore, read_frame_labels
 from rainbench.store.video import write_videos
 
 RATES = (0.0, 50.0)
@@ -94,6 +94,7 @@ def test_coco_round_trip(dataset, tmp_path):
     out = tmp_path / "coco"
     paths = export_coco(dataset, out)
     assert paths == [out / "rate_0.json", out / "rate_50.json"]
+    crowd_seen = 0
     for rate_index, (path, token) in enumerate(zip(paths, ("0", "50"))):
         coco = COCO(str(path))
         assert sorted(coco.getImgIds()) == [1, 2, 3]
@@ -110,8 +111,18 @@ def test_coco_round_trip(dataset, tmp_path):
             assert image["shard"] == shard.name
             png = cv2.imread(str(out / image["file_name"]), cv2.IMREAD_COLOR)
             assert np.array_equal(png[:, :, ::-1], rgb[rate_index])
-            anns = coco.loadAnns(coco.getAnnIds(imgIds=[image_id]))
+            every = coco.loadAnns(coco.getAnnIds(imgIds=[image_id]))
+            anns = [ann for ann in every if not ann["iscrowd"]]
             assert len(anns) == len(labels["bbox"])
+            with open_shard(shard) as handle:  # ignore regions: crowd boxes after the labels
+                regions = read_frame_ignore(handle, frame)
+            crowd = every[len(anns):]
+            assert [ann["instance_id"] for ann in crowd] == regions["instance_id"].tolist()
+            for ann, box, class_id in zip(crowd, regions["bbox"], regions["class_id"]):
+                x, y, w, h = ann["bbox"]
+                np.testing.assert_allclose([x, y, x + w, y + h], box, atol=1e-3)
+                assert (ann["category_id"], ann["iscrowd"], ann["ignore"]) == (class_id, 1, 1)
+            crowd_seen += len(crowd)
             for ann, box, class_id, vis, trunc, inst, cov in zip(
                     anns, labels["bbox"], labels["class_id"], labels["visible_fraction"],
                     labels["truncation"], labels["instance_id"],
@@ -124,6 +135,7 @@ def test_coco_round_trip(dataset, tmp_path):
                 assert ann["truncation"] == pytest.approx(float(trunc))
                 assert ann["instance_id"] == inst
                 assert ann["rain_coverage"] == pytest.approx(float(cov))
+    assert crowd_seen > 0  # at 96x72 some actors are too small to label
 
 
 def test_rate_selection_and_errors(dataset, tmp_path):

@@ -15,7 +15,7 @@ from rainbench.gen.config import GenerateConfig
 from rainbench.gen.generate import build_scene, frame_labels, generate_shard, render_clip
 from rainbench.gen.render import FrameRenderer
 from rainbench.store.labels import FrameLabels
-from rainbench.store.shard import ShardFormatError, ShardWriter, open_shard, read_frame_labels
+from rainbench.store.shard import ShardFormatError, ShardWriter, open_shard, read_frame_ignore, read_frame_labels
 from rainbench.mjcf import layout as L
 from rainbench.mjcf.scene import build_spec, export_scene
 
@@ -26,7 +26,8 @@ def _digest(path):
     with h5py.File(path, "r") as f:
         digest = hashlib.sha256()
         for key in ("rgb", "depth", "instance", "labels/bbox", "labels/class_id",
-                    "labels/visible_fraction", "labels/truncation", "camera/T_world_cam"):
+                    "labels/visible_fraction", "labels/truncation", "camera/T_world_cam",
+                    "ignore/bbox", "ignore/instance_id"):
             digest.update(f[key][()].tobytes())
         return digest.hexdigest()
 
@@ -66,6 +67,23 @@ def test_every_box_is_the_tight_box_of_its_instance_pixels(small_shard):
             counts, boxes = lb.tight_boxes(instance[frame], 64)
             for box, instance_id in zip(labels["bbox"], labels["instance_id"]):
                 np.testing.assert_array_equal(box, boxes[instance_id])
+
+
+def test_every_visible_actor_is_a_label_or_an_ignore_region(small_shard):
+    regions_seen = 0
+    with open_shard(small_shard) as f:
+        instance = f["instance"][()]
+        for frame in range(instance.shape[0]):
+            labels, regions = read_frame_labels(f, frame), read_frame_ignore(f, frame)
+            counts, boxes = lb.tight_boxes(instance[frame], 64)
+            labelled, ignored = set(labels["instance_id"].tolist()), set(regions["instance_id"].tolist())
+            assert not labelled & ignored
+            assert labelled | ignored == set(np.flatnonzero(counts).tolist())
+            for box, instance_id in zip(regions["bbox"], regions["instance_id"]):
+                seen = boxes[instance_id]  # the region encloses the actor's visible pixels
+                assert box[0] <= seen[0] and box[1] <= seen[1] and box[2] >= seen[2] and box[3] >= seen[3]
+            regions_seen += len(ignored)
+    assert regions_seen > 0  # at 160x120 some actors are too small to label
 
 
 def test_ego_moves_forward_and_camera_looks_along_x(small_shard):

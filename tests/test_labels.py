@@ -60,6 +60,26 @@ def test_make_labels_occlusion_truncation_and_filters():
     assert labels.bbox_amodal[0].tolist() == [0, 0, 20, 10]
 
 
+def test_visible_actors_the_filter_leaves_out_become_ignore_regions():
+    classes = np.array([2, 0, 0, 1], np.int32)
+    visible_counts = np.array([50, 12, 30, 0])  # 1: too few pixels, 2: too hidden, 3: unseen
+    visible_boxes = np.array([[0, 0, 10, 10], [20, 20, 23, 26], [40, 10, 44, 20],
+                              [np.nan] * 4], np.float32)
+    alone_in = np.array([100, 12, 400, 50])
+    alone_total = np.array([100, 12, 400, 50])
+    amodal = np.array([[0, 0, 20, 10], [20, 19, 23, 26], [40, 0, 50, 40], [60, 0, 70, 10]],
+                      np.float32)
+    labels = lb.make_labels(visible_counts, visible_boxes, alone_in, alone_total, amodal, classes,
+                            lb.LabelFilter(min_box_height=8, min_visible_fraction=0.1,
+                                           min_visible_pixels=20))
+    assert labels.instance_id.tolist() == [0] and len(labels) == 1
+    assert labels.ignore_instance_id.tolist() == [1, 2]  # the unseen actor 3 is neither
+    assert labels.ignore_class_id.tolist() == [0, 0]
+    # the box enclosing what is seen and the whole unoccluded actor
+    assert labels.ignore_bbox.tolist() == [[20, 19, 23, 26], [40, 0, 50, 40]]
+    assert labels.ignore_bbox.dtype == np.float32
+
+
 def test_label_filter_rejects_bad_values():
     with pytest.raises(ValueError, match="min_visible_fraction: expected 0..1"):
         lb.LabelFilter(min_visible_fraction=1.5)

@@ -35,7 +35,8 @@ def data(tmp_path_factory):
         [(BUS, 1, box(40), 0.45, 0.0)],
         [],
         [(BUS, 1, box(44), 0.45, 0.0), (PERSON, 2, box(14), 0.85, 0.0), (TRUCK, 5, box(50), 1.0, 0.5)],
-    ], scene_seed=4, rates=(0.0, 50.0))
+    ], scene_seed=4, rates=(0.0, 50.0),
+        ignore=[[], [(PERSON, 7, (5, 5, 8, 12))], [(CAR, 8, (60, 5, 63, 9)), (PERSON, 7, (6, 5, 9, 12))]])
     return root
 
 
@@ -51,6 +52,9 @@ def test_objects_instances_and_frames(data):
     assert (stats["objects"], stats["instances"]) == (6, 10)  # labels once per frame, not per rate
     assert [(c["class_id"], c["class"], c["objects"], c["instances"]) for c in stats["classes"]] == [
         (0, "person", 2, 3), (2, "car", 2, 4), (5, "bus", 1, 2), (7, "truck", 1, 1)]  # only classes present
+    # visible actors too small to be labels, counted per frame like instances (only B has any)
+    assert stats["ignore_regions"] == 3
+    assert [c["ignore_regions"] for c in stats["classes"]] == [2, 1, 0, 0]
 
 
 def test_height_percentiles(data):
@@ -121,10 +125,11 @@ def test_cli_tables_and_json_agree(data, capsys):
     assert parsed == json.loads(json.dumps(dataset_stats(data)))
     assert render_stats(parsed) == text  # the table is a rendering of exactly the JSON
     assert text.splitlines()[1].startswith("3 shards, 2 scenes, 6 frames; 6 objects, 10 instances")
+    assert "; 3 ignore regions (visible actors too small or hidden to be labels)" in text.splitlines()[1]
     table_one = "Objects and instances per class"
-    assert _row(text, table_one, "car") == ["car", "2", "2", "4"]
-    assert _row(text, table_one, "truck") == ["truck", "7", "1", "1"]
-    assert _row(text, table_one, "all") == ["all", "6", "10"]
+    assert _row(text, table_one, "car") == ["car", "2", "2", "4", "1"]
+    assert _row(text, table_one, "truck") == ["truck", "7", "1", "1", "0"]
+    assert _row(text, table_one, "all") == ["all", "6", "10", "3"]
     assert "bicycle" not in text and "motorcycle" not in text
     assert _row(text, "Box height (px) percentiles", "car") == ["car", "20.3", "21.5", "23.0", "25.5", "29.1"]
     assert _row(text, "Visible fraction", "car") == ["car", "0", "1", "0", "0", "0", "1", "1", "1", "0", "0"]

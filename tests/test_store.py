@@ -2,9 +2,11 @@
 and an import that loads no renderer."""
 
 import os
+import re
 import subprocess
 import sys
 
+import h5py
 import numpy as np
 import pytest
 from labelled_shards import write_labelled_shard
@@ -187,3 +189,48 @@ def test_packages_import_only_what_docs_architecture_allows():
         if arrow and package.strip() in folders:
             documented[package.strip()] = {t.strip() for t in targets.split(",")} - {"(nothing)"}
     assert documented == ALLOWED_IMPORTS
+
+
+# -- ignore regions ------------------------------------------------------------------------------
+
+def _ignore_shard(folder):
+    """Two frames: frame 0 a car label and a tiny person ignore region, frame 1 nothing."""
+    return write_labelled_shard(folder, [[(2, 0, (10, 10, 40, 30), 1.0, 0.0)], []],
+                                ignore=[[(0, 5, (60, 20, 63, 27))], []])
+
+
+def test_ignore_regions_round_trip_and_older_shards_have_none(tmp_path):
+    path = _ignore_shard(tmp_path / "new")
+    with store.open_checked(path) as handle:
+        regions = store.read_frame_ignore(handle, 0)
+        assert regions["bbox"].tolist() == [[60, 20, 63, 27]] and regions["bbox"].dtype == np.float32
+        assert regions["class_id"].tolist() == [0] and regions["instance_id"].tolist() == [5]
+        assert all(len(array) == 0 for array in store.read_frame_ignore(handle, 1).values())
+        assert store.read_frame_labels(handle, 0)["instance_id"].tolist() == [0]  # labels unchanged
+    frames = list(store.Dataset([path]).frames())
+    assert frames[0].ignore["instance_id"].tolist() == [5] and len(frames[1].ignore["bbox"]) == 0
+    only_cars = next(store.Dataset([path]).frames(classes=[2]))  # a class filter filters both
+    assert only_cars.labels["instance_id"].tolist() == [0] and len(only_cars.ignore["class_id"]) == 0
+    with h5py.File(path, "r+") as handle:  # as written before ignore regions
+        del handle["ignore"]
+    with store.open_checked(path) as handle:
+        regions = store.read_frame_ignore(handle, 0)
+        assert regions["bbox"].shape == (0, 4) and regions["class_id"].shape == (0,)
+
+
+@pytest.mark.parametrize("key, data, message", [
+    ("offsets", np.array([0, 2, 1]), r"frame 1: /ignore/offsets decreases \(2 -> 1\)"),
+    ("offsets", np.array([0, 1]), r"/ignore/offsets has shape \(2,\) int64; expected \(3,\) integers"),
+    ("bbox", np.array([[60, 20, 120, 27]], np.float32),
+     r"frame 0: ignore region 0 has bbox \[60\.0, 20\.0, 120\.0, 27\.0\], class_id 0, instance_id 5; "
+     r"expected a finite box with 0 <= x1 < x2 <= 100, 0 <= y1 < y2 <= 80"),
+    ("class_id", np.array([4], np.int32), r"frame 0: ignore region 0 .* class_id 4"),
+    ("instance_id", np.array([5, 6], np.int32), r"/ignore/instance_id has shape \(2,\), expected \(1,\)"),
+])
+def test_readers_refuse_bad_ignore_regions_naming_file_and_frame(tmp_path, key, data, message):
+    path = _ignore_shard(tmp_path / "bad")
+    with h5py.File(path, "r+") as handle:
+        del handle[f"ignore/{key}"]
+        handle.create_dataset(f"ignore/{key}", data=data)
+    with pytest.raises(store.ShardFormatError, match=re.escape(str(path)) + ": " + message):
+        store.Dataset([path])

@@ -120,6 +120,8 @@ def render_report_md(
     heavy_rate: float | None = None,
     title: str = "rainbench: detection under synthetic rain",
     robustness: Sequence[Mapping[str, Any]] = (),
+    ignore_regions: Mapping[str, int] | bool | None = None,
+    scored_labels: str | None = None,
 ) -> str:
     """Render records as a markdown report in the paper's layout.
 
@@ -142,6 +144,11 @@ def render_report_md(
         title: Report title.
         robustness: Rows of :func:`rainbench.eval.comparison.comparison_rows` (mPC and rPC with
             intervals, paired differences); none: no such section.
+        ignore_regions: ``{class name: ignore regions in the ground truth}`` (a sentence under
+            the ground-truth counts); False: they were left out of the scoring (said so); None:
+            nothing said.
+        scored_labels: The labels scored as targets in words (``TargetFilter.describe``), when
+            not every label was; the others are counted among the ignore regions.
 
     Returns:
         The markdown text.
@@ -217,6 +224,17 @@ def render_report_md(
             for class_name in classes
         ],
     )
+    if scored_labels is not None:
+        lines += ["", f"Scored labels: {scored_labels}; the other labels are ignore regions of the scoring "
+                      "(`--min-height`, `--min-visible`, `--max-truncation`)."]
+    if ignore_regions is False:
+        lines += ["", "Ignore regions were left out (`--no-ignore-regions`): detections of actors too small "
+                      "or hidden to be labels count as false positives."]
+    elif ignore_regions is not None:
+        counts = ", ".join(f"{name} {ignore_regions.get(name, 0)}" for name in classes)
+        which = "actors too small or hidden to be labels" + ("" if scored_labels is None else ", and the labels not scored")
+        lines += ["", f"Ignore regions ({which}; COCO crowd boxes: a detection "
+                      f"of one is neither right nor wrong, docs/eval.md): {counts}."]
     return "\n".join(lines) + "\n"
 
 
