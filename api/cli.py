@@ -208,7 +208,7 @@ def cmd_preview(args: argparse.Namespace) -> int:
         return 0
     import numpy as np
 
-    from rainbench.store import Dataset, list_shards, read_frame_labels
+    from rainbench.store import Dataset, list_shards, read_frame_ignore, read_frame_labels
     from rainbench.store.preview import montage, write_png
 
     path = Path(args.shard)
@@ -229,11 +229,13 @@ def cmd_preview(args: argparse.Namespace) -> int:
         try:
             images = np.stack([dataset.read_rgb(handle, image, rate) for rate in dataset.rates])
             labels = read_frame_labels(handle, args.frame)
+            ignore = read_frame_ignore(handle, args.frame)["bbox"]
         except OSError as error:
             raise CliError(f"{path}: frame {args.frame} does not decode ({error})") from None
     rates = np.asarray(dataset.rates)
     boxes = (labels["bbox"], labels["class_id"]) if args.boxes else (None, None)
-    write_png(out, montage(images, rates, boxes=boxes[0], class_ids=boxes[1]))
+    write_png(out, montage(images, rates, boxes=boxes[0], class_ids=boxes[1],
+                           ignore_boxes=ignore if args.boxes else None))
     print(out)
     return 0
 
@@ -444,7 +446,8 @@ def build_parser() -> argparse.ArgumentParser:
     preview.add_argument("shard", help="a shard, or a dataset directory (its first shard)")
     preview.add_argument("--frame", type=int, default=0)
     preview.add_argument("--out", default=None, help="PNG path (default: beside the shard)")
-    preview.add_argument("--boxes", action="store_true", help="draw the labels")
+    preview.add_argument("--boxes", action="store_true",
+                         help="draw the labels (class colours) and the ignore regions (grey)")
     preview.add_argument("--video", action="store_true",
                          help="one MP4 per rate over every frame instead (in --out, default "
                               "DATA/videos)")

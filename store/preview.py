@@ -11,13 +11,18 @@ import numpy as np
 
 from .classes import CLASS_COLOURS
 
+IGNORE_COLOUR = (150, 150, 150)
+"""RGB of ignore regions (actors too small or hidden to be labels) in previews."""
+
 
 def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
             boxes: np.ndarray | None = None, class_ids: np.ndarray | None = None,
-            tile_width: int = 400) -> np.ndarray:
+            tile_width: int = 400, ignore_boxes: np.ndarray | None = None) -> np.ndarray:
     """Tile ``images`` (R, H, W, 3) uint8 with "<rate> mm/h" printed on each; returns RGB uint8.
 
-    Optional ``boxes`` (M, 4) xyxy pixel-edge and ``class_ids`` (M,) are drawn on every tile.
+    Optional ``boxes`` (M, 4) xyxy pixel-edge and ``class_ids`` (M,) are drawn on every tile in
+    their class colours, and ``ignore_boxes`` (N, 4) xyxy pixel-edge (the frame's ignore
+    regions) in :data:`IGNORE_COLOUR`, under the labels.
     """
     if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
         raise ValueError(f"images: expected (R, H, W, 3) uint8, got {images.shape} {images.dtype}")
@@ -31,13 +36,15 @@ def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
     sheet = np.full((rows * tile_h, columns * tile_width, 3), 255, np.uint8)
     for index, (image, rate) in enumerate(zip(images, rates)):
         tile = cv2.resize(image, (tile_width, tile_h), interpolation=cv2.INTER_AREA)
+        drawn = [] if ignore_boxes is None else [(box, IGNORE_COLOUR, "ignore_boxes") for box in ignore_boxes]
         if boxes is not None:
-            for box, class_id in zip(boxes, class_ids):
-                if not np.all(np.isfinite(box)):
-                    raise ValueError(f"boxes: expected finite x1, y1, x2, y2, got {list(box)}")
-                x1, y1, x2, y2 = (np.asarray(box) * scale).round().astype(int)
-                colour = CLASS_COLOURS[int(class_id) % len(CLASS_COLOURS)]
-                cv2.rectangle(tile, (x1, y1), (x2 - 1, y2 - 1), colour, 1)
+            drawn += [(box, CLASS_COLOURS[int(class_id) % len(CLASS_COLOURS)], "boxes")
+                      for box, class_id in zip(boxes, class_ids)]
+        for box, colour, name in drawn:
+            if not np.all(np.isfinite(box)):
+                raise ValueError(f"{name}: expected finite x1, y1, x2, y2, got {np.asarray(box).tolist()}")
+            x1, y1, x2, y2 = (np.asarray(box) * scale).round().astype(int)
+            cv2.rectangle(tile, (x1, y1), (x2 - 1, y2 - 1), colour, 1)
         label = f"{rate:g} mm/h"
         for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
             cv2.putText(tile, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, thickness,

@@ -234,3 +234,17 @@ def test_readers_refuse_bad_ignore_regions_naming_file_and_frame(tmp_path, key, 
         handle.create_dataset(f"ignore/{key}", data=data)
     with pytest.raises(store.ShardFormatError, match=re.escape(str(path)) + ": " + message):
         store.Dataset([path])
+
+
+def test_preview_draws_ignore_regions_in_grey_under_the_labels():
+    from rainbench.store.classes import CLASS_COLOURS
+    from rainbench.store.preview import IGNORE_COLOUR, montage
+
+    image = np.zeros((1, 80, 200, 3), np.uint8)  # clear of the rate printed at the top left
+    sheet = montage(image, np.array([0.0]), tile_width=200, boxes=np.array([[20, 40, 40, 60]], np.float32),
+                    class_ids=np.array([2]), ignore_boxes=np.array([[120, 40, 130, 55], [20, 40, 40, 60]], np.float32))
+    assert tuple(sheet[40, 125]) == tuple(sheet[54, 125]) == tuple(sheet[47, 129]) == IGNORE_COLOUR  # its edges
+    assert tuple(sheet[47, 125]) == (0, 0, 0)  # outlines only
+    assert tuple(sheet[59, 30]) == CLASS_COLOURS[2]  # a label is drawn over a region on the same box
+    with pytest.raises(ValueError, match=r"ignore_boxes: expected finite x1, y1, x2, y2, got \[nan"):
+        montage(image, np.array([0.0]), ignore_boxes=np.array([[np.nan, 0, 5, 5]], np.float32))
