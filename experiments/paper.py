@@ -180,6 +180,16 @@ def breakdowns(data_dir: Path, results_dir: Path, model: str, rates: Sequence[fl
     return result
 
 
+def ignore_region_counts(data_dir: Path, classes: Sequence[int] = PAPER_CLASSES) -> dict[str, int]:
+    """``{class: ignore regions over all frames}`` of the class ids ``classes``, in that order: the
+    visible actors too small or hidden to be labels (:func:`rainbench.store.read_frame_ignore`),
+    which the evaluator scores as COCO crowd boxes."""
+    dataset = open_dataset(data_dir)
+    found = np.concatenate([read_frame_ignore(handle, image.frame)["class_id"] for image, handle in dataset.walk()]
+                           or [np.zeros(0, np.int32)])
+    return {CLASS_NAMES[c]: int(np.count_nonzero(found == c)) for c in classes}
+
+
 def same_clean_frames(first: Path, other: Path) -> bool:
     """Whether two datasets hold rate 0 and the same rate-0 images, byte for byte, in the same
     image-id order (every condition of :func:`run_paper` renders the same clip, and rate 0 is its
@@ -277,6 +287,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     tables = breakdowns(data_root / paper_rain, out_dir / paper_rain, models[0], breakdown_rates, class_ids,
                         config.metrics)
     counts = table_one(data_root / paper_rain, class_ids)
+    ignored = ignore_region_counts(data_root / paper_rain, class_ids)
     paper_clip = all(getattr(data, name) == value for name, value in PAPER_CLIP.items())
     setup = [
         f"Data: {data.scenes} scene(s) from seed {data.seed}, {data.frames} frames of "
@@ -289,7 +300,10 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
         + ", ".join(f"{name} {'yes' if follows else 'no'}" for name, _, follows in conditions(config.rain_models))
         + ". Models: "
         f"{', '.join(f'{model} (letterboxed to {config.imgsz or model_imgsz(spec)})' for model, spec in zip(models, config.weights))}; "
-        f"conf 0.001, NMS IoU 0.7. Intervals: {config.n_boot} bootstrap resamples of frames.",
+        f"conf 0.001, NMS IoU 0.7. Intervals: {config.n_boot} bootstrap resamples of frames. "
+        "Scoring: COCO AP, with the clip's ignore regions (actors in view too small or hidden to be labels: "
+        + ", ".join(f"{name} {count}" for name, count in ignored.items())
+        + ") as crowd boxes, so a detection of one is neither right nor wrong (docs/eval.md).",
         "",
         f"Machine: {platform.machine()}, {platform.processor() or 'cpu'}; device {config.device or 'auto'}. "
         "Wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()) + ".",

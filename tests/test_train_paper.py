@@ -1,6 +1,7 @@
 """rainbench train (a tiny CPU run), the shipped weights, and rainbench paper in a reduced mode."""
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -410,7 +411,8 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
                     "How much of the AP loss is the weather? physical with the weather following the "
                     "rate vs physical-fixed-weather", "Base weather: cloudy (the paper clip)",
                     "jeon2022 no, physical yes, physical-fixed-weather no",
-                    "a deliberately weak in-domain control"):
+                    "a deliberately weak in-domain control",
+                    "Scoring: COCO AP, with the clip's ignore regions (actors in view too small or hidden"):
         assert heading in report, heading
     assert "| YOLOv7x (paper) | Normal | 0.669 |" in report  # the paper's Table III row
     for rain in ("jeon2022", "physical", "physical-fixed-weather"):
@@ -449,6 +451,16 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
     # Table I counts equal the shard's labels.
     from rainbench.experiments.paper import table_one
 
+    # The ignore regions the report names are those the evaluator scored as crowd boxes.
+    from rainbench.experiments.paper import ignore_region_counts
+
+    ignored = ignore_region_counts(tmp_path / "data" / "jeon2022")
+    scored = (tmp_path / "out" / "jeon2022" / "report.md").read_text()
+    assert sum(ignored.values()) > 0
+    paper_sentence = report.split("clip's ignore regions", 1)[1].split(")", 1)[0]
+    for name in ("car", "person", "bicycle", "motorcycle"):
+        for text in (scored.split("Ignore regions (", 1)[1], paper_sentence):
+            assert re.search(rf"\b{name} {ignored[name]}\b", text), (name, text)
     counts = table_one(tmp_path / "data" / "jeon2022")
     records = json.loads((tmp_path / "out" / "jeon2022" / "metrics.json").read_text())
     for class_name, (objects, instances) in counts.items():
