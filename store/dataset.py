@@ -197,10 +197,19 @@ class Dataset:
         same images in the same order, whatever the shards' names, labels or other rates. Caches
         of per-image results (``rainbench eval``'s detections) key on it."""
         digest = hashlib.sha256()
-        for image, handle in self.walk():
-            height, width = self._sizes[image.shard_index]
-            digest.update(f"{image.image_id}:{height}x{width}:".encode())
-            digest.update(rgb_checksum(handle, self.rate_row(rate, image.shard_index), image.frame))
+        raw, raw_shard = None, None
+        try:
+            for image, handle in self.walk():
+                if image.shard_index != raw_shard:  # the shard file itself, once per shard
+                    if raw is not None:
+                        raw.close()
+                    raw, raw_shard = open(handle.filename, "rb"), image.shard_index
+                height, width = self._sizes[image.shard_index]
+                digest.update(f"{image.image_id}:{height}x{width}:".encode())
+                digest.update(rgb_checksum(handle, self.rate_row(rate, image.shard_index), image.frame, raw))
+        finally:
+            if raw is not None:
+                raw.close()
         return digest.hexdigest()
 
     def frames(self, classes: Sequence[int] | None = None) -> Iterator[Frame]:

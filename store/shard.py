@@ -8,6 +8,7 @@ every reader opens a shard, also checks its labels (:func:`check_labels`).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -39,20 +40,27 @@ def _deflate(image: np.ndarray) -> bytes:
     return deflate.zlib_compress(np.ascontiguousarray(image), RGB_COMPRESSION["compression_opts"])
 
 
-def rgb_checksum(handle: h5py.File, rate_row: int, frame: int) -> bytes:
+def _one_gzip_chunk_per_image(rgb: h5py.Dataset) -> bool:
+    """Whether ``/rgb`` stores each image as one plain zlib stream (rainbench's layout), which
+    can be read, or identified, from the stored chunk itself."""
+    return (rgb.chunks == (1, 1) + rgb.shape[2:] and rgb.compression == "gzip" and not rgb.shuffle
+            and not rgb.fletcher32 and rgb.scaleoffset is None)
+
+
+def rgb_checksum(handle: h5py.File, rate_row: int, frame: int, raw=None) -> bytes:
     """A short identity of image ``/rgb[rate_row, frame]`` read without decoding it: the stored
     chunk's size and the Adler-32 checksum of the pixels that ends its zlib stream (the last 4
-    bytes of a gzip-filtered chunk). Images stored any other way give the sha256 of their pixels.
-    Equal images written by rainbench give equal checksums (libdeflate's bytes depend only on
-    the image); a changed image changes it but with a chance of about 2^-32."""
+    bytes of a gzip-filtered chunk), read from ``raw`` (the shard file opened in binary; opened
+    here when None). Images stored any other way give the sha256 of their pixels. Equal images
+    written by rainbench give equal checksums (libdeflate's bytes depend only on the image); a
+    changed image changes it but with a chance of about 2^-32."""
     rgb = handle["rgb"]
-    if rgb.chunks == (1, 1) + rgb.shape[2:] and rgb.compression == "gzip" and not (
-            rgb.shuffle or rgb.fletcher32 or rgb.scaleoffset is not None):
+    if _one_gzip_chunk_per_image(rgb):
         info = rgb.id.get_chunk_info_by_coord((rate_row, frame, 0, 0, 0))
         if info.filter_mask == 0 and info.byte_offset is not None and info.size >= 4:
-            with open(handle.filename, "rb") as raw:
-                raw.seek(info.byte_offset + info.size - 4)
-                return info.size.to_bytes(8, "little") + raw.read(4)
+            with contextlib.nullcontext(raw) if raw is not None else open(handle.filename, "rb") as source:
+                source.seek(info.byte_offset + info.size - 4)
+                return info.size.to_bytes(8, "little") + source.read(4)
     return hashlib.sha256(np.ascontiguousarray(read_rgb(handle, rate_row, frame)).tobytes()).digest()
 
 
@@ -68,8 +76,7 @@ def read_rgb(handle: h5py.File, rate_row: int, frame: int) -> np.ndarray:
         raise IndexError(f"{handle.filename}: /rgb[{rate_row}, {frame}] is outside its "
                          f"{rgb.shape[0]} rates x {rgb.shape[1]} frames")
     shape = rgb.shape[2:]
-    if (rgb.chunks != (1, 1) + shape or rgb.compression != "gzip" or rgb.shuffle
-            or rgb.fletcher32 or rgb.scaleoffset is not None):
+    if not _one_gzip_chunk_per_image(rgb):
         return rgb[rate_row, frame]
     try:
         filter_mask, chunk = rgb.id.read_direct_chunk((rate_row, frame, 0, 0, 0))
@@ -376,11 +383,7 @@ def check_labels(handle, path: str | Path | None = None) -> None:
 
     with np.errstate(invalid="ignore"):
         box = arrays["bbox"].astype(np.float64)
-        tol = 1e-3
-        bad = ~np.isfinite(box).all(axis=1) | (box[:, 0] >= box[:, 2]) | (box[:, 1] >= box[:, 3]) \
-            | (box[:, 0] < -tol) | (box[:, 1] < -tol) | (box[:, 2] > width + tol) \
-            | (box[:, 3] > height + tol)
-        rows = np.flatnonzero(bad)
+        rows = np.flatnonzero(_outside_image(box, width, height))
         if rows.size:
             refuse(rows, f"has bbox {box[rows[0]].tolist()}; expected finite 0 <= x1 < x2 <= "
                          f"{width}, 0 <= y1 < y2 <= {height}")
@@ -406,6 +409,16 @@ def check_labels(handle, path: str | Path | None = None) -> None:
                 refuse(np.flatnonzero(~np.isfinite(values).all(axis=0)), f"has a non-finite {key}")
     if "ignore" in handle:
         _check_ignore(handle, path, frames, width, height, len(class_names))
+
+
+def _outside_image(box: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(N,) bool: which of the (N, 4) float64 xyxy boxes are not finite with
+    0 <= x1 < x2 <= width and 0 <= y1 < y2 <= height (to 1e-3 px)."""
+    tol = 1e-3
+    with np.errstate(invalid="ignore"):
+        return (~np.isfinite(box).all(axis=1) | (box[:, 0] >= box[:, 2]) | (box[:, 1] >= box[:, 3])
+                | (box[:, 0] < -tol) | (box[:, 1] < -tol) | (box[:, 2] > width + tol)
+                | (box[:, 3] > height + tol))
 
 
 def _check_offsets(path, group: str, offsets: np.ndarray, frames: int, count: int) -> None:
@@ -445,11 +458,7 @@ def _check_ignore(handle, path, frames: int, width: int, height: int, num_classe
             raise ShardFormatError(f"{path}: /ignore/{key} has shape {arrays[key].shape}, expected {expected}")
     box = arrays["bbox"].astype(np.float64)
     class_id = arrays["class_id"]
-    tol = 1e-3
-    with np.errstate(invalid="ignore"):
-        bad = (~np.isfinite(box).all(axis=1) | (box[:, 0] >= box[:, 2]) | (box[:, 1] >= box[:, 3])
-               | (box[:, 0] < -tol) | (box[:, 1] < -tol) | (box[:, 2] > width + tol)
-               | (box[:, 3] > height + tol))
+    bad = _outside_image(box, width, height)
     if not np.issubdtype(class_id.dtype, np.integer):
         raise ShardFormatError(f"{path}: /ignore/class_id holds {class_id.dtype}, not integers")
     bad |= ~np.isin(class_id, LABELLED_CLASSES) | (class_id >= num_classes) | (arrays["instance_id"] < 0)
