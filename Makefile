@@ -50,7 +50,8 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 dataset: $(STAMP)
-	$(BIN)/rainbench generate --out $(OUT) $(SCENE_FLAGS) --scenes $(SCENES) \
+	$(if $(filter-out on off,$(WEATHER)),$(error WEATHER: expected on or off (or unset: the rain model decides), got '$(WEATHER)'))
+	$(BIN)/rainbench generate --out '$(OUT)' $(SCENE_FLAGS) --scenes $(SCENES) \
 		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
 		--rain-model $(RAIN_MODEL) $(if $(STORE),--store $(STORE),) \
 		$(if $(filter on,$(WEATHER)),--weather-follows-rate,) \
@@ -58,26 +59,26 @@ dataset: $(STAMP)
 		$(if $(WORKERS),--workers $(WORKERS),) $(if $(THREADS),--threads $(THREADS),)
 
 eval: $(STAMP)
-	$(BIN)/rainbench eval --data $(OUT) --out $(RESULTS) \
-		$(foreach w,$(WEIGHTS),--weights $(w)) $(if $(PREDICTIONS),--predictions $(PREDICTIONS),) \
+	$(BIN)/rainbench eval --data '$(OUT)' --out '$(RESULTS)' \
+		$(foreach w,$(WEIGHTS),--weights $(w)) $(if $(PREDICTIONS),--predictions '$(PREDICTIONS)',) \
 		$(foreach c,$(COMPARE),--compare $(c))
 
 # Trains the recipe's model from scratch on clean scenes (resumes a cut-off run when re-run).
 train: $(STAMP)
-	$(BIN)/rainbench train --recipe $(RECIPE) $(if $(TRAIN_OUT),--out $(TRAIN_OUT),)
+	$(BIN)/rainbench train --recipe $(RECIPE) $(if $(TRAIN_OUT),--out '$(TRAIN_OUT)',)
 
 # The seed paper's experiment: generate both rain models, evaluate the shipped models, report.
 paper: $(STAMP)
-	$(BIN)/rainbench paper --out $(PAPER_OUT) --data $(OUT)/paper $(SCENE_FLAGS) --scenes $(SCENES) \
+	$(BIN)/rainbench paper --out '$(PAPER_OUT)' --data '$(OUT)/paper' $(SCENE_FLAGS) --scenes $(SCENES) \
 		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
 		$(foreach m,$(MODELS),--model $(m)) $(foreach w,$(WEIGHTS),--weights $(w)) \
 		$(foreach c,$(COMPARE),--compare $(c))
 
 verify: $(STAMP)
-	$(BIN)/rainbench verify $(OUT)
+	$(BIN)/rainbench verify '$(OUT)'
 
 scene: $(STAMP)
-	$(BIN)/rainbench scene $(SCENE_FLAGS) --out $(OUT)/scene_$(or $(SEED),0)
+	$(BIN)/rainbench scene $(SCENE_FLAGS) --out '$(OUT)/scene_$(or $(SEED),0)'
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

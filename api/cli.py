@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import select
 import sys
 from pathlib import Path
 
@@ -99,6 +100,8 @@ def _writable_dir(path: Path, what: str) -> Path:
 def cmd_generate(args: argparse.Namespace) -> int:
     from rainbench.store.rates import parse_rates
 
+    if args.ray_address is not None and args.executor != "ray":
+        raise CliError("--ray-address: only used with --executor ray")
     # the whole config is checked before anything is written or rendered
     config = DatasetConfig(**_scene_fields(args), scenes=args.scenes,
                            frames_per_shard=args.frames_per_shard, rates=parse_rates(args.rates),
@@ -130,6 +133,27 @@ def _printable(text: str) -> str:
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
 
 
+def _finished_dataset(data: str | Path, allow_incomplete: bool, flag: str = "DATA") -> None:
+    """Refuse a dataset directory whose manifest says it is incomplete (an interrupted or running
+    ``rainbench generate``): results from it would cover only its finished shards while looking
+    whole. With ``allow_incomplete`` it is read, with a one-line warning."""
+    from rainbench.store.manifest import read_manifest
+
+    if not Path(data).is_dir():
+        return  # one shard file: no manifest to say
+    manifest = read_manifest(data)
+    if manifest is None or manifest["complete"]:
+        return
+    listed = len(manifest["shards"])
+    if not allow_incomplete:
+        raise CliError(f"{flag}: {data} is an incomplete dataset (its manifest lists {listed} "
+                       "finished shards and says \"complete\": false): run the same rainbench "
+                       "generate again to finish it, or pass --allow-incomplete to read the "
+                       "finished shards only")
+    print(_printable(f"rainbench: warning: {data} is incomplete: reading its {listed} finished "
+                     "shards only"), file=sys.stderr)
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     from rainbench.store import unlisted_shards, verify_dataset
 
@@ -150,6 +174,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
 
     from rainbench.store.stats import dataset_stats, render_stats
 
+    _finished_dataset(args.data, args.allow_incomplete)
     stats = dataset_stats(args.data)
     print(json.dumps(stats, indent=1) if args.json else render_stats(stats).rstrip("\n"))
     return 0
@@ -190,6 +215,7 @@ def _rate_list(text: str | None) -> list[float] | None:
 def cmd_export(args: argparse.Namespace) -> int:
     from rainbench.store.export import export_coco, export_yolo
 
+    _finished_dataset(args.data, args.allow_incomplete)
     out = _writable_dir(Path(args.out), "--out")
     export = export_yolo if args.format == "yolo" else export_coco
     for path in export(args.data, out, rates=_rate_list(args.rates), overwrite=args.overwrite):
@@ -198,6 +224,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_preview(args: argparse.Namespace) -> int:
+    if not args.video:
+        for flag, given in (("--rates", args.rates is not None), ("--overwrite", args.overwrite)):
+            if given:
+                raise CliError(f"{flag}: only used with --video (a montage shows every rate of "
+                               "one frame)")
+    _finished_dataset(args.shard, args.allow_incomplete, "SHARD")
     if args.video:
         from rainbench.store.video import write_videos
 
@@ -243,6 +275,7 @@ def cmd_preview(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     if bool(args.weights) == (args.predictions is not None):
         raise CliError("eval: expected exactly one of --weights W [--weights W2 ...] or --predictions DIR")
+    _finished_dataset(args.data, args.allow_incomplete, "--data")
     out = _writable_dir(Path(args.out), "--out")
     from rainbench.eval.pipeline import TargetFilter, run_eval
 
@@ -276,9 +309,12 @@ def cmd_paper(args: argparse.Namespace) -> int:
     _choose_gl(None)
     import torch
 
-    from rainbench.experiments.paper import PaperConfig, default_models, run_paper
+    from rainbench.experiments.paper import PaperConfig, check_models, default_models, run_paper
 
     models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
+    # before anything is generated, each model under the flag it came with
+    check_models([("--model" if args.model else "--model (default)", model) for model in models]
+                 + [("--weights", weights) for weights in args.weights or ()])
     config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device, classes=args.classes,
@@ -434,6 +470,9 @@ def build_parser() -> argparse.ArgumentParser:
     stats = sub.add_parser("stats", help="objects, instances, box sizes, visibility per class of a dataset")
     stats.add_argument("data", help="dataset directory, or one shard")
     stats.add_argument("--json", action="store_true", help="JSON instead of tables (keys: docs/datasets.md)")
+    stats.add_argument("--allow-incomplete", action="store_true",
+                       help="read a dataset whose generation has not finished (its finished "
+                            "shards only; default: refuse it)")
     stats.set_defaults(run=cmd_stats)
     scene = sub.add_parser("scene", help="write the composed scene as a standalone MJCF file")
     scene.add_argument("--out", default=None, help="directory for scene.xml and its textures")
@@ -453,6 +492,9 @@ def build_parser() -> argparse.ArgumentParser:
                               "DATA/videos)")
     preview.add_argument("--rates", default=None, help="with --video: rates to write (RATES spec)")
     preview.add_argument("--overwrite", action="store_true", help="with --video: replace videos")
+    preview.add_argument("--allow-incomplete", action="store_true",
+                         help="read a dataset whose generation has not finished (its finished "
+                              "shards only; default: refuse it)")
     preview.set_defaults(run=cmd_preview)
     export = sub.add_parser("export", help="export a dataset as YOLO folders or COCO JSON")
     export.add_argument("data", help="dataset directory, or one shard")
@@ -460,9 +502,15 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--out", required=True, help="export directory")
     export.add_argument("--rates", default=None, help="rates to export (RATES spec; default all)")
     export.add_argument("--overwrite", action="store_true")
+    export.add_argument("--allow-incomplete", action="store_true",
+                        help="read a dataset whose generation has not finished (its finished "
+                             "shards only; default: refuse it)")
     export.set_defaults(run=cmd_export)
     evaluate = sub.add_parser("eval", help="AP / F1 per class and rain rate of detectors on a dataset")
     evaluate.add_argument("--data", required=True, help="dataset directory of scene*_f*.h5 shards")
+    evaluate.add_argument("--allow-incomplete", action="store_true",
+                          help="evaluate a dataset whose generation has not finished (its "
+                               "finished shards only; default: refuse it)")
     evaluate.add_argument("--weights", action="append", default=None,
                           help="a shipped model name, or a local .pt, .onnx or Darknet .weights "
                                "file (repeat for several models); a .pt is read with ultralytics' "
@@ -556,12 +604,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _stdout_closed() -> bool:
+    """Whether standard output is a pipe whose reader has gone (poll reports an error on it)."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+    except (OSError, ValueError, AttributeError):  # no real file behind sys.stdout
+        return False
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return args.run(args)
     except (CliError, ValueError, gl.GLBackendError, OSError, RuntimeError) as error:
+        if isinstance(error, BrokenPipeError) and _stdout_closed():
+            # the reader of our output went away (`rainbench stats DATA | head`): end quietly,
+            # as a shell tool stopped by SIGPIPE, with 128 + SIGPIPE
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 141
         message = " ".join(str(error).split())
         print(f"rainbench: error: {message}", file=sys.stderr)
         return EXIT_USAGE

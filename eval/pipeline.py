@@ -15,9 +15,12 @@ Every user-facing failure is an :class:`EvalError` (a ValueError) with a one-lin
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import shutil
+import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +38,7 @@ from .metrics.bootstrap import bootstrap_ci
 from .metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS, coco_detections, coco_ground_truth
 from .metrics.evaluation import evaluate
 from .report.figures import plot_detection_strip
+from .report.files import file_error
 from .report.markdown import render_report_md
 from .report.paper import PAPER_TABLES
 from .report.plots import plot_metric_vs_rate
@@ -46,6 +50,12 @@ BOOTSTRAP_SEED = 0
 
 class EvalError(ValueError):
     """A user-facing evaluation error with a one-line message."""
+
+
+MAX_BOX_PIXELS = 1e6
+"""Largest ``|x|``, ``|y|``, ``w`` and ``h`` of a detection's ``[x, y, w, h]`` box, in pixels
+(:func:`check_detections`): far beyond any image, yet small enough that areas, IoUs and drawing
+never overflow. A box beyond it is an error, not a detection."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -199,6 +209,9 @@ def check_detections(records: Any, image_ids: set[int], where: str,
         if not isinstance(record["bbox"], list) or len(bbox) != 4 or not all(math.isfinite(v) for v in bbox) or bbox[2] < 0 or bbox[3] < 0:
             raise EvalError(f"{where}: record {position}: bbox {record['bbox']!r} is not a finite [x, y, w, h] "
                             "with w, h >= 0")
+        if not all(abs(v) <= MAX_BOX_PIXELS for v in bbox):
+            raise EvalError(f"{where}: record {position}: bbox {record['bbox']!r} is not an image box: "
+                            f"|x|, |y|, w and h must be at most {MAX_BOX_PIXELS:.0f} pixels")
         if not 0.0 <= score <= 1.0:
             raise EvalError(f"{where}: record {position}: score {score} is not in [0, 1]")
         if category_id not in kept:
@@ -207,30 +220,52 @@ def check_detections(records: Any, image_ids: set[int], where: str,
     return clean
 
 
-def load_predictions_file(path: str | Path, image_ids: set[int], classes: Sequence[int] = PAPER_CLASSES) -> list[dict]:
+def load_predictions_file(path: str | Path, image_ids: set[int], classes: Sequence[int] = PAPER_CLASSES, *,
+                          cache: bool = False) -> list[dict]:
     """Read and check one COCO results file (errors name the file); the records of the evaluated
-    ``classes`` (:func:`check_detections`)."""
+    ``classes`` (:func:`check_detections`). ``cache``: the file is eval's own detection cache
+    (``OUT/predictions``), so its errors suggest ``--force`` (infer again) rather than a fix to
+    the file."""
     path = Path(path)
+    hint = "; it is eval's detection cache: add --force to infer it again" if cache else ""
     if not path.is_file():
-        raise EvalError(f"predictions: {path} is missing")
+        raise EvalError(f"predictions: {path} is missing{hint}")
     try:
         records = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise EvalError(f"predictions: {path} is not valid JSON ({error})") from None
+        raise EvalError(f"predictions: {path} is not valid JSON ({error}){hint}") from None
     except RecursionError:
         raise EvalError(f"predictions: {path} is not a COCO results list (JSON nested too "
-                        "deeply to read)") from None
+                        f"deeply to read){hint}") from None
     except OSError as error:
-        raise EvalError(f"predictions: {path} cannot be read ({error.strerror})") from None
-    return check_detections(records, image_ids, str(path), classes)
+        raise EvalError(f"predictions: {path} cannot be read ({error.strerror}){hint}") from None
+    try:
+        return check_detections(records, image_ids, str(path), classes)
+    except EvalError as error:
+        if not cache:
+            raise
+        raise EvalError(f"{error}{hint}") from None
 
 
 def _write_json(path: Path, data: Any) -> None:
-    """Write JSON under a temporary name and rename it, so a final name is always whole."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write JSON under a temporary name and rename it, so a final name is always whole; the
+    temporary is removed when writing fails, and an OSError names ``path``."""
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(data) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(json.dumps(data) + "\n", encoding="utf-8")
+        os.replace(tmp, path)
+    except BaseException as error:
+        _remove(tmp)
+        if isinstance(error, OSError):
+            raise file_error(error, path) from error
+        raise
+
+
+def _remove(path: Path) -> None:
+    """Remove a file if it is there; a failure to (a read-only folder) is left to the caller's error."""
+    with contextlib.suppress(OSError):
+        path.unlink(missing_ok=True)
 
 
 def prediction_models(predictions_dir: str | Path) -> list[str]:
@@ -360,6 +395,8 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     ``ap50_vs_rate.png``, ``f1_vs_rate.png``, ``detections_strip.png``, and with rate 0 and a
     rainy rate ``robustness.json`` (:func:`rainbench.eval.comparison.comparison_rows`: mPC and
     rPC with bootstrap intervals, paired differences between models; also in ``report.md``).
+    They are written all or nothing (:func:`_write_outputs`): a failure while writing leaves none
+    of them, and an OSError names the file.
     """
     class_ids = _check_settings(predictions_dir, weights, imgsz=imgsz, batch=batch, max_det=max_det,
                                 n_boot=n_boot, conf=conf, iou=iou, report_conf=report_conf, classes=classes,
@@ -502,7 +539,7 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
         for rate in rates:
             cache = predictions_path(cache_root, model, rate)
             if rate in fresh:
-                detections[(model, rate)] = load_predictions_file(cache, image_ids, class_ids)
+                detections[(model, rate)] = load_predictions_file(cache, image_ids, class_ids, cache=True)
                 continue
             with tqdm(total=len(dataset), unit="img", desc=f"{model} {rate_token(rate)} mm/h",
                       disable=not progress, dynamic_ncols=True) as bar:
@@ -553,45 +590,95 @@ def _strip_image(dataset: Dataset, gt: dict, class_ids: Sequence[int]) -> Image:
     return max(dataset.images, key=lambda image: counts.get(image.image_id, 0))
 
 
+REPORT_OUTPUTS = ("metrics.json", "metrics.csv", "images.json", "robustness.json", "ap50_vs_rate.png",
+                  "f1_vs_rate.png", "detections_strip.png", "report.md")
+"""The report files :func:`run_eval` writes under ``--out`` (``robustness.json`` only with rate 0
+and a rainy rate), in the order they are put in place: ``report.md`` last."""
+
+
 def _write_outputs(records: list[dict[str, Any]], dataset: Dataset, gt: dict, detections: dict,
                    models: Sequence[str], out_dir: Path, *, class_ids: Sequence[int],
                    report_conf: float, robustness: list[dict[str, Any]],
                    ignore_regions: bool = True, targets: TargetFilter = TargetFilter()) -> dict[str, Path]:
     """Write metrics, image list, robustness rows (when there are any), report, plots and the
     detection strip (the first model's boxes of the scored classes, across rates); returns the
-    paths by output name."""
+    paths by output name.
+
+    All or nothing: the previous run's outputs (:data:`REPORT_OUTPUTS`) are removed first, every
+    file is written into a hidden staging folder in ``out_dir`` and only once all are written
+    are they renamed into place (``os.replace``, same file system); any failure removes the
+    staging folder and whatever was already renamed, so no output is left under its final name.
+    An OSError names the file (``OUT/report.md: No space left on device``)."""
     rates = list(dataset.rates)
     clean_rate = 0.0 if 0.0 in rates else rates[0]
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path] = {}
-    paths["metrics.json"], paths["metrics.csv"] = write_metrics(records, out_dir)
-    paths["images.json"] = out_dir / "images.json"
-    paths["images.json"].write_text(json.dumps(
-        [{"id": image.image_id, "shard": image.shard.name, "frame": image.frame} for image in dataset.images],
-        indent=1) + "\n", encoding="utf-8")
-    if robustness:
-        paths["robustness.json"] = out_dir / "robustness.json"
-        paths["robustness.json"].write_text(json.dumps(
-            [{key: json_ready(value) for key, value in row.items()} for row in robustness],
-            indent=1, allow_nan=False) + "\n", encoding="utf-8")
-    paths["report.md"] = out_dir / "report.md"
-    ignored: dict[str, int] | bool = False
-    if ignore_regions:
-        ignored = {CLASS_NAMES[c]: sum(1 for a in gt["annotations"] if a["iscrowd"] and a["category_id"] == c)
-                   for c in class_ids}
-    paths["report.md"].write_text(render_report_md(records, paper=PAPER_TABLES, clean_rate=clean_rate,
-                                                   robustness=robustness, ignore_regions=ignored,
-                                                   scored_labels=None if targets.scores_everything
-                                                   else targets.describe()),
-                                  encoding="utf-8")
-    paths["ap50_vs_rate.png"] = plot_metric_vs_rate(records, "ap50", out_dir / "ap50_vs_rate.png")
-    paths["f1_vs_rate.png"] = plot_metric_vs_rate(records, "f1", out_dir / "f1_vs_rate.png")
-    strip = _strip_image(dataset, gt, class_ids)
-    with dataset.open(strip.shard_index) as handle:
-        frames_by_rate = {rate: dataset.read_rgb(handle, strip, rate) for rate in rates}
-    strip_dets = {rate: [d for d in detections[(models[0], rate)] if d["image_id"] == strip.image_id]
-                  for rate in rates}
-    paths["detections_strip.png"] = plot_detection_strip(frames_by_rate, strip_dets,
-                                                         out_dir / "detections_strip.png",
-                                                         class_names=CLASS_NAMES, min_score=report_conf)
-    return paths
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise file_error(error, out_dir) from error
+    for name in REPORT_OUTPUTS:  # a stale report must not pass for this run's
+        try:
+            (out_dir / name).unlink(missing_ok=True)
+        except OSError as error:
+            raise file_error(error, out_dir / name) from error
+    try:
+        staging = Path(tempfile.mkdtemp(prefix=".report.tmp-", dir=out_dir))
+    except OSError as error:
+        raise file_error(error, out_dir) from error
+    placed: list[Path] = []
+    try:
+        def stage(name: str, write) -> None:
+            try:
+                write(staging / name)
+            except OSError as error:
+                message = " ".join(str(error).split())
+                if error.strerror or str(staging) not in message:
+                    raise file_error(error, out_dir / name) from error
+                named = OSError(message.replace(str(staging), str(out_dir)))
+                named.errno = error.errno
+                raise named from error
+
+        def json_file(data: Any):
+            return lambda path: path.write_text(json.dumps(data, indent=1, allow_nan=False) + "\n",
+                                                encoding="utf-8")
+
+        stage("metrics.json", lambda path: write_metrics(records, path.parent))  # and metrics.csv
+        stage("images.json", json_file([{"id": image.image_id, "shard": image.shard.name, "frame": image.frame}
+                                        for image in dataset.images]))
+        if robustness:
+            stage("robustness.json", json_file([{key: json_ready(value) for key, value in row.items()}
+                                                for row in robustness]))
+        ignored: dict[str, int] | bool = False
+        if ignore_regions:
+            ignored = {CLASS_NAMES[c]: sum(1 for a in gt["annotations"] if a["iscrowd"] and a["category_id"] == c)
+                       for c in class_ids}
+        report = render_report_md(records, paper=PAPER_TABLES, clean_rate=clean_rate, robustness=robustness,
+                                  ignore_regions=ignored,
+                                  scored_labels=None if targets.scores_everything else targets.describe())
+        stage("report.md", lambda path: path.write_text(report, encoding="utf-8"))
+        stage("ap50_vs_rate.png", lambda path: plot_metric_vs_rate(records, "ap50", path))
+        stage("f1_vs_rate.png", lambda path: plot_metric_vs_rate(records, "f1", path))
+        strip = _strip_image(dataset, gt, class_ids)
+        with dataset.open(strip.shard_index) as handle:
+            frames_by_rate = {rate: dataset.read_rgb(handle, strip, rate) for rate in rates}
+        strip_dets = {rate: [d for d in detections[(models[0], rate)] if d["image_id"] == strip.image_id]
+                      for rate in rates}
+        stage("detections_strip.png", lambda path: plot_detection_strip(frames_by_rate, strip_dets, path,
+                                                                        class_names=CLASS_NAMES,
+                                                                        min_score=report_conf))
+        paths: dict[str, Path] = {}
+        for name in REPORT_OUTPUTS:
+            if not (staging / name).is_file():
+                continue
+            try:
+                os.replace(staging / name, out_dir / name)
+            except OSError as error:
+                raise file_error(error, out_dir / name) from error
+            placed.append(out_dir / name)
+            paths[name] = out_dir / name
+        return paths
+    except BaseException:
+        for path in placed:
+            _remove(path)
+        raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)

@@ -70,7 +70,10 @@ class PaperConfig:
         check_metrics(self.metrics)
         unknown = sorted(set(self.rain_models) - set(RAIN_MODELS))
         if unknown or not self.rain_models:
-            raise EvalError(f"rain models: expected some of {', '.join(RAIN_MODELS)}, got {list(self.rain_models)}")
+            raise EvalError(f"--rain-models: expected some of {', '.join(RAIN_MODELS)}, got {list(self.rain_models)}")
+        twice = [model for number, model in enumerate(self.rain_models) if model in self.rain_models[:number]]
+        if twice:
+            raise EvalError(f"--rain-models: {twice[0]} is named twice")
         if not isinstance(self.dataset, DatasetConfig):
             raise EvalError(f"dataset: expected a DatasetConfig, got {type(self.dataset).__name__}")
         if 0.0 not in self.dataset.rates:
@@ -135,6 +138,35 @@ def default_references(models: Sequence[str], chosen: Sequence[tuple[str, str]] 
     bases = dict.fromkeys(name.removesuffix("-rain") for name in names if name.endswith("-rain"))
     return tuple((base + "-rain", base + "-randomrain") for base in bases
                  if base + "-randomrain" in names and base + "-rain" not in named) + tuple(chosen)
+
+
+def check_models(specs: Sequence[tuple[str, str | Path]]) -> None:
+    """Refuse, before anything is generated, a model that :func:`run_paper` could not evaluate:
+    ``specs`` are ``(flag, model)`` pairs, the flag the user gave it with (``--model`` or
+    ``--weights``). Each model must be a shipped model's name or an existing weights file
+    (:func:`rainbench.eval.weights.resolve_weights`' rule, without building anything), and the
+    model names (a shipped name, else the file's stem) must be unique, as ``run_eval`` requires.
+    The error is one line naming the flag and the model."""
+    from rainbench.eval.weights import shipped_models
+
+    shipped = shipped_models()
+    seen: dict[str, str] = {}
+    for flag, spec in specs:
+        text = str(spec)
+        path = Path(text)
+        is_shipped = path.suffix == "" and text in shipped
+        if path.suffix.lower() == ".cfg":  # a Darknet model is its .weights beside the .cfg
+            path = path.with_suffix(".weights")
+        if not is_shipped and not path.is_file():
+            if path.suffix == "":
+                raise EvalError(f"{flag}: {text!r} is neither a shipped model ({', '.join(shipped) or 'none'}) "
+                                "nor an existing weights file")
+            raise EvalError(f"{flag}: {path} does not exist (weights are loaded from local files only)")
+        name = text if is_shipped else path.stem
+        if name in seen:
+            raise EvalError(f"{flag}: {text} is a second model named {name!r} (after {seen[name]}); model names "
+                            "(file stems) must be unique")
+        seen[name] = f"{flag} {text}"
 
 
 def table_one(data_dir: Path, classes: Sequence[int] = PAPER_CLASSES) -> dict[str, tuple[int, int]]:
@@ -234,7 +266,12 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     from rainbench.eval.backends.ultralytics import preload_torch
     from rainbench.eval.weights import model_imgsz, resolve_weights
 
+    from rainbench.experiments.train import check_device
+
     preload_torch()  # before generating: triton after Mesa rendering crashes
+    # every model and the device are checked before anything is generated
+    check_device(config.device)
+    check_models([("--weights", spec) for spec in config.weights])
     out_dir, data_root = Path(out_dir), Path(data_root)
     class_ids = PAPER_CLASSES if config.classes is None else parse_classes(config.classes)
     if config.classes is not None:  # a model that cannot predict a requested class fails before generating

@@ -5,12 +5,14 @@ training run depends on:
 
 - ``name``: the weights' name (``<name>.pt``);
 - ``architecture``: an ultralytics model yaml (``yolo11n.yaml``): no pretrained weights are used;
+  it must resolve when the recipe is loaded (:func:`check_architecture`);
 - ``train_data`` / ``val_data``: :class:`~rainbench.gen.config.DatasetConfig` fields of the clean
   (0 mm/h) training and validation datasets, ``scenario`` as
   :class:`~rainbench.mjcf.layout.ScenarioConfig` fields (its ``duration_s`` defaults to the
   clip's length); every field is checked when the recipe is loaded;
 - ``train``: ultralytics ``train()`` arguments; ``cpu``: overrides of ``train`` used when no CUDA
-  device is present (smaller images, fewer epochs).
+  device is present (smaller images, fewer epochs). Every stage's arguments are checked when the
+  recipe is loaded (:func:`_check_train_arguments`), not first when ultralytics starts training.
 - ``restarts`` (optional, in ``train`` or ``cpu``; the ``cpu`` one wins on CPU): a list of argument
   overrides, one per further stage. Stage k starts from stage k-1's best weights with a fresh
   optimizer and learning-rate schedule (a warm restart) and trains into ``OUT/restart<k>``; the
@@ -243,7 +245,9 @@ def load_recipe(recipe: str | Path) -> Recipe:
     for key, merged in (("train", train_args), ("cpu", {**train_args, **cpu_args})):
         for number, arguments in enumerate(_stage_arguments(merged)):
             where = key if number == 0 else f"{key}.restarts[{number}]"
+            _check_train_arguments(arguments, f"{source}: `{where}")
             _stage_tiles(arguments, f"{source}: `{where}")
+    check_architecture(raw["architecture"], source)
     eval_imgsz = raw.get("eval_imgsz", DEFAULT_IMGSZ)
     if not (is_int(eval_imgsz) and eval_imgsz >= 32):
         raise TrainError(f"{source}: `eval_imgsz` must be an integer >= 32 (px), got {eval_imgsz!r}")
@@ -287,6 +291,110 @@ def load_recipe(recipe: str | Path) -> Recipe:
                   val_data=val_data, train_args=dict(train_args), cpu_args=dict(cpu_args), source=source,
                   eval_imgsz=eval_imgsz, classes=classes, reader=reader, curriculum=curriculum,
                   random_rain=random_rain, init_weights=init_weights)
+
+
+# Integer train() arguments and their least value (ultralytics checks some only when training starts).
+_TRAIN_INT_MIN = {"epochs": 1, "imgsz": 32, "patience": 0, "workers": 0, "close_mosaic": 0, "seed": 0, "nbs": 1,
+                  "save_period": -1}
+
+
+def _check_train_arguments(arguments: dict[str, Any], where: str) -> None:
+    """Refuse a stage's ultralytics ``train()`` argument that ultralytics would refuse only once
+    training starts, after the data is generated: a name it does not know, an integer argument
+    out of range (:data:`_TRAIN_INT_MIN`), a bad ``batch`` or ``warmup_epochs``, and whatever
+    ultralytics' own ``check_cfg`` refuses (types, fractions in [0, 1]). ``where`` is
+    ``"<recipe>: `<section>"``; the error names the key."""
+    from rainbench.eval.backends.ultralytics import _offline_ultralytics
+
+    _offline_ultralytics()
+    from ultralytics.cfg import DEFAULT_CFG_DICT, check_cfg
+
+    for key, value in arguments.items():
+        if key in ("tiles", "restarts"):
+            continue
+        if key not in DEFAULT_CFG_DICT and key != "augmentations":
+            raise TrainError(f"{where}.{key}` is not an ultralytics train() argument")
+        if key in _TRAIN_INT_MIN and not (is_int(value) and value >= _TRAIN_INT_MIN[key]):
+            unit = " (px)" if key == "imgsz" else ""
+            raise TrainError(f"{where}.{key}` must be an integer >= {_TRAIN_INT_MIN[key]}{unit}, got {value!r}")
+        if key == "batch" and not (value == -1 or (is_int(value) and value >= 1) or (
+                isinstance(value, float) and 0.0 < value < 1.0)):
+            raise TrainError(f"{where}.batch` must be an integer >= 1, -1 (AutoBatch) or a GPU memory fraction "
+                             f"in (0, 1), got {value!r}")
+        if key in ("warmup_epochs", "time") and value is not None and not (
+                isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0):
+            raise TrainError(f"{where}.{key}` must be a number >= 0, got {value!r}")
+        try:
+            check_cfg({key: value}, hard=True)
+        except (TypeError, ValueError) as error:
+            raise TrainError(f"{where}.{key}`: {' '.join(str(error).split())}") from None
+
+
+def check_architecture(architecture: Any, source: str) -> str:
+    """``architecture`` if ultralytics can build it the way :func:`train` does (``YOLO(architecture)``):
+    a model yaml that ultralytics finds (a file, or a name of its own such as ``yolo11n.yaml``,
+    looked up as ``yaml_model_load`` does, without downloading) holding a ``backbone`` and a
+    ``head``, or another existing file (a checkpoint). Anything else is a :class:`TrainError`
+    naming the recipe ``source`` and its ``architecture`` key; nothing is built."""
+    import re
+
+    import yaml
+
+    text = str(architecture).strip() if isinstance(architecture, (str, Path)) else ""
+    bad = TrainError(f"{source}: `architecture`: {architecture!r} is not an ultralytics model yaml or a file")
+    if not text or "://" in text:
+        raise bad
+    if not text.lower().endswith((".yaml", ".yml")):
+        if not Path(text).is_file():
+            raise bad
+        return text
+    from rainbench.eval.backends.ultralytics import _offline_ultralytics
+
+    _offline_ultralytics()
+    from ultralytics.utils.checks import check_file
+
+    unified = re.sub(r"(\d+)([nslmx])(.+)?$", r"\1\3", text)  # yolo11n.yaml -> yolo11.yaml, as ultralytics
+    try:
+        found = (check_file(text, download=False, hard=False)
+                 or check_file(unified, download=False, hard=False))
+    except (OSError, ValueError):
+        found = None
+    if not found or not Path(found).is_file():
+        raise bad
+    try:
+        model = yaml.safe_load(Path(found).read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        model = None
+    if not (isinstance(model, dict) and "backbone" in model and "head" in model):
+        raise TrainError(f"{source}: `architecture`: {found} is not an ultralytics model yaml (it needs `backbone` "
+                         "and `head`)")
+    return text
+
+
+def check_device(device: str | None) -> str | None:
+    """``device`` (``--device``) as ultralytics takes it: None (CUDA 0 when present, else the CPU),
+    ``"cpu"``, or CUDA indices (``"0"``, ``"0,1"``; ``cuda`` / ``cuda:N`` accepted). A device
+    that is neither, or a CUDA device this machine does not have, is a one-line error naming
+    ``--device``: :func:`rainbench.eval.backends.torch_batched.torch_device`'s, as
+    ``rainbench eval`` refuses it."""
+    if device is None or not str(device).strip():
+        return None
+    from rainbench.eval.backends.torch_batched import torch_device
+
+    text = str(device).strip().lower()
+    indices = [part.strip() for part in (text.removeprefix("cuda").removeprefix(":") or "0").split(",")]
+    if (text.startswith("cuda") or text[:1].isdigit()) and not all(index.isdigit() for index in indices):
+        raise TrainError(f"--device: expected cpu, a CUDA index (0) or cuda:N, got {device!r}")
+    target = torch_device(device)  # anything else, or CUDA without CUDA: eval's one-line error
+    if target.type == "cpu":
+        return "cpu"
+    import torch
+
+    count = torch.cuda.device_count()
+    missing = [i for i in indices if int(i) >= count]
+    if missing:
+        raise TrainError(f"--device {device}: there is no CUDA device {missing[0]} ({count} visible)")
+    return ",".join(indices)
 
 
 def _seed_range(config: DatasetConfig) -> set[int]:
@@ -431,6 +539,9 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     ultralytics = preload_torch()  # before generating: triton after Mesa rendering crashes
     import torch
 
+    # everything that would fail only once training starts fails here, before anything is written
+    device = check_device(device)
+    check_architecture(recipe.architecture, recipe.source)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cuda = torch.cuda.is_available() if device is None else device != "cpu"

@@ -33,6 +33,7 @@ import multiprocessing
 import os
 import queue
 import signal
+import socket
 import sys
 import threading
 import time
@@ -152,7 +153,14 @@ def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> di
     """Clean temporaries, check the config, and return the reusable manifest entries by path.
     The caller holds the directory's lock."""
     _remove_temporaries(root)
-    manifest = read_manifest(root)
+    try:
+        manifest = read_manifest(root)
+    except DatasetError as error:  # unreadable, or not a manifest of this version
+        if not overwrite:
+            raise DatasetError(f"OUT: {error}; use --overwrite to replace the dataset in {root} "
+                               "or choose another OUT") from None
+        _remove_dataset(root)
+        return {}
     if manifest is None:
         if any(p.name not in (MANIFEST, LOCK) for p in root.iterdir()) and not overwrite:
             raise DatasetError(f"OUT: {root} is not empty and has no manifest; use --overwrite "
@@ -163,9 +171,14 @@ def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> di
     if not overwrite:
         raise DatasetError(f"OUT: {root} holds a dataset of another config; use --overwrite to "
                            "replace it or choose another OUT")
+    _remove_dataset(root)
+    return {}
+
+
+def _remove_dataset(root: Path) -> None:
+    """Delete the dataset in ``root`` that ``--overwrite`` replaces: its shards and manifest."""
     for path in list(root.glob(SHARD_GLOB)) + [root / MANIFEST]:
         path.unlink(missing_ok=True)
-    return {}
 
 
 def _adoptable(path: Path, task: GenerateConfig) -> bool:
@@ -362,6 +375,28 @@ def _is_local_cluster(address: str) -> bool:
     return False
 
 
+RAY_CONNECT_TIMEOUT_S = 10.0
+"""How long ``--ray-address HOST:PORT`` may take to accept a TCP connection before rainbench
+gives up (Ray itself retries an unreachable address for minutes)."""
+
+
+def _check_reachable(ray_address: str | None) -> None:
+    """A one-line :class:`DatasetError` unless something accepts TCP connections at the
+    ``HOST:PORT`` (or ``ray://HOST:PORT``) of ``ray_address``; other forms (None, ``auto``,
+    ``local``, an address without a port) are left to Ray."""
+    if not ray_address or ray_address in ("auto", "local"):
+        return
+    host, _, port = ray_address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        return
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), RAY_CONNECT_TIMEOUT_S):
+            pass
+    except (OSError, ValueError) as error:  # gaierror, refused, timed out; port out of range
+        raise DatasetError(f"--ray-address {ray_address}: nothing answers at {host}:{port} "
+                           f"({' '.join(str(error).split()) or type(error).__name__})") from None
+
+
 def _ray_connect(ray, ray_address: str | None) -> None:
     """``ray.init`` for rainbench. Ray 2.60 turns token authentication on for a head started by
     ``ray start`` once a token exists (``~/.ray/auth_token``), but a driver given an explicit
@@ -371,6 +406,7 @@ def _ray_connect(ray, ray_address: str | None) -> None:
     user (Ray does not send a local token to another host on its own, nor does rainbench)."""
     if ray.is_initialized():
         return
+    _check_reachable(ray_address)
     named = ray_address not in (None, "", "auto", "local") and not ray_address.startswith("ray://")
     if named and not os.environ.get("RAY_AUTH_MODE") and _has_ray_token() \
             and _is_local_cluster(ray_address):

@@ -190,6 +190,7 @@ def verify_dataset(root: str | Path) -> list[str]:
     if not manifest.get("complete"):
         problems.append(f"{root / MANIFEST}: the dataset is incomplete (run the same command "
                         "again to finish it)")
+    problems += _coverage_problems(root / MANIFEST, manifest)
     for entry in manifest["shards"]:
         path = root / entry["path"]
         if not path.is_file():
@@ -207,8 +208,63 @@ def verify_dataset(root: str | Path) -> list[str]:
                 offsets = handle["labels/offsets"].shape[0]
                 if rgb[:2] != (len(entry["rates"]), entry["frames"]) or offsets != rgb[1] + 1:
                     problems.append(f"{path}: shapes disagree with the manifest (rgb {rgb})")
+                elif [float(rate) for rate in handle["rates"][()]] != [float(rate) for rate in entry["rates"]]:
+                    problems.append(f"{path}: its rates {_rates_text(handle['rates'][()])} disagree "
+                                    f"with the manifest's {_rates_text(entry['rates'])}")
         except ShardFormatError as error:
             problems.append(str(error))
+    return problems
+
+
+def _rates_text(rates) -> str:
+    return _show(",".join(f"{float(rate):g}" for rate in rates))
+
+
+def _expected_shards(config: dict) -> dict[tuple[int, int], int] | None:
+    """(scene seed, frame offset) -> frames of every shard the manifest's dataset ``config``
+    has (the split of ``DatasetConfig.tasks``), or None when the config does not say (a
+    manifest written by other tools, or fields out of range)."""
+    fields = [config.get(key) for key in ("seed", "scenes", "frames", "frames_per_shard")]
+    if not all(is_int(value) for value in fields):
+        return None
+    seed, scenes, frames, per_shard = fields
+    if seed < 0 or not (1 <= scenes and 1 <= frames and 1 <= per_shard) \
+            or scenes * math.ceil(frames / per_shard) > MAX_EXPECTED_SHARDS:
+        return None
+    return {(seed + scene, offset): min(per_shard, frames - offset)
+            for scene in range(scenes) for offset in range(0, frames, per_shard)}
+
+
+MAX_EXPECTED_SHARDS = 1_000_000
+"""Most shards :func:`verify_dataset` enumerates from a manifest's config (beyond: not checked)."""
+
+
+def _coverage_problems(manifest_path: Path, manifest: dict) -> list[str]:
+    """Manifest entries that the config does not describe (another scene, frame range or rate
+    list), and, for a manifest that says it is complete, the config's shards it lacks."""
+    config = manifest["config"]
+    expected = _expected_shards(config)
+    if expected is None:
+        return []
+    rates = config.get("rates")
+    rates_known = isinstance(rates, list) and all(
+        isinstance(rate, (int, float)) and not isinstance(rate, bool) for rate in rates)
+    problems, listed = [], set()
+    for number, entry in enumerate(manifest["shards"]):
+        where = f"{manifest_path}: shards[{number}] ({entry['path']})"
+        key = (entry["scene_seed"], entry["frame_offset"])
+        listed.add(key)
+        if expected.get(key) != entry["frames"]:
+            problems.append(f"{where}: scene {key[0]}, frames {key[1]}..{key[1] + entry['frames'] - 1} "
+                            "is not a shard of the manifest's config")
+        elif rates_known and [float(rate) for rate in entry["rates"]] != [float(rate) for rate in rates]:
+            problems.append(f"{where}: rates {_rates_text(entry['rates'])} disagree with the "
+                            f"config's {_rates_text(rates)}")
+    missing = sorted(set(expected) - listed)
+    if manifest["complete"] and missing:
+        problems.append(f"{manifest_path}: says complete but lists {len(expected) - len(missing)} "
+                        f"of the config's {len(expected)} shards (first missing: scene "
+                        f"{missing[0][0]}, frame offset {missing[0][1]})")
     return problems
 
 

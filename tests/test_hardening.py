@@ -423,12 +423,16 @@ def test_bad_manifests_are_one_line_errors_everywhere(small, tmp_path, capsys, n
     manifest = change(json.loads((out / store.MANIFEST).read_text()))
     (out / store.MANIFEST).write_text(json.dumps(manifest))
     where = re.escape(str(out / store.MANIFEST)) + ": "
-    for argv in (["verify", str(out)],
-                 ["generate", "--out", str(out), "--frames", "4", "--frames-per-shard", "2",
-                  "--width", "96", "--height", "72", "--rates", "0,50", "--quiet"],
-                 ["export", str(out), "--format", "coco", "--out", str(tmp_path / "export")],
-                 ["preview", str(out), "--out", str(tmp_path / "p.png")]):
-        _one_line_error(capsys, cli.main(argv), where + message)
+    # generate names the way out: --overwrite replaces a dataset whose manifest it cannot read
+    overwrite = re.escape(f"; use --overwrite to replace the dataset in {out} or choose another OUT")
+    for argv, pattern in (
+            (["verify", str(out)], where + message),
+            (["generate", "--out", str(out), "--frames", "4", "--frames-per-shard", "2",
+              "--width", "96", "--height", "72", "--rates", "0,50", "--quiet"],
+             "OUT: " + where + message + overwrite),
+            (["export", str(out), "--format", "coco", "--out", str(tmp_path / "export")], where + message),
+            (["preview", str(out), "--out", str(tmp_path / "p.png")], where + message)):
+        _one_line_error(capsys, cli.main(argv), pattern)
     assert not (tmp_path / "export").exists() and not (tmp_path / "p.png").exists()
     with pytest.raises(ds.DatasetError, match=where + message):
         ShardDataset(out)

@@ -7,5 +7,6 @@ Modules:
   evaluations and robustness summaries, and ``metrics.json`` / ``metrics.csv`` I/O;
 - :mod:`.markdown`: ``report.md`` of ``rainbench eval`` and of ``make paper`` (pure, return text);
 - :mod:`.plots`: metric against rain rate (matplotlib);
-- :mod:`.figures`: the detection strip (OpenCV).
+- :mod:`.figures`: the detection strip (OpenCV);
+- :mod:`.files`: write errors that name the file.
 """

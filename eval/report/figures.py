@@ -14,6 +14,9 @@ import numpy as np
 
 from rainbench.store.classes import CLASS_COLOURS, CLASS_NAMES
 
+from .files import file_error
+
+
 def plot_detection_strip(
     images_by_rate: Mapping[float, np.ndarray],
     detections_by_rate: Mapping[float, Sequence[Mapping[str, Any]]],
@@ -35,8 +38,14 @@ def plot_detection_strip(
         min_score: Detections below this confidence are not drawn.
         columns: Tiles per row; ``ceil(sqrt(n))`` when None.
 
+    Boxes are clipped to the tile before drawing, and a box that misses the image (or is not
+    finite) is not drawn, so no detection, however far outside the frame, can make OpenCV fail.
+
     Returns:
         The PNG path.
+
+    Raises:
+        OSError: one line naming ``out_png`` when it cannot be written.
     """
     import cv2
 
@@ -64,13 +73,16 @@ def plot_detection_strip(
         )
         for record in detections_by_rate.get(rate, ()):
             score = float(record["score"])
-            if score < min_score:
+            if not score >= min_score:  # nan too
                 continue
-            x, y, w, h = (float(v) for v in record["bbox"])
+            corners = _visible_corners(record["bbox"], width, height)
+            if corners is None:
+                continue
+            x1, y1, x2, y2 = corners
             class_id = int(record["category_id"])
             color = CLASS_COLOURS[class_id % len(CLASS_COLOURS)][::-1]  # BGR
-            top_left = (int(round(x)), int(round(y)) + banner)
-            bottom_right = (int(round(x + w)), int(round(y + h)) + banner)
+            top_left = (x1, y1 + banner)
+            bottom_right = (x2, y2 + banner)
             cv2.rectangle(tile, top_left, bottom_right, color, 2)
             name = class_names[class_id] if 0 <= class_id < len(class_names) else str(class_id)
             label = f"{name} {score:.2f}"
@@ -107,6 +119,31 @@ def plot_detection_strip(
         canvas[top : top + height + banner, left : left + width] = tile
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out_png), canvas):
-        raise OSError(f"{out_png}: expected OpenCV to write a PNG, it reported failure")
+    encoded, png = cv2.imencode(".png", canvas)
+    if not encoded:
+        raise OSError(f"{out_png}: expected OpenCV to encode a PNG, it reported failure")
+    try:  # written by Python, so a full disk is an OSError naming the file
+        out_png.write_bytes(png.tobytes())
+    except OSError as error:
+        raise file_error(error, out_png) from error
     return out_png
+
+
+def _visible_corners(bbox: Sequence[float], width: int, height: int) -> tuple[int, int, int, int] | None:
+    """The integer corners ``(x1, y1, x2, y2)`` of a ``[x, y, w, h]`` box clipped to just outside
+    a ``width`` x ``height`` image (an edge beyond the image is not drawn), or None for a box
+    that misses the image or is not finite: whatever a model reports, OpenCV gets small ints."""
+    x, y, w, h = (float(v) for v in bbox)
+    x1, y1, x2, y2 = x, y, x + w, y + h  # inf where x + w overflows: not finite, not drawn
+    if not all(math.isfinite(v) for v in (x1, y1, x2, y2)):
+        return None
+    x1, x2 = sorted((x1, x2))
+    y1, y2 = sorted((y1, y2))
+    if x2 < 0 or y2 < 0 or x1 > width or y1 > height:
+        return None
+    return _clip(x1, width), _clip(y1, height), _clip(x2, width), _clip(y2, height)
+
+
+def _clip(value: float, size: int) -> int:
+    """``value`` rounded into -2 .. size + 2 (a clipped edge lies just outside the image)."""
+    return int(round(min(max(value, -2.0), size + 2.0)))

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from .files import file_error
 from .paper import PAPER_COLORS
 from .records import as_float, index_records
 
@@ -85,5 +86,8 @@ def plot_metric_vs_rate(
     figure.tight_layout()
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out_png, format="png")
+    try:
+        figure.savefig(out_png, format="png")
+    except OSError as error:
+        raise file_error(error, out_png) from error
     return out_png

@@ -23,6 +23,7 @@ import numpy as np
 from rainbench.eval.metrics.robustness import mpc, percent_drop, rpc
 from rainbench.store.classes import CLASS_NAMES
 
+from .files import file_error
 from .paper import TABLE_CLASS_ORDER
 
 if TYPE_CHECKING:
@@ -243,19 +244,28 @@ def write_metrics(records: Sequence[Mapping[str, Any]], out_dir: str | Path) -> 
 
     Returns:
         (path of metrics.json, path of metrics.csv).
+
+    Raises:
+        OSError: one line naming the file that could not be written.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     fields = _field_order(records)
     cleaned = [{key: json_ready(record.get(key)) for key in fields} for record in records]
     json_path = out_dir / "metrics.json"
-    json_path.write_text(json.dumps(cleaned, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    try:
+        json_path.write_text(json.dumps(cleaned, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    except OSError as error:
+        raise file_error(error, json_path) from error
     csv_path = out_dir / "metrics.csv"
-    with csv_path.open("w", newline="", encoding="utf-8") as handle:
-        writer = csv.DictWriter(handle, fieldnames=fields)
-        writer.writeheader()
-        for record in cleaned:
-            writer.writerow({key: "" if value is None else value for key, value in record.items()})
+    try:
+        with csv_path.open("w", newline="", encoding="utf-8") as handle:
+            writer = csv.DictWriter(handle, fieldnames=fields)
+            writer.writeheader()
+            for record in cleaned:
+                writer.writerow({key: "" if value is None else value for key, value in record.items()})
+    except OSError as error:
+        raise file_error(error, csv_path) from error
     return json_path, csv_path
 
 

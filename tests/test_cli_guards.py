@@ -1,0 +1,215 @@
+"""Bad inputs found by a sweep of the command line: an incomplete dataset read as if whole,
+``verify`` passing a manifest that disagrees with its config or shards, flags that were ignored
+(``preview --rates``, ``--ray-address``, ``make dataset WEATHER=...``), a corrupt manifest that
+``--overwrite`` could not replace, an unreachable Ray address that hung, and a closed pipe
+reported as an error."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import pytest
+
+from rainbench import cli, store
+from rainbench.gen import dataset as ds
+from rainbench.gen.config import DatasetConfig
+from rainbench.store.manifest import sha256_of
+
+REPO = Path(__file__).resolve().parents[1]
+SMALL = dict(scenes=1, frames=4, frames_per_shard=2, width=96, height=72, rates=(0.0, 50.0))
+GENERATE = ["generate", "--frames", "4", "--frames-per-shard", "2", "--width", "96", "--height",
+            "72", "--rates", "0,50", "--quiet"]
+
+
+def _cli(argv):
+    try:
+        return cli.main([str(arg) for arg in argv])
+    except SystemExit as exit:
+        return exit.code
+
+
+def _one_line_error(capsys, code, pattern):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert re.fullmatch(r"rainbench: error: " + pattern, err[0]), err[0]
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """A complete dataset: 2 shards of 2 frames, 96 x 72, 0 and 50 mm/h."""
+    root = tmp_path_factory.mktemp("small")
+    ds.run_dataset(DatasetConfig(**SMALL), root, workers=1)
+    return root
+
+
+def _edited(small, target, change):
+    """A copy of ``small`` whose manifest ``change(manifest)`` edited in place."""
+    shutil.copytree(small, target)
+    manifest = json.loads((target / store.MANIFEST).read_text())
+    change(manifest)
+    (target / store.MANIFEST).write_text(json.dumps(manifest))
+    return target
+
+
+# -- an incomplete dataset is refused unless asked for ------------------------------------------
+
+@pytest.fixture()
+def incomplete(small, tmp_path):
+    """``small`` as a run cut off after its first shard leaves it."""
+    def cut(manifest):
+        manifest["complete"] = False
+        del manifest["shards"][1]
+    return _edited(small, tmp_path / "cut", cut)
+
+
+@pytest.mark.parametrize("argv", [
+    ["stats", "{data}"],
+    ["export", "{data}", "--format", "coco", "--out", "{tmp}/export"],
+    ["preview", "{data}", "--out", "{tmp}/preview.png"],
+    ["eval", "--data", "{data}", "--predictions", "{tmp}/predictions", "--out", "{tmp}/eval"],
+])
+def test_an_incomplete_dataset_is_refused_and_nothing_is_written(incomplete, tmp_path, capsys, argv):
+    argv = [arg.format(data=incomplete, tmp=tmp_path) for arg in argv]
+    flag = {"stats": "DATA", "export": "DATA", "preview": "SHARD", "eval": "--data"}[argv[0]]
+    _one_line_error(capsys, _cli(argv), re.escape(
+        f'{flag}: {incomplete} is an incomplete dataset (its manifest lists 1 finished shards and '
+        'says "complete": false): run the same rainbench generate again to finish it, or pass '
+        '--allow-incomplete to read the finished shards only'))
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["cut"]
+
+
+def test_allow_incomplete_reads_the_finished_shards_with_a_warning(incomplete, capsys):
+    assert _cli(["stats", incomplete, "--json", "--allow-incomplete"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["frames"] == 2  # the one finished shard of 2 frames
+    assert captured.err == (f"rainbench: warning: {incomplete} is incomplete: reading its 1 "
+                            "finished shards only\n")
+
+
+# -- verify checks the manifest against its config and its shards -------------------------------
+
+def _verify_problems(root, capsys):
+    code = _cli(["verify", root])
+    lines = capsys.readouterr().err.strip().splitlines()
+    return code, [line for line in lines if line.startswith("rainbench: bad: ")]
+
+
+def test_verify_finds_a_complete_manifest_without_its_shards(small, tmp_path, capsys):
+    root = _edited(small, tmp_path / "empty", lambda manifest: manifest.update(shards=[]))
+    code, problems = _verify_problems(root, capsys)
+    assert code == 1 and problems == [
+        f"rainbench: bad: {root / store.MANIFEST}: says complete but lists 0 of the config's 2 "
+        "shards (first missing: scene 0, frame offset 0)"]
+
+
+def test_verify_finds_rates_that_disagree(small, tmp_path, capsys):
+    root = _edited(small, tmp_path / "rates",
+                   lambda manifest: manifest["shards"][0].update(rates=[0.0, 25.0]))
+    code, problems = _verify_problems(root, capsys)
+    assert code == 1 and problems == [
+        f"rainbench: bad: {root / store.MANIFEST}: shards[0] (scene000000_f00000.h5): rates "
+        "'0,25' disagree with the config's '0,50'",
+        f"rainbench: bad: {root / 'scene000000_f00000.h5'}: its rates '0,50' disagree with the "
+        "manifest's '0,25'"]
+
+
+def test_verify_finds_a_shard_of_another_config(small, tmp_path, capsys):
+    root = _edited(small, tmp_path / "other",
+                   lambda manifest: manifest["shards"][1].update(scene_seed=7))
+    code, problems = _verify_problems(root, capsys)
+    assert code == 1 and problems == [
+        f"rainbench: bad: {root / store.MANIFEST}: shards[1] (scene000000_f00002.h5): scene 7, "
+        "frames 2..3 is not a shard of the manifest's config",
+        f"rainbench: bad: {root / store.MANIFEST}: says complete but lists 1 of the config's 2 "
+        "shards (first missing: scene 0, frame offset 2)"]
+
+
+def test_verify_finds_a_shard_whose_stored_rates_differ(small, tmp_path, capsys):
+    root = tmp_path / "stored"
+    shutil.copytree(small, root)
+    shard = root / "scene000000_f00002.h5"
+    with h5py.File(shard, "r+") as handle:
+        handle["rates"][1] = 60.0
+    manifest = json.loads((root / store.MANIFEST).read_text())
+    manifest["shards"][1].update(sha256=sha256_of(shard), bytes=shard.stat().st_size)
+    (root / store.MANIFEST).write_text(json.dumps(manifest))
+    code, problems = _verify_problems(root, capsys)
+    assert code == 1 and problems == [
+        f"rainbench: bad: {shard}: its rates '0,60' disagree with the manifest's '0,50'"]
+    assert _verify_problems(small, capsys) == (0, [])
+
+
+# -- flags that were ignored --------------------------------------------------------------------
+
+@pytest.mark.parametrize("flags, flag", [(["--rates", "a,b"], "--rates"), (["--rates", "50"], "--rates"),
+                                         (["--overwrite"], "--overwrite")])
+def test_preview_montage_refuses_video_only_flags(small, tmp_path, capsys, flags, flag):
+    code = _cli(["preview", small, "--out", tmp_path / "montage.png", *flags])
+    _one_line_error(capsys, code, re.escape(
+        f"{flag}: only used with --video (a montage shows every rate of one frame)"))
+    assert not (tmp_path / "montage.png").exists()
+
+
+def test_ray_address_needs_the_ray_executor(tmp_path, capsys):
+    code = _cli([*GENERATE, "--out", tmp_path / "out", "--ray-address", "127.0.0.1:1"])
+    _one_line_error(capsys, code, re.escape("--ray-address: only used with --executor ray"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_unreachable_ray_address_fails_at_once():
+    """Ray itself retried ``--ray-address foo:1`` for minutes; nothing listens on port 1."""
+    with pytest.raises(ds.DatasetError, match=r"^--ray-address 127\.0\.0\.1:1: nothing answers "
+                                              r"at 127\.0\.0\.1:1 \(.+\)$"):
+        ds._check_reachable("127.0.0.1:1")
+    with pytest.raises(ds.DatasetError, match=r"^--ray-address ray://127\.0\.0\.1:1: nothing"):
+        ds._check_reachable("ray://127.0.0.1:1")
+    for left_to_ray in (None, "auto", "local", "headnode"):
+        ds._check_reachable(left_to_ray)
+
+
+def test_make_dataset_refuses_a_bad_weather_and_quotes_paths():
+    bad = subprocess.run(["make", "-n", "-C", REPO, "dataset", "WEATHER=maybe"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode != 0
+    assert "WEATHER: expected on or off (or unset: the rain model decides), got 'maybe'" in bad.stderr
+    good = subprocess.run(["make", "-n", "-C", REPO, "dataset", "WEATHER=off", "OUT=a b"],
+                          capture_output=True, text=True, timeout=60)
+    assert good.returncode == 0, good.stderr
+    assert "--out 'a b'" in good.stdout and "--no-weather-follows-rate" in good.stdout
+
+
+# -- a corrupt manifest and --overwrite ---------------------------------------------------------
+
+def test_a_corrupt_manifest_names_overwrite_which_replaces_it(small, tmp_path, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(small, out)
+    (out / store.MANIFEST).write_text('{"complete": tru')
+    code = _cli([*GENERATE, "--out", out])
+    _one_line_error(capsys, code, re.escape(f"OUT: {out / store.MANIFEST}: not a readable manifest (")
+                    + r".+" + re.escape(f"); use --overwrite to replace the dataset in {out} or "
+                                        "choose another OUT"))
+    assert _cli([*GENERATE, "--out", out, "--overwrite"]) == 0
+    capsys.readouterr()
+    assert _cli(["verify", out]) == 0
+    assert store.read_manifest(out)["complete"]
+
+
+# -- a closed pipe ------------------------------------------------------------------------------
+
+def test_a_reader_that_goes_away_ends_the_command_quietly(small):
+    """``rainbench stats DATA | head -1``: the reader has gone before the output is written."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        result = subprocess.run([sys.executable, "-m", "rainbench.cli", "stats", str(small)],
+                                stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert (result.returncode, result.stderr) == (141, "")

@@ -1,0 +1,213 @@
+"""`rainbench train` and `rainbench paper` refuse bad input before generating anything: a recipe's
+architecture, init_weights and train() arguments, the device, the models and the rain models.
+Each case is a one-line error naming what is at fault, exit status 2, and no file written."""
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import torch
+
+from rainbench import cli
+from rainbench.eval.backends import BackendError
+from rainbench.eval.backends.ultralytics import _offline_ultralytics
+from rainbench.eval.pipeline import EvalError
+from rainbench.eval.weights import shipped_models
+from rainbench.experiments import train
+from rainbench.experiments.paper import PaperConfig, check_models, run_paper
+from rainbench.gen.config import DatasetConfig
+
+# Load torch's lazy modules before anything could render in this process (see test_eval_pipeline).
+_offline_ultralytics()
+import torch._dynamo  # noqa: E402,F401
+
+# Tiny data, never generated here: every case must fail before the first frame.
+TINY_RECIPE = """
+name: tiny-yolo
+architecture: yolo11n.yaml
+eval_imgsz: 96
+train_data: {seed: 1000000, scenes: 1, frames: 2, fps: 0.2, width: 160, height: 120}
+val_data: {seed: 2000000, scenes: 1, frames: 2, fps: 0.1, width: 160, height: 120}
+train: {epochs: 2, imgsz: 96, batch: 4, seed: 0, workers: 0, cache: false}
+cpu: {epochs: 1, imgsz: 64}
+"""
+PAPER_TINY = ["--frames", "2", "--width", "160", "--height", "120", "--rates", "0,50", "--quiet"]
+
+
+def _run(capsys, *argv):
+    code = cli.main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _one_line_error(err: str, message: str) -> None:
+    assert err == f"rainbench: error: {message}\n", err
+
+
+def _nothing_written(*roots: Path) -> None:
+    for root in roots:
+        assert not root.exists(), sorted(root.rglob("*"))
+    found = [p for p in roots[0].parent.rglob("*") if p.suffix in (".h5", ".png", ".onnx")
+             or p.name in ("manifest.json", "dataset.yaml", "shards.yaml", "recipe.json")]
+    assert not found, found
+
+
+def _recipe(tmp_path: Path, old: str = "", new: str = "") -> Path:
+    assert old in TINY_RECIPE
+    path = tmp_path / "recipe.yaml"
+    path.write_text(TINY_RECIPE.replace(old, new, 1) if old else TINY_RECIPE)
+    return path
+
+
+def _no_cuda(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+
+
+# ---- rainbench train ----------------------------------------------------------------------------
+
+
+def test_train_refuses_an_unknown_architecture_before_generating(tmp_path, capsys):
+    recipe = _recipe(tmp_path, "architecture: yolo11n.yaml", "architecture: nonexistent.yaml")
+    out = tmp_path / "tr"
+    code, stdout, err = _run(capsys, "train", "--recipe", recipe, "--out", out, "--device", "cpu")
+    assert code == 2 and stdout == ""
+    _one_line_error(err, f"{recipe}: `architecture`: 'nonexistent.yaml' is not an ultralytics model yaml or a file")
+    _nothing_written(out)
+
+
+@pytest.mark.parametrize("architecture, message", [
+    ("yolo11n.pt", "'yolo11n.pt' is not an ultralytics model yaml or a file"),
+    ("https://example.com/yolo11n.yaml", "'https://example.com/yolo11n.yaml' is not an ultralytics model yaml or a file"),
+    ("RECIPE", "RECIPE is not an ultralytics model yaml (it needs `backbone` and `head`)"),
+])
+def test_architecture_must_be_a_model_yaml_ultralytics_finds(tmp_path, architecture, message):
+    recipe = _recipe(tmp_path)
+    architecture = architecture.replace("RECIPE", str(recipe))
+    with pytest.raises(train.TrainError) as error:
+        train.check_architecture(architecture, "R")
+    assert str(error.value) == "R: `architecture`: " + message.replace("RECIPE", str(recipe))
+    # what ultralytics builds by name, or from its file
+    assert train.check_architecture("yolo11n.yaml", "R") == "yolo11n.yaml"
+    assert train.check_architecture("yolov8s.yaml", "R") == "yolov8s.yaml"
+
+
+def test_train_checks_a_recipe_object_before_writing(tmp_path):
+    """train() itself refuses a Recipe whose architecture cannot be built (one not from load_recipe)."""
+    recipe = dataclasses.replace(train.load_recipe(_recipe(tmp_path)), architecture="nonexistent.yaml")
+    out = tmp_path / "tr"
+    with pytest.raises(train.TrainError, match=r"`architecture`: 'nonexistent.yaml' is not an ultralytics"):
+        train.train(recipe, out, device="cpu")
+    _nothing_written(out)
+
+
+@pytest.mark.parametrize("device, message", [
+    ("banana", "--device: expected cpu, a CUDA index (0) or cuda:N, got 'banana'"),
+    ("cuda:x", "--device: expected cpu, a CUDA index (0) or cuda:N, got 'cuda:x'"),
+    ("0", "--device 0: CUDA is not available on this machine"),
+    ("cuda:0", "--device cuda:0: CUDA is not available on this machine"),
+])
+def test_train_refuses_a_device_before_generating(tmp_path, capsys, monkeypatch, device, message):
+    _no_cuda(monkeypatch)
+    out = tmp_path / "tr"
+    code, _, err = _run(capsys, "train", "--recipe", _recipe(tmp_path), "--out", out, "--device", device)
+    assert code == 2
+    _one_line_error(err, message)
+    _nothing_written(out)
+
+
+def test_check_device_normalises_what_it_accepts(monkeypatch):
+    assert train.check_device(None) is None and train.check_device("") is None
+    assert train.check_device("cpu") == train.check_device(" CPU ") == "cpu"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert train.check_device("cuda:1") == "1" and train.check_device("cuda") == "0"
+    assert train.check_device("0,1") == "0,1"
+    with pytest.raises(train.TrainError, match=r"^--device 2: there is no CUDA device 2 \(2 visible\)$"):
+        train.check_device("2")
+    with pytest.raises(BackendError, match="got 'tpu'"):
+        train.check_device("tpu")
+
+
+@pytest.mark.parametrize("old, new, message", [
+    ("epochs: 2", "epochs: -5", "`train.epochs` must be an integer >= 1, got -5"),
+    ("imgsz: 96, batch", "imgsz: 16, batch", "`train.imgsz` must be an integer >= 32 (px), got 16"),
+    ("batch: 4", "batch: 0", "`train.batch` must be an integer >= 1, -1 (AutoBatch) or a GPU memory fraction in "
+                             "(0, 1), got 0"),
+    ("workers: 0", "workers: -1", "`train.workers` must be an integer >= 0, got -1"),
+    ("cache: false", "cache: false, lr0: -0.1",
+     "`train.lr0`: 'lr0=-0.1' is an invalid value. Valid 'lr0' values are between 0.0 and 1.0."),
+    ("cache: false", "cache: false, warmup_epochs: -1", "`train.warmup_epochs` must be a number >= 0, got -1"),
+    ("cache: false", "cache: false, epoch: 3", "`train.epoch` is not an ultralytics train() argument"),
+    ("cpu: {epochs: 1", "cpu: {epochs: 0", "`cpu.epochs` must be an integer >= 1, got 0"),
+    ("imgsz: 64}", "imgsz: 64, restarts: [{epochs: 2}, {imgsz: 20}]}",
+     "`cpu.restarts[2].imgsz` must be an integer >= 32 (px), got 20"),
+    ("eval_imgsz: 96", "eval_imgsz: 96\ninit_weights: missing.pt",
+     "`init_weights`: missing.pt: expected a shipped model name (" + ", ".join(shipped_models())
+     + ") or an existing .pt checkpoint"),
+])
+def test_train_refuses_bad_recipe_values_before_generating(tmp_path, capsys, old, new, message):
+    recipe = _recipe(tmp_path, old, new)
+    out = tmp_path / "tr"
+    code, _, err = _run(capsys, "train", "--recipe", recipe, "--out", out, "--device", "cpu")
+    assert code == 2
+    _one_line_error(err, f"{recipe}: {message}")
+    _nothing_written(out)
+
+
+def test_recipes_keep_what_ultralytics_accepts(tmp_path):
+    for old, new in (("batch: 4", "batch: -1"), ("batch: 4", "batch: 0.7"),
+                     ("cpu: {epochs: 1, imgsz: 64}", "cpu: {epochs: 1, imgsz: 64, restarts: [{lr0: 0.0}]}")):
+        train.load_recipe(_recipe(tmp_path, old, new))
+    for name in ("rainbench-yolo11n", "rainbench-yolo11s", "rainbench-yolo11n-weak"):
+        train.load_recipe(name)
+
+
+# ---- rainbench paper ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--model", "foo"], "--model: 'foo' is neither a shipped model (" + ", ".join(shipped_models())
+     + ") nor an existing weights file"),
+    (["--model", "rainbench-yolo11n", "--weights", "w/x.pt"],
+     "--weights: w/x.pt does not exist (weights are loaded from local files only)"),
+    (["--weights", "foo"], "--weights: 'foo' is neither a shipped model (" + ", ".join(shipped_models())
+     + ") nor an existing weights file"),
+    (["--model", "rainbench-yolo11n", "--model", "rainbench-yolo11n"],
+     "--model: rainbench-yolo11n is a second model named 'rainbench-yolo11n' (after --model rainbench-yolo11n); "
+     "model names (file stems) must be unique"),
+    (["--model", "rainbench-yolo11n", "--weights", "w/rainbench-yolo11n.pt"],
+     "--weights: w/rainbench-yolo11n.pt is a second model named 'rainbench-yolo11n' (after --model "
+     "rainbench-yolo11n); model names (file stems) must be unique"),
+    (["--model", "rainbench-yolo11n", "--device", "banana"],
+     "--device: expected cpu, a CUDA index (0) or cuda:N, got 'banana'"),
+    (["--model", "rainbench-yolo11n", "--device", "0"], "--device 0: CUDA is not available on this machine"),
+    (["--model", "rainbench-yolo11n", "--rain-models", "jeon2022,jeon2022"], "--rain-models: jeon2022 is named twice"),
+    (["--model", "rainbench-yolo11n", "--rain-models", "jeon2022,rainy"],
+     "--rain-models: expected some of jeon2022, physical, got ['jeon2022', 'rainy']"),
+])
+def test_paper_refuses_models_devices_and_rain_models_before_generating(tmp_path, capsys, monkeypatch, flags,
+                                                                        message):
+    _no_cuda(monkeypatch)
+    monkeypatch.chdir(tmp_path)
+    if "w/rainbench-yolo11n.pt" in flags:
+        (tmp_path / "w").mkdir()
+        (tmp_path / "w" / "rainbench-yolo11n.pt").write_bytes(b"not read")
+    code, stdout, err = _run(capsys, "paper", *PAPER_TINY, *flags, "--out", "pp", "--data", "pd")
+    assert code == 2 and stdout == ""
+    _one_line_error(err, message)
+    _nothing_written(tmp_path / "pp", tmp_path / "pd")
+
+
+def test_run_paper_checks_models_and_device_before_generating(tmp_path):
+    dataset = DatasetConfig(frames=2, width=160, height=120, rates=(0.0, 50.0))
+    out, data = tmp_path / "pp", tmp_path / "pd"
+    with pytest.raises(EvalError, match=r"^--weights: .*missing\.pt does not exist"):
+        run_paper(PaperConfig(dataset=dataset, rain_models=("jeon2022",), weights=(str(tmp_path / "missing.pt"),)),
+                  out, data, progress=False)
+    with pytest.raises(BackendError, match="got 'banana'"):
+        run_paper(PaperConfig(dataset=dataset, rain_models=("jeon2022",), device="banana"), out, data, progress=False)
+    _nothing_written(out, data)
+    with pytest.raises(EvalError, match="^--rain-models: physical is named twice$"):
+        PaperConfig(dataset=dataset, rain_models=("physical", "jeon2022", "physical"))
+    check_models([("--model", name) for name in shipped_models()])  # every shipped name is known
