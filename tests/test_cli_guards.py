@@ -213,3 +213,24 @@ def test_a_reader_that_goes_away_ends_the_command_quietly(small):
     finally:
         os.close(write_end)
     assert (result.returncode, result.stderr) == (141, "")
+
+
+# -- weights named badly ------------------------------------------------------------------------
+
+def test_an_empty_weights_name_is_named_as_such(small, tmp_path, capsys):
+    code = _cli(["eval", "--data", small, "--weights", "", "--out", tmp_path / "eval"])
+    _one_line_error(capsys, code, r"--weights: expected a shipped model name \(rainbench-yolo11n, .*\) "
+                                  r"or a weights file, got an empty name")
+    assert not (tmp_path / "eval").exists()
+
+
+def test_a_long_checkpoint_error_is_cut_at_a_word(small, tmp_path, capsys):
+    (tmp_path / "empty.pt").write_bytes(b"")
+    code = _cli(["eval", "--data", small, "--weights", tmp_path / "empty.pt", "--out", tmp_path / "eval"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    reason = re.fullmatch(r"rainbench: error: --weights: .*empty\.pt is not a loadable ultralytics "
+                          r"checkpoint \((.+)\)", err[0]).group(1)
+    # whole words: a reason cut short ends with " ..." after a complete word of ultralytics' text
+    assert len(reason) <= 204 and (not reason.endswith("...") or reason.endswith(" ..."))
+    assert not (tmp_path / "eval").exists()

@@ -163,7 +163,9 @@ def _load_ultralytics(path: Path, class_map: str | None, device: str | None, tru
     except BackendError:
         raise
     except Exception as error:  # ultralytics raises TypeError, RuntimeError, pickle errors, ...
-        reason = " ".join(str(error).split())[:200]
+        reason = " ".join(str(error).split())
+        if len(reason) > 200:  # ultralytics' advice runs on; keep its first sentence, whole words
+            reason = reason[:200].rsplit(" ", 1)[0] + " ..."
         raise BackendError(f"--weights: {path} is not a loadable ultralytics checkpoint ({reason})") from None
     if getattr(model, "task", None) != "detect":
         raise BackendError(f"--weights: {path} is a {getattr(model, 'task', 'unknown')!r} model; "

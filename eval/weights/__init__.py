@@ -107,6 +107,9 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
     beside it). Raises :class:`BackendError` for a missing file.
     """
     text = str(spec)
+    if not text.strip():
+        raise BackendError(f"--weights: expected a shipped model name ({', '.join(shipped_models()) or 'none'}) "
+                           "or a weights file, got an empty name")
     path = Path(text)
     checkpoint = _shipped_file(text, ".pt")
     if checkpoint is not None:
