@@ -84,3 +84,29 @@ def test_missing_gl_backend_names_the_packages():
     assert gl.configure(env, find_library=lambda name: "lib.so") == "osmesa"  # user's choice kept
     env = {}
     assert gl.configure(env, find_library=lambda name: "lib" + name) == "egl"
+
+
+def test_an_actor_alone_in_a_window_is_the_window_of_the_whole_canvas(make_tiny_scene):
+    """render_alone rasterises only the window's rows (a frustum cut to them): each window's
+    ids equal those rows and columns of the whole padded canvas rendered at once, for windows
+    at the top, middle and bottom of the canvas and one cut through an actor."""
+    boxes = [((10.0, 0.7, 1.2), (0.5, 0.8, 0.6)), ((14.0, -3.0, 2.5), (0.4, 0.4, 1.5)),
+             ((6.0, 6.5, 0.8), (0.3, 0.5, 0.8))]  # the last one crosses the image's left edge
+    model, table = make_tiny_scene(boxes, W, H)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    with FrameRenderer(model, W, H, table) as renderer:
+        renderer.update(data)
+        width, height = renderer.padded_width, renderer.padded_height
+        ids = list(range(len(boxes)))
+        whole = renderer.render_alone(data, ids, (0, 0, width, height))
+        assert set(np.unique(whole)) == {-1, 0, 1, 2}
+        projected = renderer.actor_boxes_padded(data)
+        windows = [(0, 0, width, height // 3), (0, height // 3, width, 2 * height // 3),
+                   (width // 4, 2 * height // 3, width, height)]
+        windows += [lb.union_window([projected[i]], (width, height)) for i in ids]
+        x0, y0, x1, y1 = windows[-1]
+        windows.append((x0, (y0 + y1) // 2, x1, y1))  # half an actor
+        for x0, y0, x1, y1 in windows:
+            window = renderer.render_alone(data, ids, (x0, y0, x1, y1))
+            np.testing.assert_array_equal(window, whole[y0:y1, x0:x1], err_msg=str((x0, y0, x1, y1)))
