@@ -17,7 +17,8 @@ from pathlib import Path
 import h5py
 import pytest
 
-from rainbench import cli, store
+from cli_errors import cli_status, one_line_error
+from rainbench import store
 from rainbench.gen import dataset as ds
 from rainbench.gen.config import DatasetConfig
 from rainbench.store.manifest import sha256_of
@@ -28,17 +29,8 @@ GENERATE = ["generate", "--frames", "4", "--frames-per-shard", "2", "--width", "
             "72", "--rates", "0,50", "--quiet"]
 
 
-def _cli(argv):
-    try:
-        return cli.main([str(arg) for arg in argv])
-    except SystemExit as exit:
-        return exit.code
-
-
-def _one_line_error(capsys, code, pattern):
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1, err
-    assert re.fullmatch(r"rainbench: error: " + pattern, err[0]), err[0]
+_cli = cli_status
+_one_line_error = one_line_error
 
 
 @pytest.fixture(scope="module")

@@ -29,6 +29,7 @@ from rainbench.gen.generate import build_scene, generate_shard
 from rainbench.gen.render import FrameRenderer, padded_size
 from rainbench.store.shard import ShardFormatError
 from rainbench.mjcf.scene import build_spec
+from cli_errors import cli_status, one_line_error
 
 # torch's triton segfaults when first loaded after Mesa's llvmpipe rendered in this process
 # (tests/test_eval_pipeline.py): load it at collection, before any fixture renders.
@@ -52,19 +53,8 @@ def _hashes(root):
     return [(entry["path"], entry["sha256"]) for entry in manifest["shards"]]
 
 
-def _cli(argv):
-    """cli.main's exit status, argparse's SystemExit included."""
-    try:
-        return cli.main(argv)
-    except SystemExit as exit:
-        return exit.code
-
-
-def _one_line_error(capsys, code, pattern):
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1, err
-    assert re.fullmatch(r"rainbench: error: " + pattern, err[0]), err[0]
-    return err[0]
+_cli = cli_status
+_one_line_error = one_line_error
 
 
 def _copy_tree(source, target):
