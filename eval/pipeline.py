@@ -38,7 +38,7 @@ from .metrics.bootstrap import bootstrap_ci
 from .metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS, coco_detections, coco_ground_truth
 from .metrics.evaluation import evaluate
 from .report.figures import plot_detection_strip
-from .report.files import file_error
+from rainbench.store.images import file_error
 from .report.markdown import render_report_md
 from .report.paper import PAPER_TABLES
 from .report.plots import plot_metric_vs_rate

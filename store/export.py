@@ -42,6 +42,7 @@ import numpy as np
 
 from .classes import CLASS_NAMES, LABELLED_CLASSES, PAPER_CLASSES, parse_classes
 from .dataset import Dataset
+from .images import write_image
 from .manifest import DatasetError
 from .rates import rate_token
 
@@ -152,9 +153,7 @@ def _check_image_format(image_format: str) -> str:
 
 def _write_image(path: Path, rgb: np.ndarray) -> None:
     """Write an (H, W, 3) uint8 RGB image (PNG lossless, JPEG quality 95)."""
-    params = [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY] if path.suffix == ".jpg" else []
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1]), params):
-        raise OSError(f"{path}: could not write the image")
+    write_image(path, rgb, [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY] if path.suffix == ".jpg" else [])
 
 
 def _yolo_lines(boxes: np.ndarray, class_ids: np.ndarray, width: int, height: int) -> str:

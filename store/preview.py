@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from .classes import CLASS_COLOURS
+from .images import write_image
 
 IGNORE_COLOUR = (150, 150, 150)
 """RGB of ignore regions (actors too small or hidden to be labels) in previews."""
@@ -62,12 +63,8 @@ def write_png(path, image: np.ndarray) -> None:
         raise OSError(f"{path}: expected a .png file name")
     tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}.png")
     try:
-        written = cv2.imwrite(str(tmp), np.ascontiguousarray(image[:, :, ::-1]))
-    except cv2.error as error:
-        reason = " ".join(str(error).split())[-160:]
+        write_image(tmp, image)
+    except OSError as error:
         tmp.unlink(missing_ok=True)
-        raise OSError(f"{path}: could not write the PNG ({reason})") from None
-    if not written:
-        tmp.unlink(missing_ok=True)
-        raise OSError(f"{path}: could not write the PNG")
+        raise OSError(str(error).replace(str(tmp), str(path), 1)) from None
     os.replace(tmp, path)

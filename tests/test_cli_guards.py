@@ -226,3 +226,35 @@ def test_a_long_checkpoint_error_is_cut_at_a_word(small, tmp_path, capsys):
     # whole words: a reason cut short ends with " ..." after a complete word of ultralytics' text
     assert len(reason) <= 204 and (not reason.endswith("...") or reason.endswith(" ..."))
     assert not (tmp_path / "eval").exists()
+
+
+# -- image files on a full disk -----------------------------------------------------------------
+
+def test_write_image_writes_what_imwrite_writes(tmp_path):
+    import cv2
+    import numpy as np
+
+    from rainbench.store.images import write_image
+
+    rgb = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    for suffix, params in ((".png", []), (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 95])):
+        write_image(tmp_path / f"ours{suffix}", rgb, params)
+        cv2.imwrite(str(tmp_path / f"opencv{suffix}"), rgb[:, :, ::-1].copy(), params)
+        assert (tmp_path / f"ours{suffix}").read_bytes() == (tmp_path / f"opencv{suffix}").read_bytes()
+    with pytest.raises(OSError, match=r"^.*image\.xyz: could not encode the image"):
+        write_image(tmp_path / "image.xyz", rgb)
+
+
+def test_export_on_a_full_disk_is_one_line_naming_the_image(small, tmp_path, capsys, monkeypatch):
+    """libpng printed its own `libpng error: Write Error` line before rainbench's."""
+    write_bytes = Path.write_bytes
+
+    def full_disk(self, data):
+        if self.suffix == ".png":
+            raise OSError(28, "No space left on device")
+        return write_bytes(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full_disk)
+    code = _cli(["export", small, "--format", "yolo", "--out", tmp_path / "export"])
+    _one_line_error(capsys, code, r"\S+\.png: No space left on device")
+    assert not (tmp_path / "export").exists()

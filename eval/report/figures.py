@@ -14,7 +14,7 @@ import numpy as np
 
 from rainbench.store.classes import CLASS_COLOURS, CLASS_NAMES
 
-from .files import file_error
+from rainbench.store.images import write_image
 
 
 def plot_detection_strip(
@@ -119,14 +119,7 @@ def plot_detection_strip(
         canvas[top : top + height + banner, left : left + width] = tile
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    encoded, png = cv2.imencode(".png", canvas)
-    if not encoded:
-        raise OSError(f"{out_png}: expected OpenCV to encode a PNG, it reported failure")
-    try:  # written by Python, so a full disk is an OSError naming the file
-        out_png.write_bytes(png.tobytes())
-    except OSError as error:
-        raise file_error(error, out_png) from error
-    return out_png
+    return write_image(out_png, canvas[:, :, ::-1])  # the canvas is BGR
 
 
 def _visible_corners(bbox: Sequence[float], width: int, height: int) -> tuple[int, int, int, int] | None:

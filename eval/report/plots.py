@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from .files import file_error
+from rainbench.store.images import file_error
 from .paper import PAPER_COLORS
 from .records import as_float, index_records
 

@@ -23,7 +23,7 @@ import numpy as np
 from rainbench.eval.metrics.robustness import mpc, percent_drop, rpc
 from rainbench.store.classes import CLASS_NAMES
 
-from .files import file_error
+from rainbench.store.images import file_error
 from .paper import TABLE_CLASS_ORDER
 
 if TYPE_CHECKING:

@@ -1,0 +1,51 @@
+"""Writing image files: encoded in memory, then written by Python, so a failure (a full disk, a
+folder that is gone) is one OSError naming the file and libpng prints nothing of its own."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def write_image(path: str | Path, rgb: np.ndarray, params: Sequence[int] = ()) -> Path:
+    """Write an image file in the format of ``path``'s suffix (``.png``: lossless; ``.jpg``:
+    OpenCV's ``params``, e.g. ``[cv2.IMWRITE_JPEG_QUALITY, 95]``); the bytes are those
+    ``cv2.imwrite`` writes.
+
+    Args:
+        path: file to write (its folder must exist).
+        rgb: (H, W, 3) uint8, channels R, G, B.
+        params: OpenCV encoder parameters.
+
+    Returns:
+        ``path``.
+
+    Raises:
+        OSError: one line, ``PATH: <reason>``, when the image cannot be encoded or written.
+    """
+    path = Path(path)
+    try:
+        encoded, data = cv2.imencode(path.suffix, np.ascontiguousarray(rgb[:, :, ::-1]), list(params))
+    except cv2.error as error:
+        raise OSError(f"{path}: could not encode the image ({' '.join(str(error).split())[-160:]})") from None
+    if not encoded:
+        raise OSError(f"{path}: could not encode the image")
+    try:
+        path.write_bytes(data.tobytes())
+    except OSError as error:
+        raise file_error(error, path) from error
+    return path
+
+
+def file_error(error: OSError, path: str | Path) -> OSError:
+    """A one-line OSError ``PATH: <reason>`` for ``error`` raised while writing ``path``
+    (``No space left on device`` rather than ``[Errno 28] ...``, which names no file); its
+    ``errno`` is kept, and a message that already starts with the path is kept as it is."""
+    path = str(path)
+    detail = error.strerror or " ".join(str(error).split()) or type(error).__name__
+    named = OSError(detail if detail.startswith(f"{path}: ") else f"{path}: {detail}")
+    named.errno = error.errno
+    return named
