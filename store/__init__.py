@@ -11,7 +11,8 @@
 - :mod:`~rainbench.store.reader`: :class:`ShardReader` (numpy) and ``ShardDataset`` (torch,
   imported on first use);
 - :mod:`~rainbench.store.export`, :mod:`~rainbench.store.video`,
-  :mod:`~rainbench.store.preview`, :mod:`~rainbench.store.stats`: what is made from a dataset.
+  :mod:`~rainbench.store.preview`, :mod:`~rainbench.store.stats`: what is made from a dataset;
+  :mod:`~rainbench.store.images`: the image-file writer they and the evaluator share.
 
 Importing it imports neither MuJoCo, nor OpenGL, nor torch.
 """
