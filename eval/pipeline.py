@@ -620,6 +620,8 @@ def _write_outputs(records: list[dict[str, Any]], dataset: Dataset, gt: dict, de
             (out_dir / name).unlink(missing_ok=True)
         except OSError as error:
             raise file_error(error, out_dir / name) from error
+    for stale in out_dir.glob(".report.tmp-*"):  # the staging folder of a run killed while writing
+        shutil.rmtree(stale, ignore_errors=True)
     try:
         staging = Path(tempfile.mkdtemp(prefix=".report.tmp-", dir=out_dir))
     except OSError as error:

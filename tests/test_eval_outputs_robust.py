@@ -131,6 +131,16 @@ def test_a_failed_write_leaves_no_report_and_names_the_file(data_dir, tmp_path, 
     assert _left(out) == sorted(pipeline.REPORT_OUTPUTS)
 
 
+def test_a_run_killed_while_writing_leaves_no_staging_behind_the_next(data_dir, tmp_path):
+    preds = _predictions(tmp_path / "preds", {0.0: GOOD, 50.0: GOOD})
+    out = tmp_path / "out"
+    stale = out / ".report.tmp-killed"
+    stale.mkdir(parents=True)
+    (stale / "report.md").write_text("half")
+    _eval(data_dir, preds, out)
+    assert not stale.exists() and _left(out) == sorted(pipeline.REPORT_OUTPUTS)
+
+
 def test_a_failed_cache_write_leaves_no_half_file(tmp_path, monkeypatch):
     path = tmp_path / "predictions" / "m" / "rate_0.json"
     real = pathlib.Path.write_text
