@@ -320,8 +320,9 @@ class FrameRenderer:
         finally:
             groups[:] = saved
         # Only the window's rows are rasterised: the frustum is cut to canvas rows y0..y1 and
-        # rendered into a viewport of that height and the canvas's width. The pixels are those
-        # of the whole canvas (tested equal; 30 % faster on the residential street). Columns
+        # rendered into a viewport of that height and the canvas's width: 30 % faster on the
+        # residential street. The pixels are the whole canvas's but for a rare edge pixel (1 in
+        # 10 million measured, bench/RESULTS.md; equal on the tiny scene of the test). Columns
         # cannot be cut the same way: mjr_render does not honour an off-centre frustum_center.
         scale = self.padded_height / self.height
         for gl_camera in self._scene.camera:  # mjr_render averages both (stereo) cameras
