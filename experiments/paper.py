@@ -147,22 +147,17 @@ def check_models(specs: Sequence[tuple[str, str | Path]]) -> None:
     (:func:`rainbench.eval.weights.resolve_weights`' rule, without building anything), and the
     model names (a shipped name, else the file's stem) must be unique, as ``run_eval`` requires.
     The error is one line naming the flag and the model."""
-    from rainbench.eval.weights import shipped_models
+    from rainbench.eval.weights import shipped_models, weights_location
 
-    shipped = shipped_models()
     seen: dict[str, str] = {}
     for flag, spec in specs:
         text = str(spec)
-        path = Path(text)
-        is_shipped = path.suffix == "" and text in shipped
-        if path.suffix.lower() == ".cfg":  # a Darknet model is its .weights beside the .cfg
-            path = path.with_suffix(".weights")
-        if not is_shipped and not path.is_file():
+        checkpoint, path, name = weights_location(text)
+        if checkpoint is None and not path.is_file():
             if path.suffix == "":
-                raise EvalError(f"{flag}: {text!r} is neither a shipped model ({', '.join(shipped) or 'none'}) "
-                                "nor an existing weights file")
+                raise EvalError(f"{flag}: {text!r} is neither a shipped model "
+                                f"({', '.join(shipped_models()) or 'none'}) nor an existing weights file")
             raise EvalError(f"{flag}: {path} does not exist (weights are loaded from local files only)")
-        name = text if is_shipped else path.stem
         if name in seen:
             raise EvalError(f"{flag}: {text} is a second model named {name!r} (after {seen[name]}); model names "
                             "(file stems) must be unique")

@@ -97,6 +97,19 @@ def checkpoint_file(spec: str | Path) -> Path:
     return path
 
 
+def weights_location(spec: str | Path) -> tuple[Path | None, Path, str]:
+    """Where a weights spec points, without checking or building anything: (the shipped ``.pt``
+    when ``spec`` is a shipped model's name, else None; the local file it names otherwise, a
+    Darknet ``.cfg``'s ``.weights`` beside it; the model name: the shipped name, else that
+    file's stem). :func:`resolve_weights` and ``make paper``'s up-front check share this rule."""
+    text = str(spec)
+    checkpoint = _shipped_file(text, ".pt")
+    path = Path(text)
+    if path.suffix.lower() == ".cfg":
+        path = path.with_suffix(".weights")
+    return checkpoint, path, text if checkpoint is not None else path.stem
+
+
 def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, str]:
     """``(file, model name)`` for a weights spec: a shipped model's name, or a local file.
 
@@ -110,20 +123,17 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
     if not text.strip():
         raise BackendError(f"--weights: expected a shipped model name ({', '.join(shipped_models()) or 'none'}) "
                            "or a weights file, got an empty name")
-    path = Path(text)
-    checkpoint = _shipped_file(text, ".pt")
+    checkpoint, path, name = weights_location(text)
     if checkpoint is not None:
         if _on_cuda(device):
-            return checkpoint, text
-        return (_shipped_file(text, ".onnx") or cached_onnx(checkpoint)), text
-    if path.suffix.lower() == ".cfg":
-        path = path.with_suffix(".weights")
+            return checkpoint, name
+        return (_shipped_file(text, ".onnx") or cached_onnx(checkpoint)), name
     if not path.is_file():
         hint = ""
         if path.suffix == "":
             hint = f"; shipped models: {', '.join(shipped_models()) or 'none'}"
         raise BackendError(f"--weights: {path} does not exist (weights are loaded from local files only{hint})")
-    return path, path.stem
+    return path, name
 
 
 def model_imgsz(spec: str | Path) -> int:
