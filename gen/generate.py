@@ -98,7 +98,8 @@ def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup
     in ``weathers`` other than the base weather."""
     renderer.update(data)
     rgb = renderer.render_rgb()
-    if depth:
+    rerender = any(weather != renderer.base_weather for weather in weathers)
+    if depth or rerender:  # the re-renders lay puddles where the depth shows the road
         visible, _, depth_map = renderer.render_instances_depth()
     else:  # the same segmentation without reading the depth buffer back
         visible, _ = renderer.render_instances()
@@ -111,9 +112,10 @@ def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup
             continue
         key = render_key(weather)
         if key not in rendered:  # weathers that differ only in light level share a render
-            rendered[key] = renderer.render_weather(data, weather)
+            rendered[key] = renderer.render_weather(data, weather, depth_map)
         others[weather] = rendered[key]
-    return FrameResult(rgb, depth_map, visible, labels, camera_pose(setup.model, data, "ego"),
+    return FrameResult(rgb, depth_map if depth else None, visible, labels,
+                       camera_pose(setup.model, data, "ego"),
                        others, float(data.time))
 
 

@@ -16,7 +16,8 @@ from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
-from rainbench.rain.weather import Weather, road_mirror_weight
+from rainbench.rain.weather import (PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY, Weather,
+                                     puddle_coverage, road_mirror_weight)
 
 from rainbench.gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
 from rainbench.gl import state as _gl_state
@@ -181,40 +182,75 @@ class FrameRenderer:
         mujoco.mjv_updateScene(self.model, data, self._option, None, self._camera,
                                mujoco.mjtCatBit.mjCAT_ALL, self._scene)
 
-    def render_weather(self, data: mujoco.MjData, weather: Weather) -> np.ndarray:
+    def render_weather(self, data: mujoco.MjData, weather: Weather,
+                       depth: np.ndarray | None = None) -> np.ndarray:
         """RGB (H, W, 3) uint8 of the state in ``data`` under ``weather`` (same geometry, same
-        camera; puddles drawn when the weather has them). Replaces the scene built by
-        :meth:`update`; the next :meth:`update` restores the base weather."""
+        camera). Replaces the scene built by :meth:`update`; the next :meth:`update` restores
+        the base weather.
+
+        ``depth``: (H, W) float32 metres along the optical axis of the same state, +inf for sky
+        (:meth:`render_instances_depth`), needed when the weather has puddles: they are laid
+        over the image where the road is seen (:func:`rainbench.rain.weather.puddle_coverage`),
+        not drawn by MuJoCo."""
         self._require_open()
         if self._rig is None:
             raise RuntimeError("render_weather: this renderer has no base_weather (the scene "
                                "has no 'sun' and 'skylight' lights)")
         self._set_weather(weather)
+        puddles = self._rig.puddle_scale > 0
+        if puddles and (depth is None or np.shape(depth) != (self.height, self.width)):
+            got = "None" if depth is None else str(np.shape(depth))
+            raise ValueError(f"render_weather: this weather has puddles, so depth is needed: "
+                             f"expected ({self.height}, {self.width}) from "
+                             f"render_instances_depth(), got {got}")
         option = self._weather_option
-        option.geomgroup[PUDDLE_GROUP] = self._rig.puddles_visible
+        option.geomgroup[PUDDLE_GROUP] = 0  # the puddle geoms only mark where puddles are
         option.geomgroup[CLOUD_DECK_GROUP] = self._rig.cloud_deck
         self._set_segmentation(False)
         surface = self._render_rgb(data, option)
-        if self._rig.road_reflectance <= 0:
+        if self._rig.road_reflectance <= 0 and not puddles:
             return surface
         # MuJoCo's mirror is angle independent: render the road as a full mirror and blend it
         # over the plain render with water's Fresnel weight per pixel (rain/weather.py)
         self._rig.set_mirror(True)
-        option.geomgroup[PUDDLE_GROUP] = 0  # the mirror shows the world, not the puddles' film
         try:
             mirror = self._render_rgb(data, option, self._rig.mirror_geom(data, self.camera_id),
                                       scale=MIRROR_SCALE)
         finally:
             self._rig.set_mirror(False)
-        rotation = camera_pose(self.model, data, self.model.camera(self.camera_id).name)[:3, :3]
-        key = (np.round(rotation, 9).tobytes(), self._rig.road_reflectance)
-        if key not in self._mirror_weights:  # the camera rides a level car: a few keys a clip
-            self._mirror_weights[key] = road_mirror_weight(
-                self.K, rotation, self.height, self.width, self._rig.road_reflectance)
-        weight = self._mirror_weights[key]
+        pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
+        rotation = pose[:3, :3]
         blended = surface.astype(np.float32)
-        blended += weight[..., None] * (mirror.astype(np.float32) - blended)
+        blended += self._mirror_weight(rotation, self._rig.road_reflectance)[..., None] * (
+            mirror.astype(np.float32) - blended)
+        if puddles:
+            self._lay_puddles(blended, surface, mirror, pose, depth)
         return np.rint(blended).astype(np.uint8)
+
+    def _mirror_weight(self, rotation: np.ndarray, reflectance: float) -> np.ndarray:
+        """(H, W) float32 :func:`road_mirror_weight`, cached (the camera rides a level car: a few
+        rotations a clip)."""
+        key = (np.round(rotation, 9).tobytes(), reflectance)
+        if key not in self._mirror_weights:
+            self._mirror_weights[key] = road_mirror_weight(self.K, rotation, self.height,
+                                                           self.width, reflectance)
+        return self._mirror_weights[key]
+
+    def _lay_puddles(self, blended: np.ndarray, surface: np.ndarray, mirror: np.ndarray,
+                     pose: np.ndarray, depth: np.ndarray) -> None:
+        """Blend the puddles into ``blended`` (H, W, 3) float32, in place: under each puddle
+        the plain ``surface`` dimmed by :data:`~rainbench.rain.weather.PUDDLE_UNDERLAY` and the
+        ``mirror`` with a puddle's stronger Fresnel weight."""
+        coverage = puddle_coverage(self.K, pose, depth, self._rig.puddles,
+                                   self._rig.puddle_scale, self._rig.puddle_phases)
+        rows = np.flatnonzero(coverage.any(axis=1))
+        if not rows.size:
+            return
+        band = slice(int(rows[0]), int(rows[-1]) + 1)  # only the rows puddles reach
+        weight = self._mirror_weight(pose[:3, :3], PUDDLE_MIRROR_REFLECTANCE)[band, :, None]
+        under = surface[band].astype(np.float32) * np.float32(PUDDLE_UNDERLAY)
+        water = under + weight * (mirror[band].astype(np.float32) - under)
+        blended[band] += coverage[band, :, None] * (water - blended[band])
 
     def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption,
                     mirror_geom: int = -1, scale: float = 1.0) -> np.ndarray:

@@ -1,9 +1,12 @@
 """Weather between renders: writes a :class:`~rainbench.rain.weather.Weather` into a compiled
-model (lights, materials, puddle sizes, sky texels) without rebuilding it.
+model (lights, materials, sky texels) without rebuilding it.
 
 :class:`WeatherRig` changes only model fields that MuJoCo's renderer reads at every render
-(``light_*``, ``vis.headlight``, ``mat_rgba``, ``mat_reflectance``, ``geom_size``/``geom_rgba``
-of the puddles) plus the sky texture, which it re-uploads to the GL context when the sky changes.
+(``light_*``, ``vis.headlight``, ``mat_rgba``, ``mat_reflectance``) plus the sky texture, which it
+re-uploads to the GL context when the sky changes. Puddles are not drawn by MuJoCo: the rig keeps
+their outlines (:attr:`WeatherRig.puddles`, from the scene's ``scenery/puddle*`` geoms) and the
+weather's :attr:`WeatherRig.puddle_scale`, and the renderer lays them over the image
+(:func:`rainbench.rain.weather.puddle_coverage`).
 Actors, poses and the camera are never touched, so labels of the clean geometry hold at every rate.
 
 At dusk and night (scenes with the lights of :mod:`rainbench.mjcf.lights`) it also writes the
@@ -18,7 +21,7 @@ import numpy as np
 
 from rainbench.mjcf import lights as tod
 from rainbench.mjcf.weather import scene_lighting
-from rainbench.rain.weather import Weather, sky_colours, sky_key
+from rainbench.rain.weather import Weather, puddle_outline_phases, sky_colours, sky_key
 
 _SKY_ELEVATION_CACHE: dict[int, np.ndarray] = {}
 MIRROR_AHEAD_M = 15.0
@@ -69,8 +72,13 @@ def render_key(weather: Weather) -> tuple:
 class WeatherRig:
     """Applies weathers to ``model``: a scene of :func:`rainbench.mjcf.scene.build_spec`, or any
     scene with a skybox texture ``sky`` and lights ``sun`` and ``skylight``; the materials
-    ``asphalt`` (the mirroring road), ``concrete``, ``grass``, ``puddle`` and ``cloud_deck`` are
-    used when present."""
+    ``asphalt`` (the mirroring road), ``concrete``, ``grass`` and ``cloud_deck`` are used when
+    present.
+
+    :attr:`puddles` is (N, 6) float64, each ``(x, y, z, half_length, half_width, yaw)`` of a
+    ``scenery/puddle*`` ellipsoid geom at full size (yaw about +z in radians), and
+    :attr:`puddle_phases` their outline phases; :attr:`puddle_scale` is the applied weather's
+    linear puddle size (0: none)."""
 
     def __init__(self, model: mujoco.MjModel) -> None:
         self.model = model
@@ -80,10 +88,15 @@ class WeatherRig:
                              "'sky' in the scene (see rainbench.mjcf.scene.build_spec)")
         self._sun, self._skylight = lights["sun"], lights["skylight"]
         self._materials = _ids(model, mujoco.mjtObj.mjOBJ_MATERIAL,
-                               ("asphalt", "concrete", "grass", "puddle", "cloud_deck"))
-        self._puddles = np.array([g for g in range(model.ngeom)
-                                  if model.geom(g).name.startswith("scenery/puddle")], np.int64)
-        self._puddle_size = model.geom_size[self._puddles].copy()
+                               ("asphalt", "concrete", "grass", "cloud_deck"))
+        geoms = np.array([g for g in range(model.ngeom)
+                          if model.geom(g).name.startswith("scenery/puddle")], np.int64)
+        quat = model.geom_quat[geoms]
+        yaw = 2.0 * np.arctan2(quat[:, 3], quat[:, 0])  # the geoms turn about +z only
+        self.puddles = np.column_stack([model.geom_pos[geoms], model.geom_size[geoms, :2], yaw]
+                                       ).astype(np.float64).reshape(-1, 6)
+        self.puddle_phases = puddle_outline_phases(len(geoms))
+        self.puddle_scale = 0.0
         sky = model.texture("sky")
         self._sky_id = int(sky.id)
         size = int(model.tex_width[self._sky_id])
@@ -92,7 +105,7 @@ class WeatherRig:
         self._sky_sin = skybox_sin_elevation(size)
         self._sky_key: tuple | None = None
         self._sky_texels: dict[tuple, np.ndarray] = {}
-        self.cloud_deck = self.puddles_visible = False
+        self.cloud_deck = False
         self.road_reflectance = 0.0
         self.time_of_day = scene_time_of_day(model)
         names = [model.light(i).name for i in range(model.nlight)]
@@ -206,11 +219,7 @@ class WeatherRig:
         self.road_reflectance = lighting.road_reflectance if "asphalt" in materials else 0.0
         if "asphalt" in materials:  # the renderer draws the mirror itself (FrameRenderer)
             model.mat_reflectance[materials["asphalt"]] = 0.0
-        if "puddle" in materials:
-            model.mat_rgba[materials["puddle"]] = lighting.puddle_rgba
-            model.geom_size[self._puddles] = self._puddle_size * [
-                max(lighting.puddle_scale, 1e-3), max(lighting.puddle_scale, 1e-3), 1.0]
-        self.puddles_visible = "puddle" in materials and lighting.puddle_rgba[3] > 0
+        self.puddle_scale = lighting.puddle_scale if len(self.puddles) else 0.0
         if "cloud_deck" in materials:
             model.mat_rgba[materials["cloud_deck"]] = lighting.cloud_deck_rgba
         self.cloud_deck = "cloud_deck" in materials and lighting.cloud_deck

@@ -17,7 +17,7 @@ from rainbench.rain.weather import sky_colours, weather_at
 
 from . import layout as L
 from . import lights, parts, textures, vehicles
-from .weather import scene_lighting
+from .weather import PUDDLE_RGBA, scene_lighting
 
 GEOM = mujoco.mjtGeom
 EGO_CAMERA = "ego"
@@ -25,7 +25,7 @@ ACTOR_PREFIX = "actor{:03d}/"
 # Render margin (fraction of width/height added on every side) of the unoccluded
 # "actor alone" pass that measures truncation; the framebuffer is sized for it.
 TRUNCATION_MARGIN = 0.25
-PUDDLE_GROUP = 3  # puddles are drawn only when the road is wet (not in segmentation passes)
+PUDDLE_GROUP = 3  # puddle outlines: never drawn; the renderer lays the water over the image
 CLOUD_DECK_GROUP = 4  # the rain-cloud deck: drawn only in renders of a sunless rainy weather
 CLOUD_DECK_HEIGHT_M = 60.0  # low enough that the deck is inside zfar (1000 m) down to 3.4 deg
 SKY_TEXTURE_SIZE = 128  # skybox face size: re-uploaded whenever the weather changes the sky
@@ -120,7 +120,7 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     for name, factor in (("asphalt", lighting.road_factor), ("concrete", lighting.pavement_factor),
                          ("grass", lighting.grass_factor)):
         spec.material(name).rgba = [factor, factor, factor, 1.0]
-    spec.add_material(name="puddle", rgba=list(lighting.puddle_rgba), specular=0.6, shininess=0.9)
+    spec.add_material(name="puddle", rgba=list(PUDDLE_RGBA), specular=0.6, shininess=0.9)
     for index, wall in enumerate(L.FACADES):
         # One tile = 4 floors x 4 windows, 12.8 m square.
         _add_texture_material(spec, f"facade{index}", textures.facade(tex_rng, wall), 1 / 12.8)
@@ -141,7 +141,8 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
                    pos=[x_mid, y_mid, CLOUD_DECK_HEIGHT_M],
                    material="cloud_deck", group=CLOUD_DECK_GROUP, contype=0, conaffinity=0)
     for index, (x, y, half_length, half_width, yaw) in enumerate(layout.puddles):
-        # full-size puddles; the renderer scales them with the weather's puddle fraction
+        # full-size puddle outlines; the renderer scales them with the weather's puddle
+        # fraction and lays the water over the image (rain/weather.py puddle_coverage)
         world.add_geom(name=f"scenery/puddle{index}", type=GEOM.mjGEOM_ELLIPSOID,
                        size=[half_length, half_width, 0.001], pos=[x, y, L.STATIC_Z * 2],
                        quat=parts.unit_yaw_quat(yaw).tolist(), material="puddle",

@@ -26,11 +26,11 @@ HEADLIGHT_DIFFUSE = 0.15
 SKYLIGHT_DIFFUSE_CLOUD = 0.36
 """Light "skylight": a shadowless directional light from the zenith standing for the overcast
 dome (tops of cars and people brighter than their sides); zero under a clear sky."""
-PUDDLE_RGB = (0.07, 0.07, 0.08)
-PUDDLE_ALPHA = 0.55
-"""A puddle is a dark transparent film over the road in the plain render (standing water hides
-the asphalt's grain and looks dark where it does not mirror); the mirror render leaves it out,
-so puddles are dark near the camera and mirror the world at grazing angles."""
+PUDDLE_RGBA = (0.07, 0.07, 0.08, 0.55)
+"""The ``puddle`` material of the ``scenery/puddle*`` geoms (group 3, which rainbench never draws):
+the geoms only mark where puddles are, at full size; the renderer lays the water over the image
+(:func:`rainbench.rain.weather.puddle_coverage`). A viewer that shows group 3 draws them as dark
+films."""
 
 
 # -- dusk and night ---------------------------------------------------------------------------
@@ -68,7 +68,6 @@ class SceneLighting:
     grass_factor: float
     road_reflectance: float
     puddle_scale: float  # linear size of the puddles, 0 = none
-    puddle_rgba: tuple[float, float, float, float]
     cloud_deck: bool  # draw the emissive rain-cloud deck (sunless rain)
     cloud_deck_rgba: tuple[float, float, float, float]
     # dusk and night: lights "sun" and "skylight" are switched off at night (no sun; the city's
@@ -126,7 +125,6 @@ def scene_lighting(weather: Weather) -> SceneLighting:
         grass_factor=1.0 - GRASS_WET_DARKENING * wet,
         road_reflectance=weather.road_reflectance,
         puddle_scale=weather.puddle_fraction ** 0.5,
-        puddle_rgba=PUDDLE_RGB + (PUDDLE_ALPHA if weather.puddle_fraction > 0 else 0.0,),
         cloud_deck=weather.rain_mm_h > 0 and weather.sun <= 0.02,
         # emission 1 plus the headlight's ambient light the deck also receives
         cloud_deck_rgba=tuple(float(c) for c in deck / (1.0 + ambient_rgb[0])) + (1.0,),

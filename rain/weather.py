@@ -408,6 +408,138 @@ def road_mirror_weight(K: np.ndarray, rotation_world_cam: np.ndarray, height: in
     return np.minimum(weight, 1.0).astype(np.float32)
 
 
+# -- puddles ----------------------------------------------------------------------------------
+PUDDLE_MIRROR_REFLECTANCE = 1.0
+"""A puddle's mirror strength at the 80 degree reference angle (the road's is 0.30 x wetness +
+0.12 x puddles): standing water is a smooth surface, so it mirrors the world with water's whole
+Fresnel reflectance relative to 80 degrees, clipped to 1 (0.17 at 60 degrees, 0.38 at 70, a full
+mirror from 80 on), where a wet film on rough asphalt mirrors less."""
+PUDDLE_UNDERLAY = 0.8
+"""What a puddle transmits of the wet road beneath it: the road under standing water, seen
+through it, is a little darker than the wet film around it (light lost at the two surfaces)."""
+PUDDLE_OUTLINE = ((2, 0.14), (3, 0.09), (5, 0.05))
+"""(harmonic, amplitude) of each puddle's outline: its radius, relative to the ellipse, is
+``1 + sum(a_k sin(k phi + phase_k))`` with phases drawn per puddle, so no two are the same blob
+and none is a plain ellipse (a puddle fills a rut or a low spot, not a drawn curve)."""
+PUDDLE_EDGE = 0.22
+"""Width of a puddle's soft edge, relative to its radius: water thins to a wet film over about a
+fifth of the radius (a hard edge looked like a painted disc)."""
+PUDDLE_ON_ROAD_TOLERANCE = 0.01
+"""A pixel shows the road plane when its depth is within 1 % (+ 2 cm) of where its ray meets the
+plane: cars, people and kerbs in front of a puddle hide it."""
+PUDDLE_OUTLINE_SEED = 0x9D
+"""Seed of the outline phases: puddle ``i`` draws from ``default_rng([PUDDLE_OUTLINE_SEED, i])``,
+so its shape is a function of the scene alone (the exported scene.xml renders the same)."""
+
+
+def puddle_outline_phases(count: int) -> np.ndarray:
+    """(count, len(PUDDLE_OUTLINE)) float64 phases in [0, 2 pi) of each puddle's outline."""
+    return np.array([np.random.default_rng([PUDDLE_OUTLINE_SEED, index])
+                     .uniform(0.0, 2.0 * math.pi, len(PUDDLE_OUTLINE)) for index in range(count)],
+                    np.float64).reshape(count, len(PUDDLE_OUTLINE))
+
+
+def _clip_near(points: np.ndarray, near: float) -> np.ndarray:
+    """The part of the convex polygon ``points`` ((N, 3) camera coordinates, in order) with
+    z >= ``near`` (Sutherland-Hodgman against one plane); (M, 3), M = 0 when none is."""
+    kept = []
+    for index in range(len(points)):
+        p, q = points[index], points[(index + 1) % len(points)]
+        if p[2] >= near:
+            kept.append(p)
+        if (p[2] >= near) != (q[2] >= near):
+            kept.append(p + (near - p[2]) / (q[2] - p[2]) * (q - p))
+    return np.array(kept, np.float64).reshape(-1, 3)
+
+
+def _ground_window(K: np.ndarray, pose: np.ndarray, centre: np.ndarray, half: float,
+                   height: int, width: int) -> tuple[int, int, int, int] | None:
+    """Pixel rows and columns (r0, r1, c0, c1) holding the image of the level square of
+    half-side ``half`` metres around world point ``centre`` (3,), or None when none of it is
+    in view."""
+    corners = centre + np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0],
+                                 [-half, half, 0]], np.float64)
+    camera = (corners - pose[:3, 3]) @ pose[:3, :3]
+    visible = _clip_near(camera, 1e-3)
+    if not len(visible):
+        return None
+    u = K[0, 0] * visible[:, 0] / visible[:, 2] + K[0, 2]
+    v = K[1, 1] * visible[:, 1] / visible[:, 2] + K[1, 2]
+    c0, c1 = max(int(np.floor(u.min())), 0), min(int(np.ceil(u.max())) + 1, width)
+    r0, r1 = max(int(np.floor(v.min())), 0), min(int(np.ceil(v.max())) + 1, height)
+    return (r0, r1, c0, c1) if r0 < r1 and c0 < c1 else None
+
+
+def puddle_coverage(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
+                    puddles: np.ndarray, scale: float, phases: np.ndarray) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: how much of each pixel is puddle.
+
+    A pixel is puddle where its ray meets a puddle's level plane inside the puddle's outline
+    and the surface it shows is that plane (``depth`` within :data:`PUDDLE_ON_ROAD_TOLERANCE`),
+    so whatever stands in front hides the water. The outline is the puddle's ellipse, scaled by
+    ``scale``, with :data:`PUDDLE_OUTLINE` harmonics; coverage falls smoothly from 1 to 0 over
+    :data:`PUDDLE_EDGE` of the radius (smoothstep). Overlapping puddles take the larger value.
+
+    Args:
+        K: (3, 3) intrinsics. pose_world_cam: (4, 4) T_world_cam, OpenCV axes (x right, y down,
+            z forward).
+        depth: (H, W) float metres along the optical axis, +inf where no geometry is.
+        puddles: (N, 6) float, each ``(x, y, z, half_length, half_width, yaw)`` at full size:
+            centre in world metres, half axes in metres, yaw in radians about +z.
+        scale: linear size of the puddles in this weather, 0 (none) .. 1 (full size).
+        phases: (N, len(PUDDLE_OUTLINE)) outline phases (:func:`puddle_outline_phases`).
+    """
+    height, width = depth.shape
+    coverage = np.zeros((height, width), np.float32)
+    puddles = np.asarray(puddles, np.float64).reshape(-1, 6)
+    if scale <= 0 or not len(puddles):
+        return coverage
+    K = np.asarray(K, np.float64)
+    rotation, origin = pose_world_cam[:3, :3], pose_world_cam[:3, 3]
+    reach = 1.0 + sum(amplitude for _, amplitude in PUDDLE_OUTLINE)
+    for (x, y, z, half_length, half_width, yaw), phase in zip(puddles, phases):
+        axes = np.array([half_length, half_width]) * scale
+        window = _ground_window(K, pose_world_cam, np.array([x, y, z]),
+                                float(axes.max()) * reach, height, width)
+        if window is None:
+            continue
+        r0, r1, c0, c1 = window
+        u = (np.arange(c0, c1, dtype=np.float64) + 0.5 - K[0, 2]) / K[0, 0]
+        v = (np.arange(r0, r1, dtype=np.float64) + 0.5 - K[1, 2]) / K[1, 1]
+        # each pixel's ray in world axes, scaled so that its camera z is 1: u R0 + v R1 + R2
+        ray_z = u[None, :] * rotation[2, 0] + v[:, None] * rotation[2, 1] + rotation[2, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            along = (z - origin[2]) / ray_z  # depth at which the ray meets the puddle's plane
+        seen = depth[r0:r1, c0:c1]
+        rows, cols = np.nonzero((ray_z < -1e-9)
+                                & (np.abs(seen - along) <= PUDDLE_ON_ROAD_TOLERANCE * along + 0.02))
+        if not rows.size:
+            continue
+        distance = along[rows, cols]
+        dx = origin[0] - x + distance * (u[cols] * rotation[0, 0] + v[rows] * rotation[0, 1]
+                                         + rotation[0, 2])
+        dy = origin[1] - y + distance * (u[cols] * rotation[1, 0] + v[rows] * rotation[1, 1]
+                                         + rotation[1, 2])
+        cos_yaw, sin_yaw = math.cos(yaw), math.sin(yaw)
+        local = ((cos_yaw * dx + sin_yaw * dy) / axes[0]
+                 + 1j * (-sin_yaw * dx + cos_yaw * dy) / axes[1])
+        radius = np.abs(local)
+        near = radius < reach
+        rows, cols, local, radius = rows[near], cols[near], local[near], radius[near]
+        if not rows.size:
+            continue
+        # the outline's radius at each pixel's angle phi: sin(k phi + p) = Im(e^(i p) z^k)
+        direction = np.where(radius > 0, local / np.maximum(radius, 1e-300), 1.0)
+        outline = np.ones_like(radius)
+        for (harmonic, amplitude), offset in zip(PUDDLE_OUTLINE, phase):
+            outline += amplitude * (np.exp(1j * offset) * direction ** harmonic).imag
+        inside = np.clip((outline - radius) / (PUDDLE_EDGE * outline), 0.0, 1.0)
+        inside = (inside * inside * (3.0 - 2.0 * inside)).astype(np.float32)
+        target = coverage[r0:r1, c0:c1]
+        target[rows, cols] = np.maximum(target[rows, cols], inside)
+    return coverage
+
+
 # -- spray ------------------------------------------------------------------------------------
 SPRAY_PARTICLE_RADIUS_M = 0.18
 """A spray particle is a cloud of droplets drawn as a Gaussian of this radius (1 sigma)."""

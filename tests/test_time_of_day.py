@@ -176,8 +176,9 @@ def test_day_adds_nothing_and_renders_byte_identical():
         with FrameRenderer(model, width, height, geom_instance_table(model),
                            base_weather=wx.weather_at(SKY, 0.0)) as renderer:
             renderer.update(data)
-            images.append((renderer.render_rgb(),
-                           renderer.render_weather(data, wx.weather_at(SKY, 50.0))))
+            rgb = renderer.render_rgb()
+            _, _, depth = renderer.render_instances_depth()
+            images.append((rgb, renderer.render_weather(data, wx.weather_at(SKY, 50.0), depth)))
     assert np.array_equal(images[0][0], images[1][0])
     assert np.array_equal(images[0][1], images[1][1])
 
@@ -341,7 +342,8 @@ def test_wet_night_road_mirrors_the_strip_the_camera_sees(night_scene):
                        base_weather=wx.weather_at(SKY, 0.0, time_of_day="night")) as renderer:
         renderer.update(data)
         base = renderer.render_rgb()
-        wet = renderer.render_weather(data, wx.weather_at(SKY, 50.0, time_of_day="night"))
+        _, _, depth = renderer.render_instances_depth()
+        wet = renderer.render_weather(data, wx.weather_at(SKY, 50.0, time_of_day="night"), depth)
         strip = renderer._rig.mirror_geom(data, renderer.camera_id)
     pose = camera_pose(model, data, "ego")
     ahead = pose[:3, 3] + 15.0 * pose[:3, 2] * [1, 1, 0] / np.linalg.norm(pose[:3, 2][:2])

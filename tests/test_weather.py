@@ -114,7 +114,9 @@ def test_streaks_are_brighter_than_a_dark_wall():
 
 # -- a tiny inline scene with the weather rig ------------------------------------------------
 def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=True,
-               road="asphalt"):
+               road="asphalt", puddle=None):
+    """A 40 m road plane (top at z = 0) with a 1 m box at the origin; ``puddle``: (x, y, half
+    length, half width) of a ``scenery/puddle0`` outline geom on the road."""
     spec = mujoco.MjSpec()
     spec.stat.extent = 100.0
     spec.visual.map.znear = 0.001
@@ -131,6 +133,11 @@ def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=T
                    pos=[0, 0, -0.05], material=road)
     world.add_geom(name="actor000/box", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.5, 0.5, 0.5],
                    pos=[0, 0, 0.5], rgba=[0.9, 0.05, 0.05, 1] if red_box else [0.5, 0.5, 0.5, 1])
+    if puddle is not None:
+        x, y, half_length, half_width = puddle
+        world.add_geom(name="scenery/puddle0", type=mujoco.mjtGeom.mjGEOM_ELLIPSOID,
+                       size=[half_length, half_width, 0.001], pos=[x, y, 0.004], group=3,
+                       contype=0, conaffinity=0)
     ego = world.add_body(name="ego", mocap=True)
     ego.add_camera(name="ego", pos=list(camera_pos), quat=list(camera_quat), fovy=fovy)
     direction = np.array([-1.0, 0.0, -1.0]) / math.sqrt(2)  # sun at 45 degrees from +x
@@ -150,7 +157,8 @@ def _render(model, table, weather, base, width=120, height=90):
     with FrameRenderer(model, width, height, table, base_weather=base) as renderer:
         renderer.update(data)
         rgb, _ = renderer.render_rgb_depth()
-        return rgb if weather == base else renderer.render_weather(data, weather)
+        _, _, depth = renderer.render_instances_depth()
+        return rgb if weather == base else renderer.render_weather(data, weather, depth)
 
 
 def test_cloudy_light_casts_no_hard_shadow_and_clear_sun_does():
@@ -191,6 +199,36 @@ def test_wet_road_mirrors_a_red_box_only_when_wet():
 
     assert np.abs(red_excess(dry[below])).max() <= 8  # dry: grey road under the box
     assert (red_excess(images[50.0][below]) > 15).mean() > 0.5  # wet: the box mirrored
+
+
+def test_a_puddle_mirrors_more_than_the_wet_road_and_only_where_it_lies():
+    """The red box mirrored in a puddle 1.5-3.5 m in front of it: the reflection is redder than
+    on the wet film, pixels away from the puddle and the box itself are unchanged, and dry
+    renders never show the outline geom."""
+    view = dict(camera_pos=[-6, 0, 1.0], camera_quat=_camera_quat(),
+                fovy=horizontal_to_vertical_fov(60, 120, 90))
+    plain = _rig_scene(**view)
+    puddled = _rig_scene(**view, puddle=(-2.5, 0.0, 1.0, 1.2))
+    base = wx.weather_at("overcast", 0.0)
+    wet = wx.weather_at("overcast", 50.0)
+    assert wet.puddle_fraction == 1.0
+    assert np.array_equal(_render(*plain, base, base), _render(*puddled, base, base))
+    road, water = (_render(*scene, wet, base).astype(int) for scene in (plain, puddled))
+    dry = _render(*plain, base, base).astype(int)
+    box = (dry[..., 0] > dry[..., 1] + 60) & (dry[..., 0] > dry[..., 2] + 60)
+    ground_line = np.flatnonzero(box.any(axis=1)).max()
+    cols = np.flatnonzero(box.any(axis=0))
+    below = (slice(ground_line + 2, ground_line + 10), slice(cols.min() + 2, cols.max() - 1))
+
+    def red_excess(image):
+        return image[..., 0] - (image[..., 1] + image[..., 2]) / 2
+
+    assert red_excess(water[below]).mean() > red_excess(road[below]).mean() + 15
+    assert np.array_equal(water[box], road[box])  # the box stands in front of nothing
+    changed = np.abs(water - road).max(axis=-1) > 0
+    rows = np.flatnonzero(changed.any(axis=1))
+    assert not changed[:ground_line].any()  # the puddle is on the road, below the box's base
+    assert rows.max() < 89 and not changed[:, :5].any()  # and it ends inside the image
 
 
 # -- the generator ---------------------------------------------------------------------------
@@ -274,8 +312,11 @@ def test_scene_renders_rainy_weather_without_changing_labels():
                        base_weather=setup.base_weather) as renderer:
         renderer.update(data)
         before, _ = renderer.render_rgb_depth()
-        ids_before, _ = renderer.render_instances()
-        wet = renderer.render_weather(data, wx.weather_at("clear", 100.0))
+        ids_before, _, depth = renderer.render_instances_depth()
+        with pytest.raises(ValueError, match=r"has puddles, so depth is needed: expected "
+                                             r"\(120, 160\) .* got None"):
+            renderer.render_weather(data, wx.weather_at("clear", 100.0))
+        wet = renderer.render_weather(data, wx.weather_at("clear", 100.0), depth)
         renderer.update(data)
         after, _ = renderer.render_rgb_depth()
         ids_after, _ = renderer.render_instances()
