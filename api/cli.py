@@ -6,6 +6,7 @@ import argparse
 import os
 import select
 import sys
+import tempfile
 from pathlib import Path
 
 from rainbench import gl
@@ -89,11 +90,33 @@ def _choose_gl(requested: str | None) -> None:
 
 
 def _writable_dir(path: Path, what: str) -> Path:
+    """``path`` if a directory can be made there and written to, checked by doing it: missing
+    directories are created, a temporary file is written and removed, then the directories
+    this created are removed again (nothing is left; permission bits alone do not tell, e.g. for
+    root under /proc or on a read-only mount)."""
+    missing = []
     probe = path
-    while not probe.exists():
+    while not probe.exists() and probe != probe.parent:
+        missing.append(probe)
         probe = probe.parent
-    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
-        raise CliError(f"{what}: {path} is not a writable directory")
+    if not probe.is_dir():
+        raise CliError(f"{what}: {path} is not a writable directory ({probe} is not a directory)")
+    created: list[Path] = []
+    try:
+        for directory in reversed(missing):
+            directory.mkdir()
+            created.append(directory)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as error:
+        raise CliError(f"{what}: {path} is not a writable directory "
+                       f"({error.strerror or error})") from None
+    finally:
+        for directory in reversed(created):
+            try:
+                directory.rmdir()
+            except OSError:
+                pass  # something else wrote there meanwhile: it is no longer ours to remove
     return path
 
 
@@ -189,7 +212,10 @@ def cmd_scene(args: argparse.Namespace) -> int:
         return 0
     if args.out is None:
         raise CliError("scene: expected --out DIR (or --list)")
-    out = _writable_dir(Path(args.out), "OUT")
+    out = _writable_dir(Path(args.out), "--out")
+    if (out / "scene.xml").exists() and not args.overwrite:
+        raise CliError(f"--out: {out / 'scene.xml'} exists; use --overwrite to replace it "
+                       "(and its textures)")
     from rainbench.gen.config import GenerateConfig
     from rainbench.mjcf import layout as L
     from rainbench.mjcf.scene import build_spec, export_scene
@@ -478,6 +504,8 @@ def build_parser() -> argparse.ArgumentParser:
     scene.add_argument("--out", default=None, help="directory for scene.xml and its textures")
     scene.add_argument("--list", action="store_true",
                        help="print the layouts (name and description, one a line) and exit")
+    scene.add_argument("--overwrite", action="store_true",
+                       help="replace an existing OUT/scene.xml and its textures")
     _add_scene_args(scene)
     _add_layout_args(scene)
     scene.set_defaults(run=cmd_scene)

@@ -3,6 +3,7 @@ folder that is gone) is one OSError naming the file and libpng prints nothing of
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -40,12 +41,22 @@ def write_image(path: str | Path, rgb: np.ndarray, params: Sequence[int] = ()) -
     return path
 
 
+_HDF5_SYSTEM_ERROR = re.compile(r"errno = (\d+), error message = '([^']*)'")
+"""HDF5's report of a failed system call (h5py raises it as one long message naming the
+temporary file, a buffer address and offsets): its errno and reason."""
+
+
 def file_error(error: OSError, path: str | Path) -> OSError:
     """A one-line OSError ``PATH: <reason>`` for ``error`` raised while writing ``path``
-    (``No space left on device`` rather than ``[Errno 28] ...``, which names no file); its
-    ``errno`` is kept, and a message that already starts with the path is kept as it is."""
+    (``No space left on device`` rather than ``[Errno 28] ...``, which names no file, or
+    HDF5's 300-character report of the failed write); its ``errno`` is kept, and a message that
+    already starts with the path is kept as it is."""
     path = str(path)
     detail = error.strerror or " ".join(str(error).split()) or type(error).__name__
+    errno = error.errno
+    system = _HDF5_SYSTEM_ERROR.search(detail)
+    if system:
+        errno, detail = int(system.group(1)), system.group(2)
     named = OSError(detail if detail.startswith(f"{path}: ") else f"{path}: {detail}")
-    named.errno = error.errno
+    named.errno = errno
     return named

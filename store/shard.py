@@ -21,6 +21,7 @@ import h5py
 import numpy as np
 
 from .classes import CLASS_NAMES, LABELLED_CLASSES
+from .images import file_error
 from .labels import FrameLabels
 
 FORMAT = "rainbench.shard"
@@ -114,12 +115,32 @@ class ShardWriter:
         self._tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
         self._num_frames = num_frames
         self._rates = np.asarray(rates, dtype=np.float32)
-        num_rates = self._rates.shape[0]
-        self._file = h5py.File(self._tmp, "w", libver=("v110", "latest"))
+        with _naming(self.path):
+            self._file = h5py.File(self._tmp, "w", libver=("v110", "latest"))
+        try:
+            with _naming(self.path):
+                self._create(attrs, num_frames, width, height, K, store, weather)
+        except BaseException:
+            with contextlib.suppress(OSError, RuntimeError):
+                self._file.close()
+            self._tmp.unlink(missing_ok=True)
+            raise
         # libdeflate drops the GIL: images of one frame are compressed on ``threads`` threads.
         threads = threads or os.cpu_count() or 1
         self._pool = (ThreadPoolExecutor(max_workers=threads, thread_name_prefix="rainbench-deflate")
                       if threads > 1 else None)
+        self._poses = np.zeros((num_frames, 4, 4), dtype=np.float64)
+        self._labels: list[FrameLabels | None] = [None] * num_frames
+        self._rain_box: list[tuple[np.ndarray, np.ndarray] | None] = [None] * num_frames
+        num_rates = self._rates.shape[0]
+        self._drop_count = np.zeros((num_rates, num_frames), dtype=np.int32)
+        self._ssim = np.ones((num_rates, num_frames), dtype=np.float32)
+        self._psnr = np.full((num_rates, num_frames), np.inf, dtype=np.float32)
+        self._committed = False
+
+    def _create(self, attrs, num_frames, width, height, K, store, weather) -> None:
+        """The file's attributes and fixed datasets (everything but the frames and labels)."""
+        num_rates = self._rates.shape[0]
         f = self._file
         f.attrs["format"] = FORMAT
         f.attrs["format_version"] = FORMAT_VERSION
@@ -146,13 +167,6 @@ class ShardWriter:
             for key in weather[0]:
                 f.create_dataset(f"weather/{key}",
                                  data=np.array([record[key] for record in weather], np.float64))
-        self._poses = np.zeros((num_frames, 4, 4), dtype=np.float64)
-        self._labels: list[FrameLabels | None] = [None] * num_frames
-        self._rain_box: list[tuple[np.ndarray, np.ndarray] | None] = [None] * num_frames
-        self._drop_count = np.zeros((num_rates, num_frames), dtype=np.int32)
-        self._ssim = np.ones((num_rates, num_frames), dtype=np.float32)
-        self._psnr = np.full((num_rates, num_frames), np.inf, dtype=np.float32)
-        self._committed = False
 
     @property
     def committed(self) -> bool:
@@ -189,14 +203,15 @@ class ShardWriter:
                              f"{[getattr(image, 'shape', None) for image in rgb_by_rate][:3]}")
         chunks = (self._pool.map if self._pool is not None else map)(
             _deflate, [rgb_by_rate[r] for r in range(num_rates)])
-        for rate_index, chunk in enumerate(chunks):
-            # A pre-compressed chunk is exactly what the gzip filter stores (filter mask 0), so
-            # plain h5py reads it.
-            rgb.id.write_direct_chunk((rate_index, index, 0, 0, 0), chunk)
-        if "depth" in f:
-            f["depth"][index] = depth
-        if "instance" in f:
-            f["instance"][index] = instance
+        with _naming(self.path):
+            for rate_index, chunk in enumerate(chunks):
+                # A pre-compressed chunk is exactly what the gzip filter stores (filter mask 0),
+                # so plain h5py reads it.
+                rgb.id.write_direct_chunk((rate_index, index, 0, 0, 0), chunk)
+            if "depth" in f:
+                f["depth"][index] = depth
+            if "instance" in f:
+                f["instance"][index] = instance
         self._poses[index] = T_world_cam
         self._labels[index] = labels
         if drop_count is not None:
@@ -211,10 +226,20 @@ class ShardWriter:
         )
 
     def commit(self) -> Path:
-        """Write the labels, flush, and move the shard to its final name."""
+        """Write the labels, flush, and move the shard to its final name. A failed write (a
+        full disk) raises a one-line OSError naming the shard (``PATH: <reason>``)."""
         missing = [i for i, labels in enumerate(self._labels) if labels is None]
         if missing:
             raise RuntimeError(f"shard {self.path.name}: frames {missing[:5]} were never written")
+        with _naming(self.path):
+            self._write_tables()
+        if self._pool is not None:
+            self._pool.shutdown()
+        self._committed = True
+        return self.path
+
+    def _write_tables(self) -> None:
+        """Labels, poses and rain statistics; then flush, sync and rename into place."""
         f = self._file
         f.create_dataset("camera/T_world_cam", data=self._poses)
         counts = np.array([len(labels) for labels in self._labels], dtype=np.int64)
@@ -246,21 +271,36 @@ class ShardWriter:
         f.create_dataset("rain/psnr", data=self._psnr)
         f.flush()
         f.close()
-        if self._pool is not None:
-            self._pool.shutdown()
         with open(self._tmp, "rb") as handle:
             os.fsync(handle.fileno())
         os.replace(self._tmp, self.path)
-        self._committed = True
-        return self.path
 
     def abort(self) -> None:
+        """Remove the temporary file. Closing it may fail again (the disk that failed a write
+        is still full): that is not reported, the error that led here is."""
         if self._pool is not None:
             self._pool.shutdown(cancel_futures=True)
         try:
-            self._file.close()
+            with contextlib.suppress(OSError, RuntimeError):
+                self._file.close()
         finally:
             self._tmp.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def _naming(path: Path):
+    """Failures to write shard ``path`` as one-line OSErrors naming it: the file system's, and
+    HDF5's report of a failed write (h5py raises that as a 300-character RuntimeError naming the
+    temporary file); other RuntimeErrors pass unchanged."""
+    try:
+        yield
+    except OSError as error:
+        raise file_error(error, path) from error
+    except RuntimeError as error:
+        named = file_error(OSError(str(error)), path)
+        if named.errno is None:
+            raise
+        raise named from error
 
 
 def open_shard(path: str | Path) -> h5py.File:

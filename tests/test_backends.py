@@ -3,11 +3,13 @@ shipped weights by name, and one-line errors. No file is downloaded."""
 
 import json
 import struct
+import warnings
 
 import numpy as np
 import pytest
 
 from rainbench.eval import backends
+from rainbench.eval.backends import BackendError
 from rainbench.eval import weights as registry
 from rainbench.eval.backends.darknet import decode_darknet
 from rainbench.eval.backends.letterbox import LETTERBOX_FILL, letterbox, rect_shape, unletterbox
@@ -370,3 +372,22 @@ def test_onnx_on_the_cpu_runs_small_batches(tmp_path, monkeypatch):
     for a, b in zip(small, whole, strict=True):
         for x, y in zip(a, b):
             np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("value, message", [
+    (1e30, r"--weights huge\.onnx: its scores span 0 to 1e\+30; expected probabilities in \[0, 1\] "
+           r"\(an export with its sigmoid, as ultralytics writes\)"),
+    (float("nan"), r"--weights huge\.onnx: its output holds inf or nan; expected a YOLO detection "
+                   r"head's finite boxes and scores"),
+])
+def test_a_head_no_working_detector_gives_is_refused_quietly(tmp_path, value, message):
+    """A broken export (scores of 1e30, or nan) is one error naming the file, not numpy's
+    overflow warnings followed by nonsense detections."""
+    rows = _head_rows(0.8, (0.0, 0.0), 80, objectness=False)
+    rows[:3, 4:] = np.where(rows[:3, 4:] > 0, value, 0.0)
+    detector = backends.load_detector(_export(ConstantHead(rows.T), tmp_path / "huge.onnx",
+                                              (480, 640), True))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning on the way
+        with pytest.raises(BackendError, match="^" + message + "$"):
+            detector.predict([_image()], imgsz=640, conf=0.25, iou=0.7, max_det=300)

@@ -258,3 +258,40 @@ def test_export_on_a_full_disk_is_one_line_naming_the_image(small, tmp_path, cap
     code = _cli(["export", small, "--format", "yolo", "--out", tmp_path / "export"])
     _one_line_error(capsys, code, r"\S+\.png: No space left on device")
     assert not (tmp_path / "export").exists()
+
+
+# -- output directories are checked by making them ----------------------------------------------
+
+def test_an_out_that_cannot_be_made_is_refused_before_any_work(small, capsys, tmp_path):
+    """/proc refuses new directories even to root, whose permission bits say writable: the
+    check makes the directory, so eval fails in one line before any inference."""
+    code = _cli(["eval", "--data", small, "--weights", "rainbench-yolo11n", "--out", "/proc/x/y"])
+    _one_line_error(capsys, code, r"--out: /proc/x/y is not a writable directory "
+                                  r"\(No such file or directory\)")
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code = _cli(["eval", "--data", small, "--weights", "rainbench-yolo11n", "--out", blocker / "y"])
+    _one_line_error(capsys, code, r"--out: .*/file/y is not a writable directory "
+                                  r"\(.*/file is not a directory\)")
+
+
+def test_the_out_check_leaves_nothing_behind(tmp_path):
+    from rainbench.cli import _writable_dir
+
+    deep = tmp_path / "a" / "b" / "c"
+    assert _writable_dir(deep, "--out") == deep
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_scene_refuses_to_replace_a_scene_unless_asked(tmp_path, capsys):
+    out = tmp_path / "scene"
+    assert _cli(["scene", "--seed", "3", "--width", "96", "--height", "72", "--out", out]) == 0
+    first = (out / "scene.xml").read_bytes()
+    capsys.readouterr()
+    code = _cli(["scene", "--seed", "4", "--width", "96", "--height", "72", "--out", out])
+    _one_line_error(capsys, code, r"--out: .*/scene/scene.xml exists; use --overwrite to replace "
+                                  r"it \(and its textures\)")
+    assert (out / "scene.xml").read_bytes() == first
+    assert _cli(["scene", "--seed", "4", "--width", "96", "--height", "72", "--out", out,
+                 "--overwrite"]) == 0
+    assert (out / "scene.xml").read_bytes() != first

@@ -248,3 +248,32 @@ def test_preview_draws_ignore_regions_in_grey_under_the_labels():
     assert tuple(sheet[59, 30]) == CLASS_COLOURS[2]  # a label is drawn over a region on the same box
     with pytest.raises(ValueError, match=r"ignore_boxes: expected finite x1, y1, x2, y2, got \[nan"):
         montage(image, np.array([0.0]), ignore_boxes=np.array([[np.nan, 0, 5, 5]], np.float32))
+
+
+HDF5_FULL_DISK = ("Disable slist on flush dest failure failed (file write failed: time = Wed Nov 25 "
+                  "23:34:39 2026\n, filename = '/d/.scene000000_f00000.h5.tmp-16123', file "
+                  "descriptor = 4, errno = 28, error message = 'No space left on device', buf = "
+                  "0x5605d4ee9b08, total write size = 1498, bytes this sub-write = 1498, offset = 8192)")
+
+
+def test_a_full_disk_while_committing_is_one_line_naming_the_shard(tmp_path, monkeypatch):
+    """HDF5 reports a failed write as a 300-character RuntimeError naming the temporary file
+    (seen on a full tmpfs); the writer names the shard and the reason, and leaves nothing."""
+    def full(self):
+        raise RuntimeError(HDF5_FULL_DISK)
+
+    monkeypatch.setattr(h5py.File, "flush", full)
+    with pytest.raises(OSError, match=r"^.*/scene000000_f00000\.h5: No space left on device$") as info:
+        _rate_shard(tmp_path / "d")
+    assert info.value.errno == 28
+    assert list((tmp_path / "d").iterdir()) == []
+
+
+def test_other_runtime_errors_pass_the_shard_writer_unchanged(tmp_path, monkeypatch):
+    def broken(self):
+        raise RuntimeError("something else")
+
+    monkeypatch.setattr(h5py.File, "flush", broken)
+    with pytest.raises(RuntimeError, match="^something else$"):
+        _rate_shard(tmp_path / "d")
+    assert list((tmp_path / "d").iterdir()) == []

@@ -90,6 +90,7 @@ class OnnxDetector:
                 for i, head in zip(chunk, raw, strict=True):
                     _, gain, pad, width, height = prepared[i]
                     boxes, scores = decode_yolo(head, self.layout)
+                    check_decoded(boxes, scores, f"--weights {self.name}.onnx")
                     boxes, kept_scores, ids = select_detections(boxes, scores, self.lookup, conf=conf,
                                                                 iou=iou, max_det=max_det)
                     outputs[i] = (unletterbox(boxes, gain, pad, width, height), kept_scores, ids)
@@ -102,18 +103,40 @@ def decode_yolo(output: np.ndarray, layout: str) -> tuple[np.ndarray, np.ndarray
     ``layout``: ``"v8"`` for (4 + nc, N) rows cx, cy, w, h, class scores; ``"v5"`` for
     (N, 5 + nc) columns cx, cy, w, h, objectness, class scores (score = objectness x class).
     """
-    if layout == "v8":
-        rows = np.asarray(output, np.float32).T
-        centres, scores = rows[:, :4], rows[:, 4:]
-    elif layout == "v5":
-        rows = np.asarray(output, np.float32)
-        centres, scores = rows[:, :4], rows[:, 5:] * rows[:, 4:5]
-    else:
+    if layout not in ("v8", "v5"):
         raise ValueError(f"layout: expected 'v8' or 'v5', got {layout!r}")
-    boxes = np.empty_like(centres)
-    boxes[:, :2] = centres[:, :2] - centres[:, 2:4] / 2
-    boxes[:, 2:] = centres[:, :2] + centres[:, 2:4] / 2
+    # a broken export's huge values overflow to inf here, quietly: check_decoded reports them
+    with np.errstate(over="ignore", invalid="ignore"):
+        if layout == "v8":
+            rows = np.asarray(output, np.float32).T
+            centres, scores = rows[:, :4], rows[:, 4:]
+        else:
+            rows = np.asarray(output, np.float32)
+            centres, scores = rows[:, :4], rows[:, 5:] * rows[:, 4:5]
+        boxes = np.empty_like(centres)
+        boxes[:, :2] = centres[:, :2] - centres[:, 2:4] / 2
+        boxes[:, 2:] = centres[:, :2] + centres[:, 2:4] / 2
     return boxes, scores
+
+
+SCORE_TOLERANCE = 1e-3
+"""How far outside [0, 1] a decoded score may be (float rounding in an export's sigmoid)."""
+
+
+def check_decoded(boxes: np.ndarray, scores: np.ndarray, what: str) -> None:
+    """Refuse a head output that no working detector gives: boxes (N, 4) or scores (N, nc) not
+    finite, or scores outside [0, 1] (an export without its sigmoid, or a broken graph).
+
+    Raises:
+        BackendError: one line naming ``what`` and the values found.
+    """
+    if not (np.isfinite(boxes).all() and np.isfinite(scores).all()):
+        raise BackendError(f"{what}: its output holds inf or nan; expected a YOLO detection "
+                           "head's finite boxes and scores")
+    if scores.size and (scores.min() < -SCORE_TOLERANCE or scores.max() > 1 + SCORE_TOLERANCE):
+        raise BackendError(f"{what}: its scores span {scores.min():.3g} to {scores.max():.3g}; "
+                           "expected probabilities in [0, 1] (an export with its sigmoid, as "
+                           "ultralytics writes)")
 
 
 def _fixed_dim(value: Any) -> int | None:
