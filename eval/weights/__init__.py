@@ -193,6 +193,66 @@ def export_onnx(weights: str | Path, out: str | Path) -> Path:
     return out
 
 
+def interpolate_checkpoints(base: str | Path, fine_tuned: str | Path, alpha: float,
+                            out: str | Path) -> Path:
+    """Write ``out``, an ultralytics checkpoint whose weights are ``(1 - alpha) x base + alpha x
+    fine_tuned`` (WiSE-FT, Wortsman et al. 2022: a fine-tuned model interpolated in weight
+    space with the model it started from): every floating-point tensor of the state dict,
+    batch-norm running statistics included, is interpolated in float32 and stored in fp16 as
+    shipped checkpoints are; integer tensors are ``fine_tuned``'s. Everything else (class names,
+    training arguments) is ``fine_tuned``'s, and ``interpolated`` records the two files' names
+    and ``alpha``.
+
+    Args:
+        base, fine_tuned: shipped model names or ``.pt`` checkpoints of one architecture
+            (``fine_tuned`` trained from ``base``: the interpolation is meaningless otherwise).
+        alpha: 0 gives ``base``, 1 ``fine_tuned``; in [0, 1].
+        out: the ``.pt`` to write (written under a temporary name and renamed).
+
+    Raises:
+        BackendError: one line, for an alpha outside [0, 1], a file that is not a checkpoint, or
+        two checkpoints whose tensors differ in names or shapes.
+    """
+    import copy
+
+    import torch
+
+    if not 0.0 <= float(alpha) <= 1.0:
+        raise BackendError(f"alpha: expected a number in [0, 1], got {alpha!r}")
+    checkpoints = []
+    for spec in (base, fine_tuned):
+        path = checkpoint_file(spec)
+        try:
+            checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+            state = checkpoint["model"].float().state_dict()
+        except Exception as error:  # unpickling failures come as many exception types
+            raise BackendError(f"{path}: expected an ultralytics checkpoint with a 'model' "
+                               f"({type(error).__name__}: {error})") from None
+        checkpoints.append((path, checkpoint, state))
+    (base_path, _, base_state), (tuned_path, tuned, tuned_state) = checkpoints
+    differ = sorted(set(base_state) ^ set(tuned_state)) or sorted(
+        name for name in tuned_state if base_state[name].shape != tuned_state[name].shape)
+    if differ:
+        raise BackendError(f"{tuned_path}: its tensors differ from {base_path}'s (first: "
+                           f"{differ[0]}); expected a fine-tune of the same architecture")
+    mixed = {name: ((1.0 - alpha) * base_state[name] + alpha * value)
+             if value.is_floating_point() else value for name, value in tuned_state.items()}
+    model = copy.deepcopy(tuned["model"]).float()
+    model.load_state_dict(mixed)
+    checkpoint = dict(tuned, model=model.half(), ema=None, optimizer=None,
+                      interpolated={"base": base_path.name, "fine_tuned": tuned_path.name,
+                                    "alpha": float(alpha)})
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    try:
+        torch.save(checkpoint, partial)
+        os.replace(partial, out)
+    finally:
+        partial.unlink(missing_ok=True)
+    return out
+
+
 def _store_exact_halves(proto: Any) -> Any:
     """Return ``proto`` (an ``onnx.ModelProto``, changed in place) with each float32 initializer
     whose every value fp16 represents exactly stored as fp16, feeding a Cast back to float32 under
