@@ -9,6 +9,8 @@ applied here:
 * :func:`sky_colours` -- the sky's colour by elevation (clear: blue gradient; cloud: the CIE
   overcast sky, grey-white, tone-mapped);
 * :func:`spray_opacity` -- tyre spray behind moving vehicles, splatted with depth occlusion;
+* :func:`road_mirror_weight` and :func:`puddle_coverage` -- how much of the mirror render the wet
+  road and its puddles show per pixel (Fresnel), and where the puddles lie in the image;
 * :func:`camera_response` -- auto-exposure residual and Poissonian-Gaussian sensor noise.
 
 Every weather has a time of day (:data:`TIMES_OF_DAY`): dusk and night lower the daylight, add
