@@ -17,7 +17,7 @@ import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
 from rainbench.rain.weather import (PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY, Weather,
-                                     puddle_coverage, road_mirror_weight)
+                                     plane_pixels, puddle_coverage, road_mirror_weight)
 
 from rainbench.gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
 from rainbench.gl import state as _gl_state
@@ -25,6 +25,9 @@ from .weather import WeatherRig
 
 HIDDEN_GROUP = 5
 MIRROR_SCALE = 0.5
+COVERED_DROP_M = 1.0
+"""How far the road's other slabs are lowered in the mirror render, under the one stretched
+mirror geom (level with it they would draw over its reflection)."""
 """The wet road's mirror image is rendered at half the width and height and resized: rain-
 roughened water mirrors a blurred world (a sharp mirror looked like glass), and the pass costs
 a quarter of the pixels."""
@@ -130,6 +133,7 @@ class FrameRenderer:
         self._rig = WeatherRig(model) if base_weather is not None else None
         self._weather_option = mujoco.MjvOption()
         self._mirror_weights: dict[tuple, np.ndarray] = {}
+        self._road_pixels: tuple[np.ndarray, bytes, np.ndarray] | None = None
         self._weather: Weather | None = None
         self._set_weather(base_weather)
 
@@ -189,18 +193,21 @@ class FrameRenderer:
         the base weather.
 
         ``depth``: (H, W) float32 metres along the optical axis of the same state, +inf for sky
-        (:meth:`render_instances_depth`), needed when the weather has puddles: they are laid
-        over the image where the road is seen (:func:`rainbench.rain.weather.puddle_coverage`),
-        not drawn by MuJoCo."""
+        (:meth:`render_instances_depth`), needed when the road is wet: the road's mirror is
+        blended only over the pixels that show the road
+        (:func:`rainbench.rain.weather.plane_pixels`), and puddles are laid over the image where
+        the road is seen (:func:`rainbench.rain.weather.puddle_coverage`), not drawn by
+        MuJoCo."""
         self._require_open()
         if self._rig is None:
             raise RuntimeError("render_weather: this renderer has no base_weather (the scene "
                                "has no 'sun' and 'skylight' lights)")
         self._set_weather(weather)
         puddles = self._rig.puddle_scale > 0
-        if puddles and (depth is None or np.shape(depth) != (self.height, self.width)):
+        wet = self._rig.road_reflectance > 0 or puddles
+        if wet and (depth is None or np.shape(depth) != (self.height, self.width)):
             got = "None" if depth is None else str(np.shape(depth))
-            raise ValueError(f"render_weather: this weather has puddles, so depth is needed: "
+            raise ValueError(f"render_weather: this weather wets the road, so depth is needed: "
                              f"expected ({self.height}, {self.width}) from "
                              f"render_instances_depth(), got {got}")
         option = self._weather_option
@@ -208,24 +215,46 @@ class FrameRenderer:
         option.geomgroup[CLOUD_DECK_GROUP] = self._rig.cloud_deck
         self._set_segmentation(False)
         surface = self._render_rgb(data, option)
-        if self._rig.road_reflectance <= 0 and not puddles:
+        if not wet:
             return surface
         # MuJoCo's mirror is angle independent: render the road as a full mirror and blend it
-        # over the plain render with water's Fresnel weight per pixel (rain/weather.py)
+        # over the plain render with water's Fresnel weight per pixel (rain/weather.py), on the
+        # pixels that show the mirrored road only
+        mirror_geom = self._rig.mirror_geom(data, self.camera_id)
+        cover = slabs = others = None
+        if mirror_geom >= 0:
+            cover, slabs, others = self._rig.mirror_plane(data, mirror_geom)
         self._rig.set_mirror(True)
         try:
-            mirror = self._render_rgb(data, option, self._rig.mirror_geom(data, self.camera_id),
-                                      scale=MIRROR_SCALE)
+            mirror = self._render_rgb(data, option, mirror_geom, scale=MIRROR_SCALE,
+                                      mirror_cover=cover, covered=others)
         finally:
             self._rig.set_mirror(False)
         pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
         rotation = pose[:3, :3]
         blended = surface.astype(np.float32)
-        blended += self._mirror_weight(rotation, self._rig.road_reflectance)[..., None] * (
-            mirror.astype(np.float32) - blended)
+        if slabs is not None and self._rig.road_reflectance > 0:
+            road = self._road_pixel_mask(slabs, pose, depth)
+            rows = np.flatnonzero(road.any(axis=1))
+            if rows.size:
+                band = slice(int(rows[0]), int(rows[-1]) + 1)  # only the rows the road reaches
+                weight = self._mirror_weight(rotation, self._rig.road_reflectance)[band]
+                weight = np.where(road[band], weight, np.float32(0.0))[..., None]
+                blended[band] += weight * (mirror[band].astype(np.float32) - blended[band])
         if puddles:
             self._lay_puddles(blended, surface, mirror, pose, depth)
         return np.rint(blended).astype(np.uint8)
+
+    def _road_pixel_mask(self, slabs: np.ndarray, pose: np.ndarray,
+                         depth: np.ndarray) -> np.ndarray:
+        """(H, W) bool :func:`~rainbench.rain.weather.plane_pixels` of the road ``slabs``
+        ((K, 6) top rectangles), cached for the frame (its weathers share the depth map, the
+        pose and the slabs)."""
+        key = pose.tobytes() + slabs.tobytes()
+        cached = self._road_pixels
+        if cached is None or cached[0] is not depth or cached[1] != key:
+            self._road_pixels = cached = (depth, key, plane_pixels(self.K, pose, depth, slabs))
+        return cached[2]
 
     def _mirror_weight(self, rotation: np.ndarray, reflectance: float) -> np.ndarray:
         """(H, W) float32 :func:`road_mirror_weight`, cached (the camera rides a level car: a few
@@ -253,10 +282,15 @@ class FrameRenderer:
         blended[band] += coverage[band, :, None] * (water - blended[band])
 
     def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption,
-                    mirror_geom: int = -1, scale: float = 1.0) -> np.ndarray:
+                    mirror_geom: int = -1, scale: float = 1.0,
+                    mirror_cover: np.ndarray | None = None,
+                    covered: np.ndarray | None = None) -> np.ndarray:
         """RGB (H, W, 3) of ``data`` in the weather set; ``mirror_geom`` >= 0: the only geom
         drawn as a mirror (MuJoCo mirrors the first reflective geom of the scene, which need not
-        be the road under the camera). ``scale`` < 1: rendered at that fraction of the size
+        be the road under the camera), stretched in this render to ``mirror_cover`` ((6,) level
+        rectangle ``(x, y, z, half_length, half_width, yaw)`` of its top, when given) so that it
+        mirrors the whole road; the geoms ``covered`` (ids: the road's other slabs, level with
+        it) are lowered out of its way. ``scale`` < 1: rendered at that fraction of the size
         (same field of view), then resized to H x W (a softer, cheaper image)."""
         self._rig.select_lights(data, self.camera_id)
         mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
@@ -265,9 +299,16 @@ class FrameRenderer:
             geom_type = mujoco.mjtObj.mjOBJ_GEOM
             for index in range(self._scene.ngeom):
                 geom = self._scene.geoms[index]
-                if geom.reflectance > 0 and not (geom.objtype == geom_type
-                                                 and geom.objid == mirror_geom):
+                if geom.objtype != geom_type:
+                    continue
+                if geom.objid == mirror_geom and mirror_cover is not None:
+                    x, y, top, half_length, half_width, _ = mirror_cover
+                    geom.size[:2] = (half_length, half_width)
+                    geom.pos[:] = (x, y, top - geom.size[2])
+                elif geom.objid != mirror_geom:
                     geom.reflectance = 0.0
+                    if covered is not None and geom.objid in covered:
+                        geom.pos[2] -= COVERED_DROP_M
         context = self._context(labels=False)
         if scale >= 1.0:
             mujoco.mjr_render(self._rect, self._scene, context)

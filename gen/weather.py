@@ -16,6 +16,8 @@ render, the lights that matter most to the camera: OpenGL lights only the first 
 
 from __future__ import annotations
 
+import math
+
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
@@ -182,6 +184,53 @@ class WeatherRig:
                 return int(ids[np.flatnonzero(inside)[0]])
         distance = np.linalg.norm(data.geom_xpos[ids, :2] - camera[:2], axis=1)
         return int(ids[int(np.argmin(distance))])
+
+    def top_rectangle(self, data: mujoco.MjData, geom: int) -> np.ndarray:
+        """(6,) float64 ``(x, y, z, half_length, half_width, yaw)`` of road geom ``geom``'s top
+        face in the state ``data`` (the plane MuJoCo mirrors): a box's top, or a plane
+        (half sides inf where its size is 0). Road geoms are level (they turn about +z only)."""
+        size = self.model.geom_size[geom]
+        rotation = data.geom_xmat[geom].reshape(3, 3)
+        x, y, z = data.geom_xpos[geom]
+        yaw = math.atan2(rotation[1, 0], rotation[0, 0])
+        if self.model.geom_type[geom] == mujoco.mjtGeom.mjGEOM_PLANE:
+            half = [float(s) if s > 0 else math.inf for s in size[:2]]
+            return np.array([x, y, z, half[0], half[1], yaw], np.float64)
+        return np.array([x, y, z + size[2], size[0], size[1], yaw], np.float64)
+
+    def mirror_plane(self, data: mujoco.MjData, geom: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The road's mirror plane through road geom ``geom``'s top: ``(cover, slabs, others)``.
+
+        ``slabs``: (K, 6) :meth:`top_rectangle` of every road geom whose top is level with
+        ``geom``'s (a road of several slabs: straights, arcs, the crossing street), ``geom``'s
+        first; ``others``: (K - 1,) int64 ids of those other than ``geom``. ``cover``: (6,) the
+        smallest rectangle at ``geom``'s yaw holding them all: drawn as the one mirror (the
+        others out of its way), it mirrors every slab in one pass (MuJoCo mirrors one geom a
+        render).
+        """
+        ids = self._mirror_candidates
+        tops = np.array([self.top_rectangle(data, int(g)) for g in ids])
+        mine = ids == geom
+        own = tops[int(np.flatnonzero(mine)[0])]
+        level = (np.abs(tops[:, 2] - own[2]) <= 1e-4) & ~mine
+        slabs = np.concatenate([own[None], tops[level]])
+        others = ids[level].astype(np.int64)
+        if np.isinf(slabs[:, 3:5]).any():
+            return own.copy(), slabs, others
+        corners = []
+        for x, y, _, half_length, half_width, yaw in slabs:
+            axes = np.array([[math.cos(yaw), math.sin(yaw)], [-math.sin(yaw), math.cos(yaw)]])
+            for sign_l, sign_w in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+                corners.append(np.array([x, y]) + sign_l * half_length * axes[0]
+                               + sign_w * half_width * axes[1])
+        yaw = own[5]
+        frame = np.array([[math.cos(yaw), math.sin(yaw)], [-math.sin(yaw), math.cos(yaw)]])
+        local = (np.array(corners) - own[:2]) @ frame.T
+        low, high = local.min(axis=0), local.max(axis=0)
+        centre = own[:2] + ((low + high) / 2) @ frame
+        half = (high - low) / 2
+        return np.array([centre[0], centre[1], own[2], half[0], half[1], yaw]), slabs, others
 
     def set_mirror(self, on: bool) -> None:
         """Full mirror reflectance on the road (``on``), or none."""

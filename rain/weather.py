@@ -410,6 +410,61 @@ def road_mirror_weight(K: np.ndarray, rotation_world_cam: np.ndarray, height: in
     return np.minimum(weight, 1.0).astype(np.float32)
 
 
+def plane_pixels(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
+                 rectangles: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels that show any of ``rectangles``, level rectangles on one plane (the
+    tops of a road's slabs): where the pixel's ray meets the plane inside a rectangle and
+    ``depth`` is the plane's (within :data:`PUDDLE_ON_ROAD_TOLERANCE`), so whatever stands on or
+    over the road (cars, people, kerbs, an overpass) and the sky are False.
+
+    The wet road's mirror is blended only here: off the road the mirror render is the plain
+    scene at half size, and blending it there would blur actors and buildings.
+
+    Args:
+        K: (3, 3) intrinsics. pose_world_cam: (4, 4) T_world_cam, OpenCV axes.
+        depth: (H, W) float metres along the optical axis, +inf where no geometry is.
+        rectangles: (N, 6) or (6,) float, each ``(x, y, z, half_length, half_width, yaw)``:
+            centre in world metres (z the plane's height, the same for all), half sides in
+            metres (inf: unbounded), yaw in radians about +z.
+    """
+    rectangles = np.asarray(rectangles, np.float64).reshape(-1, 6)
+    height, width = depth.shape
+    if not len(rectangles):
+        return np.zeros((height, width), bool)
+    z = float(rectangles[0, 2])
+    if np.ptp(rectangles[:, 2]) > 1e-6:
+        raise ValueError(f"rectangles: expected one plane, got heights "
+                         f"{rectangles[:, 2].min():.6g} to {rectangles[:, 2].max():.6g} m")
+    rotation, origin = np.asarray(pose_world_cam, np.float64)[:3, :3], pose_world_cam[:3, 3]
+    u = ((np.arange(width, dtype=np.float64) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
+    v = ((np.arange(height, dtype=np.float64) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
+    # each ray in world axes, scaled so that its camera z is 1: u R0 + v R1 + R2
+    ray = [u[None, :] * np.float32(rotation[axis, 0])
+           + (v[:, None] * np.float32(rotation[axis, 1]) + np.float32(rotation[axis, 2]))
+           for axis in range(3)]
+    down = ray[2] < -1e-6
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along = np.float32(z - origin[2]) / np.where(down, ray[2], np.float32(-1.0))
+    shown = down & (along > 0) & (np.abs(depth - along)
+                                  <= np.float32(PUDDLE_ON_ROAD_TOLERANCE) * along
+                                  + np.float32(0.02))
+    if np.isinf(rectangles[:, 3:5]).all(axis=1).any():
+        return shown
+    rows, cols = np.nonzero(shown)  # where the plane is seen: is it inside a rectangle?
+    distance = along[rows, cols]
+    ground_x = np.float32(origin[0]) + distance * ray[0][rows, cols]
+    ground_y = np.float32(origin[1]) + distance * ray[1][rows, cols]
+    inside = np.zeros(rows.size, bool)
+    for x, y, _, half_length, half_width, yaw in rectangles:
+        dx, dy = ground_x - np.float32(x), ground_y - np.float32(y)
+        cos_yaw, sin_yaw = np.float32(math.cos(yaw)), np.float32(math.sin(yaw))
+        inside |= ((np.abs(cos_yaw * dx + sin_yaw * dy) <= np.float32(half_length))
+                   & (np.abs(cos_yaw * dy - sin_yaw * dx) <= np.float32(half_width)))
+    mask = np.zeros((height, width), bool)
+    mask[rows[inside], cols[inside]] = True
+    return mask
+
+
 # -- puddles ----------------------------------------------------------------------------------
 PUDDLE_MIRROR_REFLECTANCE = 1.0
 """A puddle's mirror strength at the 80 degree reference angle (the road's is 0.30 x wetness +

@@ -1,6 +1,7 @@
 """The world under the rain: base weather, weather that follows the rate, wet road, spray, camera."""
 
 import argparse
+import dataclasses
 import math
 
 import cv2
@@ -13,7 +14,7 @@ from rainbench import rain
 from rainbench.cli import _seed_and_sky
 from rainbench.gen.config import GenerateConfig
 from rainbench.gen.generate import build_scene, generate_shard
-from rainbench.gen.render import FrameRenderer
+from rainbench.gen.render import FrameRenderer, camera_pose
 from rainbench.mjcf.scene import _camera_quat, horizontal_to_vertical_fov
 from rainbench.rain import weather as wx
 
@@ -114,9 +115,10 @@ def test_streaks_are_brighter_than_a_dark_wall():
 
 # -- a tiny inline scene with the weather rig ------------------------------------------------
 def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=True,
-               road="asphalt", puddle=None):
+               road="asphalt", puddle=None, split_at=None):
     """A 40 m road plane (top at z = 0) with a 1 m box at the origin; ``puddle``: (x, y, half
-    length, half width) of a ``scenery/puddle0`` outline geom on the road."""
+    length, half width) of a ``scenery/puddle0`` outline geom on the road; ``split_at``: the
+    road is two slabs meeting at this x (MuJoCo mirrors one geom a render)."""
     spec = mujoco.MjSpec()
     spec.stat.extent = 100.0
     spec.visual.map.znear = 0.001
@@ -129,8 +131,14 @@ def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=T
                      width=32, height=32)
     spec.add_material(name=road, rgba=[0.4, 0.4, 0.4, 1])  # the rig re-colours "asphalt" only
     world = spec.worldbody
-    world.add_geom(name="scenery/road", type=mujoco.mjtGeom.mjGEOM_BOX, size=[20, 20, 0.05],
-                   pos=[0, 0, -0.05], material=road)
+    if split_at is None:
+        world.add_geom(name="scenery/road", type=mujoco.mjtGeom.mjGEOM_BOX,
+                       size=[20, 20, 0.05], pos=[0, 0, -0.05], material=road)
+    else:
+        for index, (start, end) in enumerate(((-20.0, split_at), (split_at, 20.0))):
+            world.add_geom(name=f"scenery/road{index}", type=mujoco.mjtGeom.mjGEOM_BOX,
+                           size=[(end - start) / 2, 20, 0.05],
+                           pos=[(start + end) / 2, 0, -0.05], material=road)
     world.add_geom(name="actor000/box", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.5, 0.5, 0.5],
                    pos=[0, 0, 0.5], rgba=[0.9, 0.05, 0.05, 1] if red_box else [0.5, 0.5, 0.5, 1])
     if puddle is not None:
@@ -182,9 +190,12 @@ def test_cloudy_light_casts_no_hard_shadow_and_clear_sun_does():
     assert steps["cloudy"] < 0.05 < 0.15 < steps["clear"]
 
 
-def test_wet_road_mirrors_a_red_box_only_when_wet():
+@pytest.mark.parametrize("split_at", [None, -1.0])
+def test_wet_road_mirrors_a_red_box_only_when_wet(split_at):
+    """Split at x = -1, the box's reflection lies mostly on the near slab, though MuJoCo's
+    mirror is the far one (under the point 15 m ahead): every slab of the road mirrors."""
     model, table = _rig_scene(camera_pos=[-6, 0, 1.0], camera_quat=_camera_quat(),
-                              fovy=horizontal_to_vertical_fov(60, 120, 90))
+                              fovy=horizontal_to_vertical_fov(60, 120, 90), split_at=split_at)
     base = wx.weather_at("overcast", 0.0)
     images = {rate: _render(model, table, wx.weather_at("overcast", rate), base).astype(int)
               for rate in (0.0, 50.0)}
@@ -199,6 +210,53 @@ def test_wet_road_mirrors_a_red_box_only_when_wet():
 
     assert np.abs(red_excess(dry[below])).max() <= 8  # dry: grey road under the box
     assert (red_excess(images[50.0][below]) > 15).mean() > 0.5  # wet: the box mirrored
+
+
+def test_the_wet_road_mirror_changes_road_pixels_only():
+    """The mirror render is drawn at half size: blended anywhere but on the road it would blur
+    the box, its edges and the sky. Off the road the wet render equals the same weather's plain
+    render (no mirror, no puddles) byte for byte."""
+    model, table = _rig_scene(camera_pos=[-6, 0, 1.0], camera_quat=_camera_quat(),
+                              fovy=horizontal_to_vertical_fov(60, 120, 90))
+    base = wx.weather_at("overcast", 0.0)
+    wet = wx.weather_at("overcast", 50.0)
+    plain_weather = dataclasses.replace(wet, road_reflectance=0.0, puddle_fraction=0.0)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    with FrameRenderer(model, 120, 90, table, base_weather=base) as renderer:
+        renderer.update(data)
+        ids, geometry, depth = renderer.render_instances_depth()
+        mirrored = renderer.render_weather(data, wet, depth).astype(int)
+        plain = renderer.render_weather(data, plain_weather).astype(int)
+        pose = camera_pose(model, data, "ego")
+        road = wx.plane_pixels(renderer.K, pose, depth, np.array([0, 0, 0, 20, 20, 0.0]))
+    changed = np.abs(mirrored - plain).max(axis=-1) > 0
+    assert (ids >= 0).sum() > 200 and (~geometry).sum() > 200  # the box and the sky are seen
+    assert road.sum() > 2000 and not (road & (ids >= 0)).any() and not (road & ~geometry).any()
+    assert changed[road].sum() > 400  # the road mirrors (weakly near the camera)
+    assert not changed[~road].any()  # nothing else changes: the box and the sky stay sharp
+
+
+def test_plane_pixels_finds_the_rectangle_seen_from_above():
+    """Top-down camera 10 m over a level plane z = 0: the pixels of a 4 x 2 m rectangle turned
+    by 90 degrees, and none where something stands over it or where the depth says sky."""
+    K = np.array([[50.0, 0, 50], [0, 50.0, 50], [0, 0, 1]])  # 100 x 100 px, 0.2 m per px
+    pose = np.eye(4)
+    pose[:3, :3] = np.diag([1.0, -1.0, -1.0])  # x right = +x, y down = -y, looking down
+    pose[2, 3] = 10.0
+    depth = np.full((100, 100), 10.0, np.float32)
+    rectangle = np.array([1.0, 0.0, 0.0, 2.0, 1.0, math.pi / 2])  # 2 m along x, 4 m along y
+    mask = wx.plane_pixels(K, pose, depth, rectangle)
+    rows, cols = np.nonzero(mask)
+    assert (cols.min(), cols.max(), rows.min(), rows.max()) == (50, 59, 40, 59)
+    depth[45:50, 52:55] = 9.0  # a box standing on the rectangle
+    depth[55:57, 50:60] = np.inf  # a hole: no geometry
+    hidden = wx.plane_pixels(K, pose, depth, rectangle)
+    assert not hidden[45:50, 52:55].any() and not hidden[55:57].any()
+    assert np.array_equal(hidden, mask & np.isfinite(depth) & (depth == 10.0))
+    unbounded = wx.plane_pixels(K, pose, np.full((100, 100), 10.0, np.float32),
+                                np.array([0, 0, 0, np.inf, np.inf, 0.0]))
+    assert unbounded.all()
 
 
 def test_a_puddle_mirrors_more_than_the_wet_road_and_only_where_it_lies():
@@ -313,7 +371,7 @@ def test_scene_renders_rainy_weather_without_changing_labels():
         renderer.update(data)
         before, _ = renderer.render_rgb_depth()
         ids_before, _, depth = renderer.render_instances_depth()
-        with pytest.raises(ValueError, match=r"has puddles, so depth is needed: expected "
+        with pytest.raises(ValueError, match=r"wets the road, so depth is needed: expected "
                                              r"\(120, 160\) .* got None"):
             renderer.render_weather(data, wx.weather_at("clear", 100.0))
         wet = renderer.render_weather(data, wx.weather_at("clear", 100.0), depth)
