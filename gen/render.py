@@ -16,8 +16,9 @@ from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
-from rainbench.rain.weather import (PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY, Weather,
-                                     plane_pixels, puddle_coverage, road_mirror_weight)
+from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY,
+                                     Weather, film_streak_sigma_px, plane_pixels,
+                                     puddle_coverage, road_mirror_weight, streak_reflection)
 
 from rainbench.gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
 from rainbench.gl import state as _gl_state
@@ -133,7 +134,7 @@ class FrameRenderer:
         self._rig = WeatherRig(model) if base_weather is not None else None
         self._weather_option = mujoco.MjvOption()
         self._mirror_weights: dict[tuple, np.ndarray] = {}
-        self._road_pixels: tuple[np.ndarray, bytes, np.ndarray] | None = None
+        self._road_pixels: tuple[np.ndarray, bytes, np.ndarray, np.ndarray] | None = None
         self._weather: Weather | None = None
         self._set_weather(base_weather)
 
@@ -226,35 +227,46 @@ class FrameRenderer:
             cover, slabs, others = self._rig.mirror_plane(data, mirror_geom)
         self._rig.set_mirror(True)
         try:
-            mirror = self._render_rgb(data, option, mirror_geom, scale=MIRROR_SCALE,
-                                      mirror_cover=cover, covered=others)
+            small = self._render_rgb(data, option, mirror_geom, scale=MIRROR_SCALE,
+                                     mirror_cover=cover, covered=others, resize=False)
         finally:
             self._rig.set_mirror(False)
+        size = (self.width, self.height)
+        mirror = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR)
         pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
         rotation = pose[:3, :3]
         blended = surface.astype(np.float32)
         if slabs is not None and self._rig.road_reflectance > 0:
-            road = self._road_pixel_mask(slabs, pose, depth)
+            road, road_small = self._road_pixel_mask(slabs, pose, depth, small.shape[:2])
             rows = np.flatnonzero(road.any(axis=1))
             if rows.size:
+                # the wet film smears its reflection along the vertical; puddles do not
+                sigma = film_streak_sigma_px(self.K[1, 1]) * small.shape[0] / self.height
+                gain = CLIPPED_GAIN if weather.time_of_day != "day" else 1.0  # lights on
+                film = cv2.resize(streak_reflection(small, road_small, sigma, gain), size,
+                                  interpolation=cv2.INTER_LINEAR)
                 band = slice(int(rows[0]), int(rows[-1]) + 1)  # only the rows the road reaches
                 weight = self._mirror_weight(rotation, self._rig.road_reflectance)[band]
                 weight = np.where(road[band], weight, np.float32(0.0))[..., None]
-                blended[band] += weight * (mirror[band].astype(np.float32) - blended[band])
+                blended[band] += weight * (film[band] - blended[band])
         if puddles:
             self._lay_puddles(blended, surface, mirror, pose, depth)
-        return np.rint(blended).astype(np.uint8)
+        return np.clip(np.rint(blended), 0, 255).astype(np.uint8)
 
-    def _road_pixel_mask(self, slabs: np.ndarray, pose: np.ndarray,
-                         depth: np.ndarray) -> np.ndarray:
+    def _road_pixel_mask(self, slabs: np.ndarray, pose: np.ndarray, depth: np.ndarray,
+                         small: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """(H, W) bool :func:`~rainbench.rain.weather.plane_pixels` of the road ``slabs``
-        ((K, 6) top rectangles), cached for the frame (its weathers share the depth map, the
-        pose and the slabs)."""
-        key = pose.tobytes() + slabs.tobytes()
+        ((K, 6) top rectangles) and its area average (float32) at the mirror render's ``small``
+        (h, w), cached for the frame (its weathers share the depth map, the pose and the
+        slabs)."""
+        key = pose.tobytes() + slabs.tobytes() + bytes(str(small), "ascii")
         cached = self._road_pixels
         if cached is None or cached[0] is not depth or cached[1] != key:
-            self._road_pixels = cached = (depth, key, plane_pixels(self.K, pose, depth, slabs))
-        return cached[2]
+            road = plane_pixels(self.K, pose, depth, slabs)
+            road_small = cv2.resize(road.astype(np.float32), (small[1], small[0]),
+                                    interpolation=cv2.INTER_AREA)
+            self._road_pixels = cached = (depth, key, road, road_small)
+        return cached[2], cached[3]
 
     def _mirror_weight(self, rotation: np.ndarray, reflectance: float) -> np.ndarray:
         """(H, W) float32 :func:`road_mirror_weight`, cached (the camera rides a level car: a few
@@ -284,14 +296,15 @@ class FrameRenderer:
     def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption,
                     mirror_geom: int = -1, scale: float = 1.0,
                     mirror_cover: np.ndarray | None = None,
-                    covered: np.ndarray | None = None) -> np.ndarray:
+                    covered: np.ndarray | None = None, resize: bool = True) -> np.ndarray:
         """RGB (H, W, 3) of ``data`` in the weather set; ``mirror_geom`` >= 0: the only geom
         drawn as a mirror (MuJoCo mirrors the first reflective geom of the scene, which need not
         be the road under the camera), stretched in this render to ``mirror_cover`` ((6,) level
         rectangle ``(x, y, z, half_length, half_width, yaw)`` of its top, when given) so that it
         mirrors the whole road; the geoms ``covered`` (ids: the road's other slabs, level with
         it) are lowered out of its way. ``scale`` < 1: rendered at that fraction of the size
-        (same field of view), then resized to H x W (a softer, cheaper image)."""
+        (same field of view), then resized to H x W (a softer, cheaper image) unless not
+        ``resize``."""
         self._rig.select_lights(data, self.camera_id)
         mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
                                mujoco.mjtCatBit.mjCAT_ALL, self._scene)
@@ -304,7 +317,8 @@ class FrameRenderer:
                 if geom.objid == mirror_geom and mirror_cover is not None:
                     x, y, top, half_length, half_width, _ = mirror_cover
                     geom.size[:2] = (half_length, half_width)
-                    geom.pos[:] = (x, y, top - geom.size[2])
+                    box = geom.type == mujoco.mjtGeom.mjGEOM_BOX  # else a plane: pos is its top
+                    geom.pos[:] = (x, y, top - geom.size[2] if box else top)
                 elif geom.objid != mirror_geom:
                     geom.reflectance = 0.0
                     if covered is not None and geom.objid in covered:
@@ -320,6 +334,8 @@ class FrameRenderer:
         small = np.empty((height, width, 3), np.uint8)
         mujoco.mjr_render(rect, self._scene, context)
         mujoco.mjr_readPixels(small, None, rect, context)
+        if not resize:
+            return np.flipud(small).copy()
         return cv2.resize(np.flipud(small), (self.width, self.height),
                           interpolation=cv2.INTER_LINEAR)
 

@@ -89,6 +89,24 @@ reference angle of 80 degrees from the normal (water's Fresnel reflectance there
 other angles it scales with water's Fresnel reflectance (:func:`road_mirror_weight`): a roof
 camera sees the road 2.6 m ahead at 60 degrees (0.06: hardly a mirror) and 30 m ahead at 87
 degrees (0.69)."""
+ROAD_FILM_SLOPE_RAD = 0.02
+"""RMS slope of the wet film's surface, asphalt's texture showing through a thin film. A facet
+tilted by d in the plane of incidence turns the mirrored ray by 2 d, one tilted across it by only
+2 d sin(e), e the ray's angle below the horizon: at the grazing angles a road is seen at, the
+film's reflection is smeared along the image's vertical ~1 / sin(e) times more than across it
+(the streaks under lights on a wet road). The vertical spread is kept (Gaussian sigma 2 x 0.02 x
+the focal length in pixels: 16 px at 800x600 and 90 degrees), the horizontal one (under 1.5 px
+beyond 5 degrees) left out. The slope is chosen for the look: no measurement of it was found.
+Puddles, still water, are not smeared."""
+CLIPPED_LEVEL = 250
+"""A mirror pixel with a channel at or above this 8-bit level is clipped: a lamp, a head or tail
+light or a glint, whose true radiance is unknown and far above 255."""
+CLIPPED_GAIN = 8.0
+"""At dusk and night, when the lamps and head and tail lights are on, clipped mirror pixels count
+this many times brighter in the film's smear, so the streak of a light on a wet road stays
+bright where smearing its clipped value would fade it to a glow (the streak is clipped to 255
+again after blending). By day a clipped pixel is as likely a bright sky, which must not be
+boosted: the gain is 1. Chosen for the look."""
 WATER_INDEX = 1.333
 FRESNEL_REFERENCE_DEG = 80.0
 
@@ -408,6 +426,48 @@ def road_mirror_weight(K: np.ndarray, rotation_world_cam: np.ndarray, height: in
     reference = water_fresnel(np.cos(np.radians(FRESNEL_REFERENCE_DEG)))
     weight = road_reflectance * water_fresnel(cos_incidence) / reference
     return np.minimum(weight, 1.0).astype(np.float32)
+
+
+def film_streak_sigma_px(focal_px: float) -> float:
+    """Vertical Gaussian sigma in pixels of the wet film's reflection for a camera of focal
+    length ``focal_px`` (pixels): ``2 x ROAD_FILM_SLOPE_RAD x focal_px``."""
+    return 2.0 * ROAD_FILM_SLOPE_RAD * float(focal_px)
+
+
+def streak_reflection(mirror: np.ndarray, road: np.ndarray, sigma_px: float,
+                      clipped_gain: float = 1.0) -> np.ndarray:
+    """(h, w, 3) float32: ``mirror`` smeared along the image's vertical by a Gaussian of
+    ``sigma_px`` rows, averaging over the road only, so nothing off it (cars, kerbs, the sky) is
+    smeared in; where no road is near the mirror is kept. Clipped pixels (a channel at or
+    above :data:`CLIPPED_LEVEL`: lights) weigh ``clipped_gain`` times their value
+    (:data:`CLIPPED_GAIN` at dusk and night), so the result may exceed 255.
+
+    Args:
+        mirror: (h, w, 3) uint8 or float, the mirror render.
+        road: (h, w) float in [0, 1], how much of each pixel shows the mirrored road
+            (:func:`plane_pixels`, resized to ``mirror``'s size).
+        sigma_px: the Gaussian's standard deviation in rows of ``mirror`` (0: no smear).
+    """
+    mirror = np.asarray(mirror, np.float32)
+    if sigma_px <= 0:
+        return mirror.copy()
+    road = np.asarray(road, np.float32)
+    radiance = mirror
+    if clipped_gain != 1.0:
+        radiance = np.where((mirror.max(axis=-1) >= CLIPPED_LEVEL)[..., None],
+                            mirror * np.float32(clipped_gain), mirror)
+    radius = max(1, int(math.ceil(3.0 * sigma_px)))
+    rows = np.arange(-radius, radius + 1, dtype=np.float32)
+    kernel = np.exp(-0.5 * (rows / np.float32(sigma_px)) ** 2)
+    kernel /= kernel.sum()
+    one = np.ones(1, np.float32)
+    weighted = cv2.sepFilter2D(radiance * road[..., None], -1, one, kernel,
+                               borderType=cv2.BORDER_REPLICATE)
+    norm = cv2.sepFilter2D(road, -1, one, kernel, borderType=cv2.BORDER_REPLICATE)
+    has_road = norm > 1e-3
+    out = mirror.copy()
+    out[has_road] = weighted[has_road] / norm[has_road][:, None]
+    return out
 
 
 def plane_pixels(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,

@@ -115,10 +115,11 @@ def test_streaks_are_brighter_than_a_dark_wall():
 
 # -- a tiny inline scene with the weather rig ------------------------------------------------
 def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=True,
-               road="asphalt", puddle=None, split_at=None):
+               road="asphalt", puddle=None, split_at=None, planes=False):
     """A 40 m road plane (top at z = 0) with a 1 m box at the origin; ``puddle``: (x, y, half
     length, half width) of a ``scenery/puddle0`` outline geom on the road; ``split_at``: the
-    road is two slabs meeting at this x (MuJoCo mirrors one geom a render)."""
+    road is two slabs meeting at this x (MuJoCo mirrors one geom a render); ``planes``: the slabs
+    are plane geoms (the night scenes' lit grid) instead of boxes."""
     spec = mujoco.MjSpec()
     spec.stat.extent = 100.0
     spec.visual.map.znear = 0.001
@@ -136,9 +137,14 @@ def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=T
                        size=[20, 20, 0.05], pos=[0, 0, -0.05], material=road)
     else:
         for index, (start, end) in enumerate(((-20.0, split_at), (split_at, 20.0))):
-            world.add_geom(name=f"scenery/road{index}", type=mujoco.mjtGeom.mjGEOM_BOX,
-                           size=[(end - start) / 2, 20, 0.05],
-                           pos=[(start + end) / 2, 0, -0.05], material=road)
+            if planes:
+                world.add_geom(name=f"scenery/road{index}", type=mujoco.mjtGeom.mjGEOM_PLANE,
+                               size=[(end - start) / 2, 20, 0.25],
+                               pos=[(start + end) / 2, 0, 0], material=road)
+            else:
+                world.add_geom(name=f"scenery/road{index}", type=mujoco.mjtGeom.mjGEOM_BOX,
+                               size=[(end - start) / 2, 20, 0.05],
+                               pos=[(start + end) / 2, 0, -0.05], material=road)
     world.add_geom(name="actor000/box", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.5, 0.5, 0.5],
                    pos=[0, 0, 0.5], rgba=[0.9, 0.05, 0.05, 1] if red_box else [0.5, 0.5, 0.5, 1])
     if puddle is not None:
@@ -190,12 +196,14 @@ def test_cloudy_light_casts_no_hard_shadow_and_clear_sun_does():
     assert steps["cloudy"] < 0.05 < 0.15 < steps["clear"]
 
 
-@pytest.mark.parametrize("split_at", [None, -1.0])
-def test_wet_road_mirrors_a_red_box_only_when_wet(split_at):
+@pytest.mark.parametrize("split_at, planes", [(None, False), (-1.0, False), (-1.0, True)])
+def test_wet_road_mirrors_a_red_box_only_when_wet(split_at, planes):
     """Split at x = -1, the box's reflection lies mostly on the near slab, though MuJoCo's
-    mirror is the far one (under the point 15 m ahead): every slab of the road mirrors."""
+    mirror is the far one (under the point 15 m ahead): every slab of the road mirrors, boxes
+    and planes alike."""
     model, table = _rig_scene(camera_pos=[-6, 0, 1.0], camera_quat=_camera_quat(),
-                              fovy=horizontal_to_vertical_fov(60, 120, 90), split_at=split_at)
+                              fovy=horizontal_to_vertical_fov(60, 120, 90), split_at=split_at,
+                              planes=planes)
     base = wx.weather_at("overcast", 0.0)
     images = {rate: _render(model, table, wx.weather_at("overcast", rate), base).astype(int)
               for rate in (0.0, 50.0)}
@@ -210,6 +218,10 @@ def test_wet_road_mirrors_a_red_box_only_when_wet(split_at):
 
     assert np.abs(red_excess(dry[below])).max() <= 8  # dry: grey road under the box
     assert (red_excess(images[50.0][below]) > 15).mean() > 0.5  # wet: the box mirrored
+    # the reflection meets the box's base: the mirror is the road's top (a plane's pos, a
+    # box's pos + half height), not a plane lowered by its grid spacing
+    touching = (slice(ground_line + 1, ground_line + 4), below[1])
+    assert red_excess(images[50.0][touching]).mean() > 20
 
 
 def test_the_wet_road_mirror_changes_road_pixels_only():
@@ -235,6 +247,38 @@ def test_the_wet_road_mirror_changes_road_pixels_only():
     assert road.sum() > 2000 and not (road & (ids >= 0)).any() and not (road & ~geometry).any()
     assert changed[road].sum() > 400  # the road mirrors (weakly near the camera)
     assert not changed[~road].any()  # nothing else changes: the box and the sky stay sharp
+
+
+def test_film_streaks_smear_along_the_vertical_over_the_road_only():
+    """A lit pixel on an all-road mirror becomes a vertical Gaussian of the given sigma, with
+    nothing spread across; a car (not road) next to the road is not smeared into it."""
+    mirror = np.zeros((61, 9, 3), np.float32)
+    mirror[30, 4] = 200.0
+    road = np.ones((61, 9), np.float32)
+    streak = wx.streak_reflection(mirror, road, 4.0)
+    column = streak[:, 4, 0]
+    rows = np.arange(61) - 30.0
+    expected = np.where(np.abs(rows) <= 12, np.exp(-0.5 * (rows / 4.0) ** 2), 0.0)  # 3 sigma
+    np.testing.assert_allclose(column, 200.0 * expected / expected.sum(), rtol=1e-4, atol=1e-3)
+    assert not streak[:, [0, 1, 2, 3, 5, 6, 7, 8]].any()  # no horizontal spread
+    assert np.array_equal(wx.streak_reflection(mirror, road, 0.0), mirror)
+
+    car = np.full((61, 9, 3), 50.0, np.float32)
+    car[:20] = 250.0  # a bright car body above the road, in rows 0..19
+    road = np.ones((61, 9), np.float32)
+    road[:20] = 0.0
+    smeared = wx.streak_reflection(car, road, 6.0)
+    np.testing.assert_allclose(smeared[20:], 50.0, atol=1e-3)  # the car is not smeared in
+    assert np.array_equal(smeared[:2], car[:2])  # over 3 sigma from the road: kept
+
+    light = np.full((61, 9, 3), 20.0, np.float32)
+    light[30, 4] = 255.0  # a clipped lamp
+    road = np.ones((61, 9), np.float32)
+    plain = wx.streak_reflection(light, road, 4.0)
+    boosted = wx.streak_reflection(light, road, 4.0, clipped_gain=wx.CLIPPED_GAIN)
+    assert plain[30, 4, 0] < 100 < boosted[30, 4, 0]  # a glow, or a bright streak at night
+    np.testing.assert_allclose(boosted[:, [0, 8]], plain[:, [0, 8]])  # only the light's column
+    assert wx.film_streak_sigma_px(400.0) == pytest.approx(16.0)
 
 
 def test_plane_pixels_finds_the_rectangle_seen_from_above():
