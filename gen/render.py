@@ -18,7 +18,8 @@ import numpy as np
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
 from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY,
                                      Weather, film_streak_sigma_px, plane_pixels,
-                                     puddle_coverage, road_mirror_weight, streak_reflection)
+                                     puddle_coverage, puddle_ripple_slope, road_mirror_weight,
+                                     streak_reflection)
 
 from rainbench.gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
 from rainbench.gl import state as _gl_state
@@ -236,13 +237,13 @@ class FrameRenderer:
         pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
         rotation = pose[:3, :3]
         blended = surface.astype(np.float32)
+        gain = CLIPPED_GAIN if weather.time_of_day != "day" else 1.0  # lights are on
         if slabs is not None and self._rig.road_reflectance > 0:
             road, road_small = self._road_pixel_mask(slabs, pose, depth, small.shape[:2])
             rows = np.flatnonzero(road.any(axis=1))
             if rows.size:
-                # the wet film smears its reflection along the vertical; puddles do not
+                # the wet film smears its reflection along the vertical (puddles: their ripples)
                 sigma = film_streak_sigma_px(self.K[1, 1]) * small.shape[0] / self.height
-                gain = CLIPPED_GAIN if weather.time_of_day != "day" else 1.0  # lights on
                 film = cv2.resize(streak_reflection(small, road_small, sigma, gain), size,
                                   interpolation=cv2.INTER_LINEAR)
                 band = slice(int(rows[0]), int(rows[-1]) + 1)  # only the rows the road reaches
@@ -250,6 +251,12 @@ class FrameRenderer:
                 weight = np.where(road[band], weight, np.float32(0.0))[..., None]
                 blended[band] += weight * (film[band] - blended[band])
         if puddles:
+            if slabs is not None:  # rain ripples the puddles: their mirror smears as well
+                road, road_small = self._road_pixel_mask(slabs, pose, depth, small.shape[:2])
+                sigma = (2.0 * puddle_ripple_slope(weather.rain_mm_h) * self.K[1, 1]
+                         * small.shape[0] / self.height)
+                mirror = cv2.resize(streak_reflection(small, road_small, sigma, gain), size,
+                                    interpolation=cv2.INTER_LINEAR)
             self._lay_puddles(blended, surface, mirror, pose, depth)
         return np.clip(np.rint(blended), 0, 255).astype(np.uint8)
 

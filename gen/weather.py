@@ -23,7 +23,8 @@ import numpy as np
 
 from rainbench.mjcf import lights as tod
 from rainbench.mjcf.weather import scene_lighting
-from rainbench.rain.weather import Weather, puddle_outline_phases, sky_colours, sky_key
+from rainbench.rain.weather import (Weather, puddle_outline_phases, puddle_ripple_slope,
+                                     sky_colours, sky_key)
 
 _SKY_ELEVATION_CACHE: dict[int, np.ndarray] = {}
 MIRROR_AHEAD_M = 15.0
@@ -67,8 +68,10 @@ def scene_time_of_day(model: mujoco.MjModel) -> str:
 
 def render_key(weather: Weather) -> tuple:
     """Everything a weather changes in a render: two weathers with one key render the same
-    image (heavy rates differ only in light level and camera, applied after the render)."""
-    return scene_lighting(weather), sky_key(weather)
+    image (heavy rates differ only in light level and camera, applied after the render; the
+    puddles' ripples stop changing from about 10 mm/h)."""
+    ripples = round(puddle_ripple_slope(weather.rain_mm_h), 6) if weather.puddle_fraction else 0.0
+    return scene_lighting(weather), sky_key(weather), ripples
 
 
 class WeatherRig:

@@ -97,7 +97,7 @@ film's reflection is smeared along the image's vertical ~1 / sin(e) times more t
 (the streaks under lights on a wet road). The vertical spread is kept (Gaussian sigma 2 x 0.02 x
 the focal length in pixels: 16 px at 800x600 and 90 degrees), the horizontal one (under 1.5 px
 beyond 5 degrees) left out. The slope is chosen for the look: no measurement of it was found.
-Puddles, still water, are not smeared."""
+Puddles are smeared by their rain ripples instead (:func:`puddle_ripple_slope`)."""
 CLIPPED_LEVEL = 250
 """A mirror pixel with a channel at or above this 8-bit level is clipped: a lamp, a head or tail
 light or a glint, whose true radiance is unknown and far above 255."""
@@ -426,6 +426,46 @@ def road_mirror_weight(K: np.ndarray, rotation_world_cam: np.ndarray, height: in
     reference = water_fresnel(np.cos(np.radians(FRESNEL_REFERENCE_DEG)))
     weight = road_reflectance * water_fresnel(cos_incidence) / reference
     return np.minimum(weight, 1.0).astype(np.float32)
+
+
+RIPPLE_MIN_DROP_MM = 1.0
+"""Drops from 1 mm raise the rings seen on a puddle (smaller ones barely dimple it)."""
+RIPPLE_SPEED_M_S = 0.23
+RIPPLE_WAVELENGTH_M = 0.017
+"""A ring spreads at the minimum phase speed of capillary-gravity waves on water, 0.23 m/s at a
+wavelength of 1.7 cm (the waves a drop's impact sends out are near it)."""
+RIPPLE_LIFETIME_S = 0.25
+"""A ring fades over about a quarter of a second (it has spread ~6 cm)."""
+RIPPLE_SLOPE = 0.05
+"""RMS slope of a puddle's surface once its rings overlap (chosen for the look: ring waves ~0.15
+mm high over 1.7 cm slope ~0.05)."""
+
+
+def ripple_impacts_per_m2_s(rate_mm_h: float) -> float:
+    """Drops of :data:`RIPPLE_MIN_DROP_MM` and more landing on a square metre each second:
+    the Marshall-Palmer number density times the Atlas et al. (1973) fall speed, integrated,
+    ``N0 [a e^(-L D) / L - b e^(-(L + c) D) / (L + c)]`` (0 at rate 0)."""
+    from rainbench.rain import physical  # noqa: PLC0415 -- the drop laws live there
+
+    if rate_mm_h <= 0:
+        return 0.0
+    slope = physical.marshall_palmer_slope(rate_mm_h)
+    fast = physical.VELOCITY_MAX_M_S * math.exp(-slope * RIPPLE_MIN_DROP_MM) / slope
+    decay = slope + physical.VELOCITY_RATE_PER_MM
+    slow = physical.VELOCITY_COEF_M_S * math.exp(-decay * RIPPLE_MIN_DROP_MM) / decay
+    return physical.MP_N0_PER_M3_MM * (fast - slow)
+
+
+def puddle_ripple_slope(rate_mm_h: float) -> float:
+    """RMS slope of a puddle's surface under rain of ``rate_mm_h``: :data:`RIPPLE_SLOPE` times
+    the square root of the share of the surface the live rings cover (capped at 1): impacts per
+    m^2 and second x lifetime x a ring's area at half its life (2 pi r x one wavelength, r the
+    distance spread in half the lifetime): about half the surface at 4 mm/h, where puddles
+    appear, all of it from about 10 mm/h."""
+    radius = RIPPLE_SPEED_M_S * RIPPLE_LIFETIME_S / 2.0
+    covered = (ripple_impacts_per_m2_s(rate_mm_h) * RIPPLE_LIFETIME_S
+               * 2.0 * math.pi * radius * RIPPLE_WAVELENGTH_M)
+    return RIPPLE_SLOPE * math.sqrt(min(1.0, covered))
 
 
 def film_streak_sigma_px(focal_px: float) -> float:

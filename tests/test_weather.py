@@ -281,6 +281,23 @@ def test_film_streaks_smear_along_the_vertical_over_the_road_only():
     assert wx.film_streak_sigma_px(400.0) == pytest.approx(16.0)
 
 
+def test_ripple_impacts_integrate_marshall_palmer_and_the_slope_saturates():
+    """The closed form against a numerical integral of N(D) v(D) over D >= 1 mm; the puddles'
+    slope grows with the rate until the rings cover them (about 10 mm/h), then stays."""
+    from rainbench.rain import physical
+
+    for rate in (2.0, 10.0, 50.0, 100.0):
+        diameters = np.linspace(wx.RIPPLE_MIN_DROP_MM, 40.0, 400_001)
+        density = physical.MP_N0_PER_M3_MM * np.exp(
+            -physical.marshall_palmer_slope(rate) * diameters)
+        flux = np.trapezoid(density * physical.terminal_velocity(diameters), diameters)
+        assert wx.ripple_impacts_per_m2_s(rate) == pytest.approx(flux, rel=1e-4)
+    assert wx.ripple_impacts_per_m2_s(0.0) == 0.0 == wx.puddle_ripple_slope(0.0)
+    slopes = [wx.puddle_ripple_slope(rate) for rate in (1, 2, 4, 6, 8)]
+    assert all(a < b for a, b in zip(slopes, slopes[1:])) and slopes[-1] < wx.RIPPLE_SLOPE
+    assert wx.puddle_ripple_slope(11.0) == wx.puddle_ripple_slope(100.0) == wx.RIPPLE_SLOPE
+
+
 def test_plane_pixels_finds_the_rectangle_seen_from_above():
     """Top-down camera 10 m over a level plane z = 0: the pixels of a 4 x 2 m rectangle turned
     by 90 degrees, and none where something stands over it or where the depth says sky."""
@@ -331,6 +348,29 @@ def test_a_puddle_mirrors_more_than_the_wet_road_and_only_where_it_lies():
     rows = np.flatnonzero(changed.any(axis=1))
     assert not changed[:ground_line].any()  # the puddle is on the road, below the box's base
     assert rows.max() < 89 and not changed[:, :5].any()  # and it ends inside the image
+
+
+def test_rain_ripples_smear_a_puddles_mirror_and_nothing_else():
+    """The same puddle under still water (rate 0 in an otherwise equal weather) and under 50
+    mm/h: the ripples smooth the mirrored box's edges inside the puddle, and every pixel outside
+    it is the same."""
+    scene = _rig_scene(camera_pos=[-6, 0, 1.0], camera_quat=_camera_quat(),
+                       fovy=horizontal_to_vertical_fov(60, 120, 90), puddle=(-2.5, 0.0, 1.0, 1.2))
+    base = wx.weather_at("overcast", 0.0)
+    rippled = wx.weather_at("overcast", 50.0)
+    still = dataclasses.replace(rippled, rain_mm_h=0.0)
+    assert wx.puddle_ripple_slope(still.rain_mm_h) == 0.0 < wx.puddle_ripple_slope(50.0)
+    calm, rained = (_render(*scene, weather, base).astype(float) for weather in (still, rippled))
+    changed = np.abs(calm - rained).max(axis=-1) > 0
+    rows, cols = np.nonzero(changed)
+    assert changed.sum() > 100
+    puddle = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+
+    def vertical_detail(image):
+        return np.abs(np.diff(image[puddle], axis=0)).sum()
+
+    assert vertical_detail(rained) < 0.8 * vertical_detail(calm)
+    assert rows.min() > 50  # the ripples are on the road in front of the box, not elsewhere
 
 
 # -- the generator ---------------------------------------------------------------------------
