@@ -17,9 +17,9 @@ import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
 from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY,
-                                     Weather, film_streak_sigma_px, plane_pixels,
-                                     puddle_coverage, puddle_ripple_slope, road_mirror_weight,
-                                     streak_reflection)
+                                     PuddlePixels, Weather, film_streak_sigma_px, plane_pixels,
+                                     puddle_coverage_at, puddle_pixels, puddle_ripple_slope,
+                                     road_mirror_weight, streak_reflection)
 
 from rainbench.gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
 from rainbench.gl import state as _gl_state
@@ -136,6 +136,7 @@ class FrameRenderer:
         self._weather_option = mujoco.MjvOption()
         self._mirror_weights: dict[tuple, np.ndarray] = {}
         self._road_pixels: tuple[np.ndarray, bytes, np.ndarray, np.ndarray] | None = None
+        self._puddle_pixels: tuple[np.ndarray, bytes, PuddlePixels] | None = None
         self._weather: Weather | None = None
         self._set_weather(base_weather)
 
@@ -233,7 +234,6 @@ class FrameRenderer:
         finally:
             self._rig.set_mirror(False)
         size = (self.width, self.height)
-        mirror = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR)
         pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
         rotation = pose[:3, :3]
         blended = surface.astype(np.float32)
@@ -255,8 +255,8 @@ class FrameRenderer:
                 road, road_small = self._road_pixel_mask(slabs, pose, depth, small.shape[:2])
                 sigma = (2.0 * puddle_ripple_slope(weather.rain_mm_h) * self.K[1, 1]
                          * small.shape[0] / self.height)
-                mirror = cv2.resize(streak_reflection(small, road_small, sigma, gain), size,
-                                    interpolation=cv2.INTER_LINEAR)
+                small = streak_reflection(small, road_small, sigma, gain)
+            mirror = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR)
             self._lay_puddles(blended, surface, mirror, pose, depth)
         return np.clip(np.rint(blended), 0, 255).astype(np.uint8)
 
@@ -276,9 +276,9 @@ class FrameRenderer:
         return cached[2], cached[3]
 
     def _mirror_weight(self, rotation: np.ndarray, reflectance: float) -> np.ndarray:
-        """(H, W) float32 :func:`road_mirror_weight`, cached (the camera rides a level car: a few
-        rotations a clip)."""
-        key = (np.round(rotation, 9).tobytes(), reflectance)
+        """(H, W) float32 :func:`road_mirror_weight`, cached (it depends on the camera's pitch and
+        roll only, the rotation's last row: one per clip on a level road)."""
+        key = (np.round(rotation[2], 9).tobytes(), reflectance)
         if key not in self._mirror_weights:
             self._mirror_weights[key] = road_mirror_weight(self.K, rotation, self.height,
                                                            self.width, reflectance)
@@ -289,8 +289,13 @@ class FrameRenderer:
         """Blend the puddles into ``blended`` (H, W, 3) float32, in place: under each puddle
         the plain ``surface`` dimmed by :data:`~rainbench.rain.weather.PUDDLE_UNDERLAY` and the
         ``mirror`` with a puddle's stronger Fresnel weight."""
-        coverage = puddle_coverage(self.K, pose, depth, self._rig.puddles,
-                                   self._rig.puddle_scale, self._rig.puddle_phases)
+        key = pose.tobytes() + self._rig.puddles.tobytes() + self._rig.puddle_phases.tobytes()
+        cached = self._puddle_pixels
+        if cached is None or cached[0] is not depth or cached[1] != key:
+            # the frame's weathers differ only in the puddles' size: find their pixels once
+            self._puddle_pixels = cached = (depth, key, puddle_pixels(
+                self.K, pose, depth, self._rig.puddles, self._rig.puddle_phases))
+        coverage = puddle_coverage_at(cached[2], self._rig.puddle_scale)
         rows = np.flatnonzero(coverage.any(axis=1))
         if not rows.size:
             return

@@ -124,6 +124,9 @@ class WeatherRig:
         self._candidates = np.concatenate([self._lamps, self._vehicle_beams])
         asphalt = self._materials.get("asphalt", -2)
         self._mirror_candidates = np.flatnonzero(model.geom_matid == asphalt)
+        # road geoms of the world body never move: their tops are measured once
+        self._tops_are_static = bool(np.all(model.geom_bodyid[self._mirror_candidates] == 0))
+        self._static_tops: np.ndarray | None = None
         self.light_budget = 0  # candidate lights OpenGL can still light (set by apply)
 
     def select_lights(self, data: mujoco.MjData, camera_id: int) -> None:
@@ -213,7 +216,11 @@ class WeatherRig:
         render).
         """
         ids = self._mirror_candidates
-        tops = np.array([self.top_rectangle(data, int(g)) for g in ids])
+        tops = self._static_tops
+        if tops is None:
+            tops = np.array([self.top_rectangle(data, int(g)) for g in ids])
+            if self._tops_are_static:
+                self._static_tops = tops
         mine = ids == geom
         own = tops[int(np.flatnonzero(mine)[0])]
         level = (np.abs(tops[:, 2] - own[2]) <= 1e-4) & ~mine

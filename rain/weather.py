@@ -420,9 +420,9 @@ def road_mirror_weight(K: np.ndarray, rotation_world_cam: np.ndarray, height: in
     """
     u = (np.arange(width, dtype=np.float64) + 0.5 - K[0, 2]) / K[0, 0]
     v = (np.arange(height, dtype=np.float64) + 0.5 - K[1, 2]) / K[1, 1]
-    rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)
-    world = rays @ np.asarray(rotation_world_cam).T
-    cos_incidence = np.abs(world[..., 2]) / np.linalg.norm(world, axis=-1)
+    up = np.asarray(rotation_world_cam, np.float64)[2]  # only the rays' world z matters
+    world_z = u[None, :] * up[0] + v[:, None] * up[1] + up[2]
+    cos_incidence = np.abs(world_z) / np.sqrt(u[None, :] ** 2 + v[:, None] ** 2 + 1.0)
     reference = water_fresnel(np.cos(np.radians(FRESNEL_REFERENCE_DEG)))
     weight = road_reflectance * water_fresnel(cos_incidence) / reference
     return np.minimum(weight, 1.0).astype(np.float32)
@@ -504,18 +504,18 @@ def streak_reflection(mirror: np.ndarray, road: np.ndarray, sigma_px: float,
     weighted = cv2.sepFilter2D(radiance * road[..., None], -1, one, kernel,
                                borderType=cv2.BORDER_REPLICATE)
     norm = cv2.sepFilter2D(road, -1, one, kernel, borderType=cv2.BORDER_REPLICATE)
-    has_road = norm > 1e-3
     out = mirror.copy()
-    out[has_road] = weighted[has_road] / norm[has_road][:, None]
+    np.divide(weighted, norm[..., None], out=out, where=(norm > 1e-3)[..., None])
     return out
 
 
 def plane_pixels(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
                  rectangles: np.ndarray) -> np.ndarray:
     """(H, W) bool: the pixels that show any of ``rectangles``, level rectangles on one plane (the
-    tops of a road's slabs): where the pixel's ray meets the plane inside a rectangle and
-    ``depth`` is the plane's (within :data:`PUDDLE_ON_ROAD_TOLERANCE`), so whatever stands on or
-    over the road (cars, people, kerbs, an overpass) and the sky are False.
+    tops of a road's slabs): where the pixel's ray meets the plane inside a rectangle (to half a
+    pixel at its edges: the rectangles' images are filled as polygons) and ``depth`` is the
+    plane's (within :data:`PUDDLE_ON_ROAD_TOLERANCE`), so whatever stands on or over the road
+    (cars, people, kerbs, an overpass) and the sky are False.
 
     The wet road's mirror is blended only here: off the road the mirror render is the plain
     scene at half size, and blending it there would blur actors and buildings.
@@ -538,30 +538,45 @@ def plane_pixels(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
     rotation, origin = np.asarray(pose_world_cam, np.float64)[:3, :3], pose_world_cam[:3, 3]
     u = ((np.arange(width, dtype=np.float64) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
     v = ((np.arange(height, dtype=np.float64) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
-    # each ray in world axes, scaled so that its camera z is 1: u R0 + v R1 + R2
-    ray = [u[None, :] * np.float32(rotation[axis, 0])
-           + (v[:, None] * np.float32(rotation[axis, 1]) + np.float32(rotation[axis, 2]))
-           for axis in range(3)]
-    down = ray[2] < -1e-6
+    mask = np.zeros((height, width), bool)
+    # rows some ray of which goes down (the camera's z row of the rotation; float64 bound)
+    lowest = (min(u[0] * rotation[2, 0], u[-1] * rotation[2, 0])
+              + v.astype(np.float64) * rotation[2, 1] + rotation[2, 2])
+    below = np.flatnonzero(lowest < -1e-6)
+    if not below.size:
+        return mask
+    first, last = int(below[0]), int(below[-1]) + 1
+    v = v[first:last]
+    ray_z = (u[None, :] * np.float32(rotation[2, 0])
+             + (v[:, None] * np.float32(rotation[2, 1]) + np.float32(rotation[2, 2])))
+    down = ray_z < -1e-6
     with np.errstate(divide="ignore", invalid="ignore"):
-        along = np.float32(z - origin[2]) / np.where(down, ray[2], np.float32(-1.0))
-    shown = down & (along > 0) & (np.abs(depth - along)
+        along = np.float32(z - origin[2]) / np.where(down, ray_z, np.float32(-1.0))
+    seen = depth[first:last]
+    shown = down & (along > 0) & (np.abs(seen - along)
                                   <= np.float32(PUDDLE_ON_ROAD_TOLERANCE) * along
                                   + np.float32(0.02))
     if np.isinf(rectangles[:, 3:5]).all(axis=1).any():
-        return shown
-    rows, cols = np.nonzero(shown)  # where the plane is seen: is it inside a rectangle?
-    distance = along[rows, cols]
-    ground_x = np.float32(origin[0]) + distance * ray[0][rows, cols]
-    ground_y = np.float32(origin[1]) + distance * ray[1][rows, cols]
-    inside = np.zeros(rows.size, bool)
+        mask[first:last] = shown
+        return mask
+    # the rectangles' images, filled as polygons (clipped at 5 cm in front of the camera), at
+    # 1/16 px: a pixel whose centre lies inside one counts
+    inside = np.zeros((height, width), np.uint8)
     for x, y, _, half_length, half_width, yaw in rectangles:
-        dx, dy = ground_x - np.float32(x), ground_y - np.float32(y)
-        cos_yaw, sin_yaw = np.float32(math.cos(yaw)), np.float32(math.sin(yaw))
-        inside |= ((np.abs(cos_yaw * dx + sin_yaw * dy) <= np.float32(half_length))
-                   & (np.abs(cos_yaw * dy - sin_yaw * dx) <= np.float32(half_width)))
-    mask = np.zeros((height, width), bool)
-    mask[rows[inside], cols[inside]] = True
+        along_axis = np.array([math.cos(yaw), math.sin(yaw), 0.0]) * half_length
+        across_axis = np.array([-math.sin(yaw), math.cos(yaw), 0.0]) * half_width
+        centre = np.array([x, y, z])
+        corners = np.array([centre + along_axis + across_axis, centre + along_axis - across_axis,
+                            centre - along_axis - across_axis, centre - along_axis + across_axis])
+        camera = _clip_near((corners - origin) @ rotation, 0.05)
+        if len(camera) < 3:
+            continue
+        pixels = np.column_stack([K[0, 0] * camera[:, 0] / camera[:, 2] + K[0, 2] - 0.5,
+                                  K[1, 1] * camera[:, 1] / camera[:, 2] + K[1, 2] - 0.5])
+        pixels = np.clip(pixels, -1e6, 1e6)  # int32 at 1/16 px; reached only edge-on
+        cv2.fillPoly(inside, [np.rint(pixels * 16).astype(np.int32)], 1, lineType=cv2.LINE_8,
+                     shift=4)
+    mask[first:last] = shown & inside[first:last].astype(bool)
     return mask
 
 
@@ -627,35 +642,33 @@ def _ground_window(K: np.ndarray, pose: np.ndarray, centre: np.ndarray, half: fl
     return (r0, r1, c0, c1) if r0 < r1 and c0 < c1 else None
 
 
-def puddle_coverage(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
-                    puddles: np.ndarray, scale: float, phases: np.ndarray) -> np.ndarray:
-    """(H, W) float32 in [0, 1]: how much of each pixel is puddle.
+@dataclasses.dataclass(frozen=True)
+class PuddlePixels:
+    """Where a frame's puddles can lie at full size (:func:`puddle_pixels`): per puddle, the
+    pixels ``rows``, ``cols`` (int64) that show its plane within the outline's reach, their
+    radius in the full-size ellipse's units (``radius``, float64: 1 on the ellipse) and the
+    outline's radius at their angle (``outline``). Shared by every weather of the frame: only
+    the scale differs."""
 
-    A pixel is puddle where its ray meets a puddle's level plane inside the puddle's outline
-    and the surface it shows is that plane (``depth`` within :data:`PUDDLE_ON_ROAD_TOLERANCE`),
-    so whatever stands in front hides the water. The outline is the puddle's ellipse, scaled by
-    ``scale``, with :data:`PUDDLE_OUTLINE` harmonics; coverage falls smoothly from 1 to 0 over
-    :data:`PUDDLE_EDGE` of the radius (smoothstep). Overlapping puddles take the larger value.
+    shape: tuple[int, int]
+    rows: tuple[np.ndarray, ...]
+    cols: tuple[np.ndarray, ...]
+    radius: tuple[np.ndarray, ...]
+    outline: tuple[np.ndarray, ...]
 
-    Args:
-        K: (3, 3) intrinsics. pose_world_cam: (4, 4) T_world_cam, OpenCV axes (x right, y down,
-            z forward).
-        depth: (H, W) float metres along the optical axis, +inf where no geometry is.
-        puddles: (N, 6) float, each ``(x, y, z, half_length, half_width, yaw)`` at full size:
-            centre in world metres, half axes in metres, yaw in radians about +z.
-        scale: linear size of the puddles in this weather, 0 (none) .. 1 (full size).
-        phases: (N, len(PUDDLE_OUTLINE)) outline phases (:func:`puddle_outline_phases`).
-    """
+
+def puddle_pixels(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
+                  puddles: np.ndarray, phases: np.ndarray) -> PuddlePixels:
+    """The pixels of full-size ``puddles`` (arguments as :func:`puddle_coverage`'s), for
+    :func:`puddle_coverage_at`."""
     height, width = depth.shape
-    coverage = np.zeros((height, width), np.float32)
     puddles = np.asarray(puddles, np.float64).reshape(-1, 6)
-    if scale <= 0 or not len(puddles):
-        return coverage
     K = np.asarray(K, np.float64)
     rotation, origin = pose_world_cam[:3, :3], pose_world_cam[:3, 3]
     reach = 1.0 + sum(amplitude for _, amplitude in PUDDLE_OUTLINE)
+    found: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     for (x, y, z, half_length, half_width, yaw), phase in zip(puddles, phases):
-        axes = np.array([half_length, half_width]) * scale
+        axes = np.array([half_length, half_width])
         window = _ground_window(K, pose_world_cam, np.array([x, y, z]),
                                 float(axes.max()) * reach, height, width)
         if window is None:
@@ -690,11 +703,50 @@ def puddle_coverage(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray
         outline = np.ones_like(radius)
         for (harmonic, amplitude), offset in zip(PUDDLE_OUTLINE, phase):
             outline += amplitude * (np.exp(1j * offset) * direction ** harmonic).imag
-        inside = np.clip((outline - radius) / (PUDDLE_EDGE * outline), 0.0, 1.0)
+        found.append((rows + r0, cols + c0, radius, outline))
+    return PuddlePixels((height, width), *(tuple(part) for part in zip(*found))
+                        if found else ((), (), (), ()))
+
+
+def puddle_coverage_at(pixels: PuddlePixels, scale: float) -> np.ndarray:
+    """(H, W) float32 :func:`puddle_coverage` of the puddles in ``pixels`` at ``scale``."""
+    coverage = np.zeros(pixels.shape, np.float32)
+    if scale <= 0:
+        return coverage
+    for rows, cols, radius, outline in zip(pixels.rows, pixels.cols, pixels.radius,
+                                           pixels.outline):
+        inside = np.clip((outline - radius / scale) / (PUDDLE_EDGE * outline), 0.0, 1.0)
         inside = (inside * inside * (3.0 - 2.0 * inside)).astype(np.float32)
-        target = coverage[r0:r1, c0:c1]
-        target[rows, cols] = np.maximum(target[rows, cols], inside)
+        coverage[rows, cols] = np.maximum(coverage[rows, cols], inside)
     return coverage
+
+
+def puddle_coverage(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
+                    puddles: np.ndarray, scale: float, phases: np.ndarray) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: how much of each pixel is puddle.
+
+    A pixel is puddle where its ray meets a puddle's level plane inside the puddle's outline
+    and the surface it shows is that plane (``depth`` within :data:`PUDDLE_ON_ROAD_TOLERANCE`),
+    so whatever stands in front hides the water. The outline is the puddle's ellipse, scaled by
+    ``scale``, with :data:`PUDDLE_OUTLINE` harmonics; coverage falls smoothly from 1 to 0 over
+    :data:`PUDDLE_EDGE` of the radius (smoothstep). Overlapping puddles take the larger value.
+    The same as ``puddle_coverage_at(puddle_pixels(...), scale)``, which a renderer splits to
+    share the first step between the weathers of a frame.
+
+    Args:
+        K: (3, 3) intrinsics. pose_world_cam: (4, 4) T_world_cam, OpenCV axes (x right, y down,
+            z forward).
+        depth: (H, W) float metres along the optical axis, +inf where no geometry is.
+        puddles: (N, 6) float, each ``(x, y, z, half_length, half_width, yaw)`` at full size:
+            centre in world metres, half axes in metres, yaw in radians about +z.
+        scale: linear size of the puddles in this weather, 0 (none) .. 1 (full size).
+        phases: (N, len(PUDDLE_OUTLINE)) outline phases (:func:`puddle_outline_phases`).
+    """
+    if scale <= 0 or not np.size(puddles):
+        return np.zeros(np.shape(depth), np.float32)
+    if scale > 1:
+        raise ValueError(f"scale: expected 0..1 (full size), got {scale!r}")
+    return puddle_coverage_at(puddle_pixels(K, pose_world_cam, depth, puddles, phases), scale)
 
 
 # -- spray ------------------------------------------------------------------------------------
