@@ -27,12 +27,12 @@ from .weather import WeatherRig
 
 HIDDEN_GROUP = 5
 MIRROR_SCALE = 0.5
-COVERED_DROP_M = 1.0
-"""How far the road's other slabs are lowered in the mirror render, under the one stretched
-mirror geom (level with it they would draw over its reflection)."""
 """The wet road's mirror image is rendered at half the width and height and resized: rain-
 roughened water mirrors a blurred world (a sharp mirror looked like glass), and the pass costs
 a quarter of the pixels."""
+COVERED_DROP_M = 1.0
+"""How far the road's other slabs are lowered in the mirror render, under the one stretched
+mirror geom (level with it they would draw over its reflection)."""
 
 
 def camera_intrinsics(model: mujoco.MjModel, camera: str, width: int, height: int) -> np.ndarray:

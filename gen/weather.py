@@ -205,7 +205,7 @@ class WeatherRig:
         return np.array([x, y, z + size[2], size[0], size[1], yaw], np.float64)
 
     def mirror_plane(self, data: mujoco.MjData, geom: int
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
         """The road's mirror plane through road geom ``geom``'s top: ``(cover, slabs, others)``.
 
         ``slabs``: (K, 6) :meth:`top_rectangle` of every road geom whose top is level with
@@ -213,7 +213,7 @@ class WeatherRig:
         first; ``others``: (K - 1,) int64 ids of those other than ``geom``. ``cover``: (6,) the
         smallest rectangle at ``geom``'s yaw holding them all: drawn as the one mirror (the
         others out of its way), it mirrors every slab in one pass (MuJoCo mirrors one geom a
-        render).
+        render); None when a slab is an unbounded plane (it mirrors everywhere already).
         """
         ids = self._mirror_candidates
         tops = self._static_tops
@@ -226,8 +226,8 @@ class WeatherRig:
         level = (np.abs(tops[:, 2] - own[2]) <= 1e-4) & ~mine
         slabs = np.concatenate([own[None], tops[level]])
         others = ids[level].astype(np.int64)
-        if np.isinf(slabs[:, 3:5]).any():
-            return own.copy(), slabs, others
+        if np.isinf(slabs[:, 3:5]).any():  # an unbounded plane: nothing to stretch
+            return None, slabs, others
         corners = []
         for x, y, _, half_length, half_width, yaw in slabs:
             axes = np.array([[math.cos(yaw), math.sin(yaw)], [-math.sin(yaw), math.cos(yaw)]])

@@ -11,6 +11,9 @@ applied here:
 * :func:`spray_opacity` -- tyre spray behind moving vehicles, splatted with depth occlusion;
 * :func:`road_mirror_weight` and :func:`puddle_coverage` -- how much of the mirror render the wet
   road and its puddles show per pixel (Fresnel), and where the puddles lie in the image;
+  :func:`plane_pixels` -- which pixels show the road (the mirror is blended there only);
+* :func:`streak_reflection` -- the wet film's and the rippled puddles' mirror, smeared along the
+  vertical (:func:`film_streak_sigma_px`, :func:`puddle_ripple_slope`);
 * :func:`camera_response` -- auto-exposure residual and Poissonian-Gaussian sensor noise.
 
 Every weather has a time of day (:data:`TIMES_OF_DAY`): dusk and night lower the daylight, add

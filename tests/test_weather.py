@@ -119,7 +119,8 @@ def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=T
     """A 40 m road plane (top at z = 0) with a 1 m box at the origin; ``puddle``: (x, y, half
     length, half width) of a ``scenery/puddle0`` outline geom on the road; ``split_at``: the
     road is two slabs meeting at this x (MuJoCo mirrors one geom a render); ``planes``: the slabs
-    are plane geoms (the night scenes' lit grid) instead of boxes."""
+    are plane geoms (the night scenes' lit grid) instead of boxes, one unbounded plane when not
+    split."""
     spec = mujoco.MjSpec()
     spec.stat.extent = 100.0
     spec.visual.map.znear = 0.001
@@ -132,7 +133,10 @@ def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=T
                      width=32, height=32)
     spec.add_material(name=road, rgba=[0.4, 0.4, 0.4, 1])  # the rig re-colours "asphalt" only
     world = spec.worldbody
-    if split_at is None:
+    if split_at is None and planes:  # one unbounded plane (size 0)
+        world.add_geom(name="scenery/road", type=mujoco.mjtGeom.mjGEOM_PLANE,
+                       size=[0, 0, 0.25], pos=[0, 0, 0], material=road)
+    elif split_at is None:
         world.add_geom(name="scenery/road", type=mujoco.mjtGeom.mjGEOM_BOX,
                        size=[20, 20, 0.05], pos=[0, 0, -0.05], material=road)
     else:
@@ -196,7 +200,8 @@ def test_cloudy_light_casts_no_hard_shadow_and_clear_sun_does():
     assert steps["cloudy"] < 0.05 < 0.15 < steps["clear"]
 
 
-@pytest.mark.parametrize("split_at, planes", [(None, False), (-1.0, False), (-1.0, True)])
+@pytest.mark.parametrize("split_at, planes",
+                         [(None, False), (-1.0, False), (-1.0, True), (None, True)])
 def test_wet_road_mirrors_a_red_box_only_when_wet(split_at, planes):
     """Split at x = -1, the box's reflection lies mostly on the near slab, though MuJoCo's
     mirror is the far one (under the point 15 m ahead): every slab of the road mirrors, boxes
