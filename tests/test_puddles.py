@@ -4,6 +4,7 @@ renderer laying them over a wet road."""
 import math
 
 import numpy as np
+import pytest
 
 from rainbench.rain import weather as wx
 
@@ -53,6 +54,8 @@ def test_coverage_scales_with_the_weather_and_vanishes_at_zero():
     assert (half[radius >= 0.5 * REACH] == 0.0).all() and half[radius <= 0.5 * CORE - 0.01].min() == 1
     assert not wx.puddle_coverage(K, pose, depth, puddle, 0.0, phases).any()
     assert not wx.puddle_coverage(K, pose, depth, np.zeros((0, 6)), 1.0, phases[:0]).any()
+    with pytest.raises(ValueError, match=r"scale: expected 0\.\.1 \(full size\), got 1\.5"):
+        wx.puddle_coverage(K, pose, depth, puddle, 1.5, phases)
 
 
 def test_whatever_stands_in_front_or_the_sky_hides_the_puddle():

@@ -323,9 +323,11 @@ def test_plane_pixels_finds_the_rectangle_seen_from_above():
     hidden = wx.plane_pixels(K, pose, depth, rectangle)
     assert not hidden[45:50, 52:55].any() and not hidden[55:57].any()
     assert np.array_equal(hidden, mask & np.isfinite(depth) & (depth == 10.0))
-    unbounded = wx.plane_pixels(K, pose, np.full((100, 100), 10.0, np.float32),
-                                np.array([0, 0, 0, np.inf, np.inf, 0.0]))
-    assert unbounded.all()
+    level = np.full((100, 100), 10.0, np.float32)
+    assert wx.plane_pixels(K, pose, level, np.array([0, 0, 0, np.inf, np.inf, 0.0])).all()
+    assert wx.plane_pixels(K, pose, level, np.array([0, 0, 0, np.inf, 1.0, 0.0])).all()
+    with pytest.raises(ValueError, match=r"rectangles: expected one plane, got heights 0 to 1 m"):
+        wx.plane_pixels(K, pose, level, np.array([[0, 0, 0, 1, 1, 0], [0, 0, 1, 1, 1, 0.0]]))
 
 
 def test_a_puddle_mirrors_more_than_the_wet_road_and_only_where_it_lies():
