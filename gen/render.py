@@ -17,7 +17,7 @@ import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
 from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY,
-                                     PuddlePixels, Weather, film_streak_sigma_px, plane_pixels,
+                                     Weather, film_streak_sigma_px, plane_pixels,
                                      puddle_coverage_at, puddle_pixels, puddle_ripple_slope,
                                      road_mirror_weight, streak_reflection)
 
@@ -135,8 +135,7 @@ class FrameRenderer:
         self._rig = WeatherRig(model) if base_weather is not None else None
         self._weather_option = mujoco.MjvOption()
         self._mirror_weights: dict[tuple, np.ndarray] = {}
-        self._road_pixels: tuple[np.ndarray, bytes, np.ndarray, np.ndarray] | None = None
-        self._puddle_pixels: tuple[np.ndarray, bytes, PuddlePixels] | None = None
+        self._frame_cache: dict[str, tuple[np.ndarray, bytes, object]] = {}
         self._weather: Weather | None = None
         self._set_weather(base_weather)
 
@@ -238,8 +237,9 @@ class FrameRenderer:
         rotation = pose[:3, :3]
         blended = surface.astype(np.float32)
         gain = CLIPPED_GAIN if weather.time_of_day != "day" else 1.0  # lights are on
-        if slabs is not None and self._rig.road_reflectance > 0:
+        if slabs is not None:
             road, road_small = self._road_pixel_mask(slabs, pose, depth, small.shape[:2])
+        if slabs is not None and self._rig.road_reflectance > 0:
             rows = np.flatnonzero(road.any(axis=1))
             if rows.size:
                 # the wet film smears its reflection along the vertical (puddles: their ripples)
@@ -252,7 +252,6 @@ class FrameRenderer:
                 blended[band] += weight * (film[band] - blended[band])
         if puddles:
             if slabs is not None:  # rain ripples the puddles: their mirror smears as well
-                road, road_small = self._road_pixel_mask(slabs, pose, depth, small.shape[:2])
                 sigma = (2.0 * puddle_ripple_slope(weather.rain_mm_h) * self.K[1, 1]
                          * small.shape[0] / self.height)
                 small = streak_reflection(small, road_small, sigma, gain)
@@ -266,14 +265,21 @@ class FrameRenderer:
         ((K, 6) top rectangles) and its area average (float32) at the mirror render's ``small``
         (h, w), cached for the frame (its weathers share the depth map, the pose and the
         slabs)."""
-        key = pose.tobytes() + slabs.tobytes() + bytes(str(small), "ascii")
-        cached = self._road_pixels
-        if cached is None or cached[0] is not depth or cached[1] != key:
+        def build() -> tuple[np.ndarray, np.ndarray]:
             road = plane_pixels(self.K, pose, depth, slabs)
-            road_small = cv2.resize(road.astype(np.float32), (small[1], small[0]),
+            return road, cv2.resize(road.astype(np.float32), (small[1], small[0]),
                                     interpolation=cv2.INTER_AREA)
-            self._road_pixels = cached = (depth, key, road, road_small)
-        return cached[2], cached[3]
+
+        return self._per_frame("road", depth,
+                               pose.tobytes() + slabs.tobytes() + bytes(str(small), "ascii"), build)
+
+    def _per_frame(self, name: str, depth: np.ndarray, key: bytes, build):
+        """``build()``, kept while the frame's ``depth`` array and ``key`` stay the same: the
+        weathers of one frame share what depends only on its geometry."""
+        cached = self._frame_cache.get(name)
+        if cached is None or cached[0] is not depth or cached[1] != key:
+            cached = self._frame_cache[name] = (depth, key, build())
+        return cached[2]
 
     def _mirror_weight(self, rotation: np.ndarray, reflectance: float) -> np.ndarray:
         """(H, W) float32 :func:`road_mirror_weight`, cached (it depends on the camera's pitch and
@@ -289,13 +295,11 @@ class FrameRenderer:
         """Blend the puddles into ``blended`` (H, W, 3) float32, in place: under each puddle
         the plain ``surface`` dimmed by :data:`~rainbench.rain.weather.PUDDLE_UNDERLAY` and the
         ``mirror`` with a puddle's stronger Fresnel weight."""
-        key = pose.tobytes() + self._rig.puddles.tobytes() + self._rig.puddle_phases.tobytes()
-        cached = self._puddle_pixels
-        if cached is None or cached[0] is not depth or cached[1] != key:
-            # the frame's weathers differ only in the puddles' size: find their pixels once
-            self._puddle_pixels = cached = (depth, key, puddle_pixels(
-                self.K, pose, depth, self._rig.puddles, self._rig.puddle_phases))
-        coverage = puddle_coverage_at(cached[2], self._rig.puddle_scale)
+        rig = self._rig  # the frame's weathers differ only in the puddles' size
+        found = self._per_frame(
+            "puddles", depth, pose.tobytes() + rig.puddles.tobytes() + rig.puddle_phases.tobytes(),
+            lambda: puddle_pixels(self.K, pose, depth, rig.puddles, rig.puddle_phases))
+        coverage = puddle_coverage_at(found, rig.puddle_scale)
         rows = np.flatnonzero(coverage.any(axis=1))
         if not rows.size:
             return

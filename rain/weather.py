@@ -556,10 +556,7 @@ def plane_pixels(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
     down = ray_z < -1e-6
     with np.errstate(divide="ignore", invalid="ignore"):
         along = np.float32(z - origin[2]) / np.where(down, ray_z, np.float32(-1.0))
-    seen = depth[first:last]
-    shown = down & (along > 0) & (np.abs(seen - along)
-                                  <= np.float32(PUDDLE_ON_ROAD_TOLERANCE) * along
-                                  + np.float32(0.02))
+    shown = down & (along > 0) & _on_plane(depth[first:last], along)
     if np.isinf(rectangles[:, 3:5]).any():  # a plane unbounded along a side: all of it
         mask[first:last] = shown
         return mask
@@ -603,6 +600,18 @@ fifth of the radius (a hard edge looked like a painted disc)."""
 PUDDLE_ON_ROAD_TOLERANCE = 0.01
 """A pixel shows the road plane when its depth is within 1 % (+ 2 cm) of where its ray meets the
 plane: cars, people and kerbs in front of a puddle hide it."""
+PUDDLE_ON_ROAD_SLACK_M = 0.02
+"""The 2 cm added to :data:`PUDDLE_ON_ROAD_TOLERANCE` (depth-buffer precision near the camera)."""
+
+
+def _on_plane(seen: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """Where the depth ``seen`` is the depth ``along`` at which each pixel's ray meets a plane,
+    within :data:`PUDDLE_ON_ROAD_TOLERANCE` (+ 2 cm): the pixel shows that plane (same shapes,
+    float32 or float64)."""
+    tolerance = along.dtype.type(PUDDLE_ON_ROAD_TOLERANCE)
+    return np.abs(seen - along) <= tolerance * along + along.dtype.type(PUDDLE_ON_ROAD_SLACK_M)
+
+
 PUDDLE_OUTLINE_SEED = 0x9D
 """Seed of the outline phases: puddle ``i`` draws from ``default_rng([PUDDLE_OUTLINE_SEED, i])``,
 so its shape is a function of the scene alone (the exported scene.xml renders the same)."""
@@ -684,9 +693,7 @@ def puddle_pixels(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
         ray_z = u[None, :] * rotation[2, 0] + v[:, None] * rotation[2, 1] + rotation[2, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             along = (z - origin[2]) / ray_z  # depth at which the ray meets the puddle's plane
-        seen = depth[r0:r1, c0:c1]
-        rows, cols = np.nonzero((ray_z < -1e-9)
-                                & (np.abs(seen - along) <= PUDDLE_ON_ROAD_TOLERANCE * along + 0.02))
+        rows, cols = np.nonzero((ray_z < -1e-9) & _on_plane(depth[r0:r1, c0:c1], along))
         if not rows.size:
             continue
         distance = along[rows, cols]
