@@ -17,7 +17,8 @@ import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
 from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY,
-                                     Weather, film_streak_sigma_px, plane_pixels,
+                                     Weather, film_streak_sigma_px, mirrored_light_pixels,
+                                     plane_pixels,
                                      puddle_coverage_at, puddle_pixels, puddle_ripple_slope,
                                      road_mirror_weight, streak_reflection)
 
@@ -237,14 +238,18 @@ class FrameRenderer:
         rotation = pose[:3, :3]
         blended = surface.astype(np.float32)
         gain = CLIPPED_GAIN if weather.time_of_day != "day" else 1.0  # lights are on
+        lights = None
         if slabs is not None:
             road, road_small = self._road_pixel_mask(slabs, pose, depth, small.shape[:2])
+            if gain != 1.0:  # the lamps' mirror images: only they streak brightly
+                lights = self._mirrored_lights(data, pose, float(slabs[0, 2]), depth,
+                                               small.shape[:2])
         if slabs is not None and self._rig.road_reflectance > 0:
             rows = np.flatnonzero(road.any(axis=1))
             if rows.size:
                 # the wet film smears its reflection along the vertical (puddles: their ripples)
                 sigma = film_streak_sigma_px(self.K[1, 1]) * small.shape[0] / self.height
-                film = cv2.resize(streak_reflection(small, road_small, sigma, gain), size,
+                film = cv2.resize(streak_reflection(small, road_small, sigma, gain, lights), size,
                                   interpolation=cv2.INTER_LINEAR)
                 band = slice(int(rows[0]), int(rows[-1]) + 1)  # only the rows the road reaches
                 weight = self._mirror_weight(rotation, self._rig.road_reflectance)[band]
@@ -254,7 +259,7 @@ class FrameRenderer:
             if slabs is not None:  # rain ripples the puddles: their mirror smears as well
                 sigma = (2.0 * puddle_ripple_slope(weather.rain_mm_h) * self.K[1, 1]
                          * small.shape[0] / self.height)
-                small = streak_reflection(small, road_small, sigma, gain)
+                small = streak_reflection(small, road_small, sigma, gain, lights)
             mirror = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR)
             self._lay_puddles(blended, surface, mirror, pose, depth)
         return np.clip(np.rint(blended), 0, 255).astype(np.uint8)
@@ -272,6 +277,23 @@ class FrameRenderer:
 
         return self._per_frame("road", depth,
                                pose.tobytes() + slabs.tobytes() + bytes(str(small), "ascii"), build)
+
+    def _mirrored_lights(self, data: mujoco.MjData, pose: np.ndarray, plane_z: float,
+                         depth: np.ndarray, small: tuple[int, int]) -> np.ndarray:
+        """(h, w) bool :func:`~rainbench.rain.weather.mirrored_light_pixels` of the scene's lamp
+        geoms in the road plane at ``plane_z``, at the mirror render's ``small`` (h, w), cached
+        for the frame."""
+        spheres = self._rig.lamp_spheres(data)
+
+        def build() -> np.ndarray:
+            # drawn on the full image, then any pixel a disc touches counts at half size
+            lights = mirrored_light_pixels(self.K, pose, spheres, plane_z, self.height,
+                                           self.width)
+            return cv2.resize(lights.astype(np.uint8), (small[1], small[0]),
+                              interpolation=cv2.INTER_AREA) > 0
+
+        return self._per_frame("lights", depth, pose.tobytes() + spheres.tobytes()
+                               + np.float64(plane_z).tobytes() + bytes(str(small), "ascii"), build)
 
     def _per_frame(self, name: str, depth: np.ndarray, key: bytes, build):
         """``build()``, kept while the frame's ``depth`` array and ``key`` stay the same: the

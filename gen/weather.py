@@ -122,6 +122,11 @@ class WeatherRig:
                                         if n.startswith(tod.LIGHT_PREFIX) and n.endswith("_beam")
                                         and i not in self._ego_beams], np.int64)
         self._candidates = np.concatenate([self._lamps, self._vehicle_beams])
+        lamp_materials = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, name)
+                          for name in tod.LAMP_MATERIALS]
+        self.lamp_geoms = np.flatnonzero(np.isin(model.geom_matid,
+                                                 [m for m in lamp_materials if m >= 0]))
+        """(L,) int64: the geoms drawn as lights (head and tail lights, street lamp heads)."""
         asphalt = self._materials.get("asphalt", -2)
         self._mirror_candidates = np.flatnonzero(model.geom_matid == asphalt)
         # road geoms of the world body never move: their tops are measured once
@@ -241,6 +246,12 @@ class WeatherRig:
         centre = own[:2] + ((low + high) / 2) @ frame
         half = (high - low) / 2
         return np.array([centre[0], centre[1], own[2], half[0], half[1], yaw]), slabs, others
+
+    def lamp_spheres(self, data: mujoco.MjData) -> np.ndarray:
+        """(L, 4) float64 ``(x, y, z, radius)``: each of :attr:`lamp_geoms`' centre in the state
+        ``data`` and its bounding radius, metres."""
+        return np.column_stack([data.geom_xpos[self.lamp_geoms],
+                                self.model.geom_rbound[self.lamp_geoms]])
 
     def set_mirror(self, on: bool) -> None:
         """Full mirror reflectance on the road (``on``), or none."""

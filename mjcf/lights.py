@@ -96,6 +96,9 @@ TAILLAMP_EMISSION = 1.4
 STREET_LAMP_EMISSION = 1.5
 """Emission x the geom's colour is added to its lit colour: lamps saturate like a real camera's
 view of a light source (red tails stay red: their green and blue are small)."""
+LAMP_MATERIALS = ("tod_headlamp", "tod_taillamp", "tod_streetlamp")
+"""The emissive materials of head and tail lights and street lamp heads: the scene's lights as
+a camera sees them (their mirror images on a wet road streak, rainbench.rain.weather)."""
 TAILLAMP_RGBA = (1.0, 0.06, 0.04, 1.0)
 STREET_LAMP_RGBA = (1.0, 0.86, 0.66, 1.0)
 
@@ -262,17 +265,18 @@ def add_time_of_day_lights(spec: mujoco.MjSpec, time_of_day: str, *, ego_body: s
                   (0.0, 0.0, -1.0), cutoff=LAMP_CUTOFF_DEG, exponent=LAMP_EXPONENT,
                   attenuation=LAMP_ATTENUATION, diffuse=lamp, active=index in default_on)
 
-    _emissive(spec, "tod_headlamp", HEADLAMP_EMISSION)
-    _emissive(spec, "tod_taillamp", TAILLAMP_EMISSION)
-    _emissive(spec, "tod_streetlamp", STREET_LAMP_EMISSION)
+    headlamp, taillamp, street_lamp = LAMP_MATERIALS
+    _emissive(spec, headlamp, HEADLAMP_EMISSION)
+    _emissive(spec, taillamp, TAILLAMP_EMISSION)
+    _emissive(spec, street_lamp, STREET_LAMP_EMISSION)
     for geom in spec.geoms:
         name = geom.name
         if name.startswith("actor") and "/headlight" in name:
-            geom.material = "tod_headlamp"
+            geom.material = headlamp
         elif name.startswith("actor") and "/taillight" in name:
-            geom.material = "tod_taillamp"
+            geom.material = taillamp
             geom.rgba = list(TAILLAMP_RGBA)
         elif STREET_LAMP_NAME.match(name):
-            geom.material = "tod_streetlamp"
+            geom.material = street_lamp
             geom.rgba = list(STREET_LAMP_RGBA)
     _plane_receivers(spec)

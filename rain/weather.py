@@ -109,7 +109,10 @@ CLIPPED_GAIN = 8.0
 this many times brighter in the film's smear, so the streak of a light on a wet road stays
 bright where smearing its clipped value would fade it to a glow (the streak is clipped to 255
 again after blending). By day a clipped pixel is as likely a bright sky, which must not be
-boosted: the gain is 1. Chosen for the look."""
+boosted: the gain is 1. Only the mirror images of the lamps are boosted
+(:func:`mirrored_light_pixels`): a surface lit past the sensor's range (a light car body under
+a street lamp) clips as well, and boosting it would lay a saturated block on the road. Chosen
+for the look."""
 WATER_INDEX = 1.333
 FRESNEL_REFERENCE_DEG = 80.0
 
@@ -479,11 +482,11 @@ def film_streak_sigma_px(focal_px: float) -> float:
 
 
 def streak_reflection(mirror: np.ndarray, road: np.ndarray, sigma_px: float,
-                      clipped_gain: float = 1.0) -> np.ndarray:
+                      clipped_gain: float = 1.0, lights: np.ndarray | None = None) -> np.ndarray:
     """(h, w, 3) float32: ``mirror`` smeared along the image's vertical by a Gaussian of
     ``sigma_px`` rows, averaging over the road only, so nothing off it (cars, kerbs, the sky) is
     smeared in; where no road is near the mirror is kept. Clipped pixels (a channel at or
-    above :data:`CLIPPED_LEVEL`: lights) weigh ``clipped_gain`` times their value
+    above :data:`CLIPPED_LEVEL`) among ``lights`` weigh ``clipped_gain`` times their value
     (:data:`CLIPPED_GAIN` at dusk and night), so the result may exceed 255.
 
     Args:
@@ -491,6 +494,9 @@ def streak_reflection(mirror: np.ndarray, road: np.ndarray, sigma_px: float,
         road: (h, w) float in [0, 1], how much of each pixel shows the mirrored road
             (:func:`plane_pixels`, resized to ``mirror``'s size).
         sigma_px: the Gaussian's standard deviation in rows of ``mirror`` (0: no smear).
+        clipped_gain: the weight of clipped light pixels (1: none).
+        lights: (h, w) bool, where the mirror shows lights (:func:`mirrored_light_pixels`);
+            None: every clipped pixel is a light.
     """
     mirror = np.asarray(mirror, np.float32)
     if sigma_px <= 0:
@@ -498,8 +504,12 @@ def streak_reflection(mirror: np.ndarray, road: np.ndarray, sigma_px: float,
     road = np.asarray(road, np.float32)
     radiance = mirror
     if clipped_gain != 1.0:
-        radiance = np.where((mirror.max(axis=-1) >= CLIPPED_LEVEL)[..., None],
-                            mirror * np.float32(clipped_gain), mirror)
+        boosted = mirror.max(axis=-1) >= CLIPPED_LEVEL
+        if lights is not None:
+            if np.shape(lights) != boosted.shape:
+                raise ValueError(f"lights: expected shape {boosted.shape}, got {np.shape(lights)}")
+            boosted &= np.asarray(lights, bool)
+        radiance = np.where(boosted[..., None], mirror * np.float32(clipped_gain), mirror)
     radius = max(1, int(math.ceil(3.0 * sigma_px)))
     rows = np.arange(-radius, radius + 1, dtype=np.float32)
     kernel = np.exp(-0.5 * (rows / np.float32(sigma_px)) ** 2)
@@ -511,6 +521,35 @@ def streak_reflection(mirror: np.ndarray, road: np.ndarray, sigma_px: float,
     out = mirror.copy()
     np.divide(weighted, norm[..., None], out=out, where=(norm > 1e-3)[..., None])
     return out
+
+
+def mirrored_light_pixels(K: np.ndarray, pose_world_cam: np.ndarray, spheres: np.ndarray,
+                          plane_z: float, height: int, width: int) -> np.ndarray:
+    """(height, width) bool: where a level water plane at ``plane_z`` shows the mirror images of
+    light sources: each sphere reflected through the plane (z -> 2 plane_z - z), projected, and
+    drawn as a disc of its projected radius plus one pixel. Those behind the camera are left
+    out. Streaks are boosted here only (:data:`CLIPPED_GAIN`).
+
+    Args:
+        K: (3, 3) intrinsics. pose_world_cam: (4, 4) T_world_cam, OpenCV axes.
+        spheres: (N, 4) float ``(x, y, z, radius)`` in metres, world frame: each lamp geom's
+            centre and bounding radius.
+        plane_z: the water's height in metres.
+    """
+    spheres = np.asarray(spheres, np.float64).reshape(-1, 4)
+    mask = np.zeros((height, width), np.uint8)
+    mirrored = spheres[:, :3] * [1.0, 1.0, -1.0] + [0.0, 0.0, 2.0 * plane_z]
+    # rows of R^T (p - t): the mirrored centres in the camera frame
+    points = (mirrored - pose_world_cam[:3, 3]) @ pose_world_cam[:3, :3]
+    for (x, y, z), radius in zip(points, spheres[:, 3]):
+        if z <= 1e-3:
+            continue
+        u = K[0, 0] * x / z + K[0, 2]
+        v = K[1, 1] * y / z + K[1, 2]
+        pixels = K[0, 0] * radius / z + 1.0
+        if -pixels <= u <= width + pixels and -pixels <= v <= height + pixels:
+            cv2.circle(mask, (int(round(u)), int(round(v))), int(math.ceil(pixels)), 1, -1)
+    return mask.astype(bool)
 
 
 def plane_pixels(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,

@@ -334,6 +334,24 @@ def test_road_under_a_street_light_is_brighter_than_between_two(night_scene):
     assert under > 1.3 * between and under > between + 8
 
 
+def test_the_weather_rig_knows_the_lamps_whose_reflections_streak(night_scene):
+    """The rig's lamp geoms are exactly the head and tail lights and street lamp heads (their
+    emissive materials); their spheres follow the state."""
+    from rainbench.gen.weather import WeatherRig
+
+    layout, model = night_scene
+    rig = WeatherRig(model)
+    names = [model.geom(int(g)).name for g in rig.lamp_geoms]
+    lamps = {model.material(name).id for name in tod.LAMP_MATERIALS}
+    assert set(rig.lamp_geoms) == {g for g in range(model.ngeom) if model.geom_matid[g] in lamps}
+    assert any("/headlight" in n for n in names) and any("/taillight" in n for n in names)
+    assert any(tod.STREET_LAMP_NAME.match(n) for n in names)
+    data = _posed(model, layout, 8.0)
+    spheres = rig.lamp_spheres(data)
+    np.testing.assert_array_equal(spheres[:, :3], data.geom_xpos[rig.lamp_geoms])
+    assert spheres.shape == (len(names), 4) and (spheres[:, 3] > 0).all()
+
+
 def test_wet_night_road_mirrors_the_strip_the_camera_sees(night_scene):
     layout, model = night_scene
     data = _posed(model, layout, 8.0)

@@ -283,6 +283,45 @@ def test_film_streaks_smear_along_the_vertical_over_the_road_only():
     boosted = wx.streak_reflection(light, road, 4.0, clipped_gain=wx.CLIPPED_GAIN)
     assert plain[30, 4, 0] < 100 < boosted[30, 4, 0]  # a glow, or a bright streak at night
     np.testing.assert_allclose(boosted[:, [0, 8]], plain[:, [0, 8]])  # only the light's column
+
+
+def test_only_the_lamps_mirror_images_streak_brightly():
+    """Two clipped spots: the one among ``lights`` (a lamp) streaks with the night gain, the
+    other (a light car body lit past the sensor's range) smears as without it."""
+    scene = np.full((120, 40, 3), 20.0, np.float32)
+    scene[50:53, 5:8] = 255.0  # a lamp's mirror image
+    scene[50:70, 25:35] = (90.0, 250.0, 255.0)  # a cyan body, clipped
+    lights = np.zeros((120, 40), bool)
+    lights[48:55, 3:10] = True
+    road = np.ones((120, 40), np.float32)
+    plain = wx.streak_reflection(scene, road, 4.0)
+    boosted = wx.streak_reflection(scene, road, 4.0, wx.CLIPPED_GAIN, lights)
+    assert boosted[51, 6, 0] > plain[51, 6, 0] + 100  # the lamp's streak
+    np.testing.assert_array_equal(boosted[:, 20:], plain[:, 20:])  # the body: no gain
+    every_clip = wx.streak_reflection(scene, road, 4.0, wx.CLIPPED_GAIN)
+    assert every_clip[60, 30, 1] > boosted[60, 30, 1] + 100  # what lights=None would do
+    with pytest.raises(ValueError, match=r"lights: expected shape \(120, 40\), got \(4, 4\)"):
+        wx.streak_reflection(scene, road, 4.0, wx.CLIPPED_GAIN, np.zeros((4, 4), bool))
+
+
+def test_mirrored_light_pixels_project_the_lamps_reflection():
+    """A lamp 1 m up and 10 m ahead of a camera 1.5 m over the water: its mirror image, 1 m
+    under the water, is seen 2.5 m below the camera at 10 m: row cy + f x 0.25, a disc of
+    f x r / 10 + 1 pixels. Lamps behind the camera or out of view draw nothing."""
+    K = np.array([[100.0, 0.0, 80.0], [0.0, 100.0, 60.0], [0.0, 0.0, 1.0]])
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # looks along +y
+    pose[:3, 3] = (0.0, 0.0, 1.5)
+    lamp = [0.0, 10.0, 1.0, 0.1]
+    mask = wx.mirrored_light_pixels(K, pose, np.array([lamp]), 0.0, 120, 160)
+    expected = np.zeros((120, 160), np.uint8)
+    cv2.circle(expected, (80, 85), 2, 1, -1)  # 100 x 0.1 / 10 + 1 = 2 pixels
+    np.testing.assert_array_equal(mask, expected.astype(bool))
+    raised = wx.mirrored_light_pixels(K, pose, np.array([lamp]), 0.5, 120, 160)  # water 0.5 m up
+    assert raised[75, 80] and not raised[85, 80]  # mirrored to z = 0: 1.5 m below the camera
+    away = np.array([[0.0, -10.0, 1.0, 0.1], [500.0, 10.0, 1.0, 0.1]])  # behind; far aside
+    assert not wx.mirrored_light_pixels(K, pose, away, 0.0, 120, 160).any()
+    assert not wx.mirrored_light_pixels(K, pose, np.zeros((0, 4)), 0.0, 120, 160).any()
     assert wx.film_streak_sigma_px(400.0) == pytest.approx(16.0)
 
 
