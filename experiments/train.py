@@ -16,7 +16,7 @@ training run depends on:
 - ``restarts`` (optional, in ``train`` or ``cpu``; the ``cpu`` one wins on CPU): a list of argument
   overrides, one per further stage. Stage k starts from stage k-1's best weights with a fresh
   optimizer and learning-rate schedule (a warm restart) and trains into ``OUT/restart<k>``; the
-  last stage's best weights are the result.
+  last stage's best weights are the result (or their ``wise_alpha`` mix).
 - ``eval_imgsz`` (optional, default 640): the letterbox size the model is evaluated at, written
   to its card ``<name>.json`` (``rainbench eval`` uses it for a shipped model);
 - ``classes`` (optional, default the paper's four: person, bicycle, car, motorcycle): the COCO
@@ -49,11 +49,17 @@ training run depends on:
   ``RandomRain`` on the clean training frames, ``{p: 0.5, rain_type: heavy, ...}`` (``p`` the
   share of images it is applied to, the rest ``RandomRain`` arguments): the usual practice, for
   comparing a rain curriculum with on equal terms.
+- ``wise_alpha`` (optional, with ``init_weights`` only): the shipped checkpoint is the trained one
+  mixed in weight space with the one it started from, ``(1 - a) x init_weights + a x trained``
+  (WiSE-FT, Wortsman et al. 2022; :func:`~rainbench.eval.weights.interpolate_checkpoints`), a in
+  (0, 1]: a fine-tune that keeps more of its start's clean accuracy. Default: the trained
+  checkpoint itself.
 
 :func:`train` generates the datasets (one training dataset per rain model of the curriculum, and
 the validation dataset; resuming a partial one), exports them as YOLO folders
 when a stage needs them, and trains, resuming from ``last.pt`` when a previous run of the same recipe was cut off. The
-last stage's best weights are copied to ``OUT/<name>.pt``, with ``OUT/<name>.onnx`` and
+last stage's best weights (mixed with ``init_weights`` when ``wise_alpha`` is set) are written to
+``OUT/<name>.pt``, with ``OUT/<name>.onnx`` and
 ``OUT/<name>.json`` beside it (:func:`write_companions`). Nothing is downloaded:
 ``YOLO_OFFLINE=1``, ``plots=False`` (no font fetch) and ``amp=False`` (no AMP-check download).
 
@@ -93,7 +99,7 @@ TRAIN_SEED_START = 1_000_000
 """Seeds of training and validation scenes are >= this; evaluation seeds are below it."""
 RECIPES_DIR = Path(__file__).resolve().parent / "recipes"
 RECIPE_KEYS = {"name", "architecture", "train_data", "val_data", "train", "cpu", "eval_imgsz",
-               "classes", "reader", "rain_curriculum", "random_rain", "init_weights"}
+               "classes", "reader", "rain_curriculum", "random_rain", "init_weights", "wise_alpha"}
 READERS = ("shards", "export")
 """How a whole-frame stage reads its data: straight from the shards (the default; no export) or
 from exported YOLO folders. Tile stages always train on tiles cut from the export."""
@@ -123,6 +129,7 @@ class Recipe:
     curriculum: RainCurriculum = RainCurriculum()  # rain training images are drawn with (reader shards)
     random_rain: RandomRainAugment | None = None  # albumentations RandomRain on training images (reader shards)
     init_weights: Path | None = None  # a checkpoint the first stage starts from (a fine-tune); None: from scratch
+    wise_alpha: float | None = None  # the trained weights' share in the shipped mix with init_weights; None: 1
 
     def arguments(self, cuda: bool) -> dict[str, Any]:
         """ultralytics ``train()`` arguments of the first stage (``cpu`` overrides when not ``cuda``)."""
@@ -283,6 +290,14 @@ def load_recipe(recipe: str | Path) -> Recipe:
             init_weights = checkpoint_file(raw["init_weights"])
         except BackendError as error:
             raise TrainError(f"{source}: `init_weights`: {error}") from None
+    wise_alpha = raw.get("wise_alpha")
+    if wise_alpha is not None:
+        if isinstance(wise_alpha, bool) or not isinstance(wise_alpha, (int, float)) or not 0 < wise_alpha <= 1:
+            raise TrainError(f"{source}: `wise_alpha` must be a number in (0, 1], got {wise_alpha!r}")
+        if init_weights is None:
+            raise TrainError(f"{source}: `wise_alpha` needs `init_weights` (it mixes the trained weights with the "
+                             "checkpoint they started from)")
+        wise_alpha = float(wise_alpha)
     train_data = _dataset_config(raw["train_data"], "train_data", source, rates=tuple(sorted(curriculum.rates)))
     val_data = _dataset_config(raw["val_data"], "val_data", source)
     if _seed_range(train_data) & _seed_range(val_data):
@@ -290,7 +305,7 @@ def load_recipe(recipe: str | Path) -> Recipe:
     return Recipe(name=str(raw["name"]), architecture=str(raw["architecture"]), train_data=train_data,
                   val_data=val_data, train_args=dict(train_args), cpu_args=dict(cpu_args), source=source,
                   eval_imgsz=eval_imgsz, classes=classes, reader=reader, curriculum=curriculum,
-                  random_rain=random_rain, init_weights=init_weights)
+                  random_rain=random_rain, init_weights=init_weights, wise_alpha=wise_alpha)
 
 
 # Integer train() arguments and their least value (ultralytics checks some only when training starts).
@@ -583,7 +598,12 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
         if not best.is_file():
             raise TrainError(f"training finished without {best}; see the log above")
     final = out / f"{recipe.name}.pt"
-    shutil.copyfile(best, final)
+    if recipe.wise_alpha is None:
+        shutil.copyfile(best, final)
+    else:  # the shipped weights: the trained ones mixed with those they started from
+        from rainbench.eval.weights import interpolate_checkpoints
+
+        interpolate_checkpoints(recipe.init_weights, best, recipe.wise_alpha, final)
     write_companions(final, recipe.eval_imgsz, model_card(recipe, out, device, stages))
     return final
 
@@ -618,7 +638,7 @@ def model_card(recipe: Recipe, out: str | Path, device: str, stages: list[dict[s
     """What a trained model's card ``<name>.json`` says besides ``imgsz``: the recipe (file and
     sha256), the classes, the data (each dataset's manifest config, by folder under
     ``OUT/data``), the rain it was trained with (curriculum entries, RandomRain, the checkpoint
-    it was fine-tuned from), every stage (:func:`_stage_record`), the device and the software
+    it was fine-tuned from, ``wise_alpha``), every stage (:func:`_stage_record`), the device and the software
     versions, and the checkpoint's sha256 (``OUT/<name>.pt``). Reads only files of the run."""
     import platform  # noqa: PLC0415
     from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415
@@ -650,6 +670,7 @@ def model_card(recipe: Recipe, out: str | Path, device: str, stages: list[dict[s
         **_rain_record(recipe),
         "init_weights": (None if recipe.init_weights is None
                          else {"file": recipe.init_weights.name, "sha256": sha256_of(recipe.init_weights)}),
+        "wise_alpha": recipe.wise_alpha,
         "stages": [_stage_record(_stage_dir(out, stage), arguments) for stage, arguments in enumerate(stages)],
         "device": device,
         "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores" + _gpu_name(device),

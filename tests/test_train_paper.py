@@ -188,6 +188,26 @@ def test_tiny_training_run_writes_weights_the_evaluator_loads(tmp_path, capsys):
     code, _, err = _run(capsys, "train", "--recipe", recipe_path, "--out", out, "--device", "cpu")
     assert code == 0, err
     assert (out / "run" / "weights" / "last.pt").stat().st_mtime_ns == before
+    # A fine-tune of it with `wise_alpha`: the shipped weights are the trained ones mixed back
+    # with those they started from, (1 - a) start + a trained, and the card says so.
+    wise_path = tmp_path / "wise.yaml"
+    wise_path.write_text(TINY_RECIPE.replace("name: tiny-yolo", "name: tiny-wise")
+                         + f"init_weights: {weights}\nwise_alpha: 0.25\n")
+    code, _, err = _run(capsys, "train", "--recipe", wise_path, "--out", tmp_path / "wise", "--device", "cpu")
+    assert code == 0, err
+    card = json.loads((tmp_path / "wise" / "tiny-wise.json").read_text())
+    assert card["wise_alpha"] == 0.25 and card["init_weights"]["sha256"] == sha256_of(weights)
+
+    def state(path):
+        return torch.load(path, map_location="cpu", weights_only=False)["model"].float().state_dict()
+
+    start, trained = state(weights), state(tmp_path / "wise" / "run" / "weights" / "best.pt")
+    mixed = state(tmp_path / "wise" / "tiny-wise.pt")
+    moved = [name for name, value in trained.items() if value.is_floating_point()
+             and not torch.equal(value, start[name])]
+    assert moved  # the fine-tune moved the weights, and the mix lies a quarter of the way
+    for name in moved:
+        assert torch.equal(mixed[name], (0.75 * start[name] + 0.25 * trained[name]).half().float()), name
 
 
 def test_warm_restart_starts_from_the_first_stage_weights(tmp_path, capsys):

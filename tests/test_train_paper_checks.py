@@ -145,6 +145,12 @@ def test_check_device_normalises_what_it_accepts(monkeypatch):
     ("eval_imgsz: 96", "eval_imgsz: 96\ninit_weights: missing.pt",
      "`init_weights`: missing.pt: expected a shipped model name (" + ", ".join(shipped_models())
      + ") or an existing .pt checkpoint"),
+    ("eval_imgsz: 96", "eval_imgsz: 96\nwise_alpha: 0.9",
+     "`wise_alpha` needs `init_weights` (it mixes the trained weights with the checkpoint they started from)"),
+    ("eval_imgsz: 96", "eval_imgsz: 96\ninit_weights: rainbench-yolo11n\nwise_alpha: 0",
+     "`wise_alpha` must be a number in (0, 1], got 0"),
+    ("eval_imgsz: 96", "eval_imgsz: 96\ninit_weights: rainbench-yolo11n\nwise_alpha: true",
+     "`wise_alpha` must be a number in (0, 1], got True"),
 ])
 def test_train_refuses_bad_recipe_values_before_generating(tmp_path, capsys, old, new, message):
     recipe = _recipe(tmp_path, old, new)
