@@ -3,6 +3,8 @@
 import hashlib
 import json
 import math
+import threading
+import time
 
 import h5py
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
@@ -255,6 +257,74 @@ def test_writer_takes_the_images_of_a_frame_as_one_array_or_one_per_rate(tmp_pat
             writer.write_frame(0, [images[0, 0]], labels, np.eye(4))
         with pytest.raises(ValueError, match="rgb_by_rate: expected 2 images of"):
             writer.write_frame(0, [images[0, 0], images[0, 1, :8]], labels, np.eye(4))
+
+
+def test_frames_in_flight_keep_the_bytes_the_order_and_the_bound(tmp_path, monkeypatch):
+    """Several frames rained at once: the shard's bytes are those of a serial run, frames are
+    written in order, no more than ``frames_in_flight`` frames are rained at once, and a frame
+    whose rain fails leaves no shard behind."""
+    from rainbench.gen import generate as gen_module
+
+    config = GenerateConfig(seed=5, frame_offset=60, frames=6, width=96, height=72)
+    serial = hashlib.sha256(generate_shard(config, tmp_path / "serial", threads=1).read_bytes())
+
+    rain_for_frame, written = gen_module._rain_for_frame, []
+    running, most_running, frames_ahead, lock = [0], [0], [], threading.Lock()
+
+    def counted_rain(config, frame, K, global_frame, *args):
+        with lock:
+            running[0] += 1
+            most_running[0] = max(most_running[0], running[0])
+        try:
+            # even frames finish after the odd frames rendered after them (a frame renders in
+            # ~0.15 s here), and unbounded rendering would run 4 frames ahead
+            time.sleep(0.8 if global_frame % 2 == 0 else 0.0)
+            return rain_for_frame(config, frame, K, global_frame, *args)
+        finally:
+            with lock:
+                running[0] -= 1
+
+    write_frame = ShardWriter.write_frame
+
+    def ordered_write(self, index, *args, **kwargs):
+        written.append(index)
+        return write_frame(self, index, *args, **kwargs)
+
+    def watched_clip(*args, **kwargs):
+        for index, frame, renderer in render_clip(*args, **kwargs):
+            with lock:
+                frames_ahead.append(index - len(written))  # rendered and not yet written
+            yield index, frame, renderer
+
+    monkeypatch.setattr(gen_module, "_rain_for_frame", counted_rain)
+    monkeypatch.setattr(gen_module, "render_clip", watched_clip)
+    monkeypatch.setattr(ShardWriter, "write_frame", ordered_write)
+    pipelined = generate_shard(config, tmp_path / "pipelined", threads=4, frames_in_flight=3)
+    assert hashlib.sha256(pipelined.read_bytes()).hexdigest() == serial.hexdigest()
+    assert written == list(range(6))
+    assert 1 <= most_running[0] <= 3
+    # frame i is rendered only once frame i - 4 is written: at most 3 frames held besides it
+    assert max(frames_ahead) <= 3
+
+    def failing_rain(config, frame, K, global_frame, *args):
+        if global_frame == 62:
+            raise RuntimeError("rain of frame 62 failed")
+        return rain_for_frame(config, frame, K, global_frame, *args)
+
+    monkeypatch.setattr(gen_module, "_rain_for_frame", failing_rain)
+    with pytest.raises(RuntimeError, match="rain of frame 62 failed"):
+        generate_shard(config, tmp_path / "failed", threads=4, frames_in_flight=3)
+    assert list((tmp_path / "failed").iterdir()) == []
+
+
+def test_frames_in_flight_default_and_bad_values(tmp_path):
+    from rainbench.gen.generate import default_frames_in_flight
+
+    assert [default_frames_in_flight(n) for n in (1, 2, 11, 12, 16, 32, 64)] == [1, 2, 2, 3, 4, 8, 8]
+    config = GenerateConfig(seed=5, frames=1, width=32, height=24)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="frames_in_flight: expected an integer >= 1, got"):
+            generate_shard(config, tmp_path, threads=2, frames_in_flight=bad)
 
 
 def test_depth_is_rendered_only_where_it_is_used():
