@@ -6,7 +6,8 @@ run in the same process and the same run:
    Target: ratio <= 3 (jeon2022 keeps <= 2.5).
    With the weather following the rate (``--rain-model physical``): against a bare renderer
    rendering 11 images per frame of the same scene. Target: ratio <= 1.6.
-2. scaling: 2 scenes with 2 workers against 1 worker, once with each worker on one core
+2. scaling: 2 scenes with 2 workers against 1 worker (``--scaling-workers N``: N scenes with N
+   workers against 1 worker on 2 scenes, in images/s), once with each worker on one core
    (one Mesa render thread, ``LP_NUM_THREADS=1``, and ``--threads 1``: no rain or compression
    threads beside the render; target >= 1.6x) and once with the defaults (Mesa's threads on
    every core, rain and compression threads = cores / workers).
@@ -14,7 +15,8 @@ run in the same process and the same run:
    persistent workers, as in training) against reading the same images from PNG files with
    ``cv2.imread`` (warm cache too). Target >= 2x.
 
-    python bench/dataset.py [--frames 200] [--scaling-frames 40] [--json OUT] [--skip e2e,...]
+    python bench/dataset.py [--frames 200] [--scaling-frames 40] [--scaling-workers 2]
+        [--scaling-rates 0,50,100] [--json OUT] [--skip e2e,...]
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from rainbench.gl import mujoco  # imported once the GL backend is chosen
 from rainbench.gen import sim
 from rainbench.gen.config import GenerateConfig
 from rainbench.gen.generate import build_scene
+from rainbench.store.rates import parse_rates
 
 
 def bare_render_seconds(frames: int, width: int, height: int, images_per_frame: int = 1) -> float:
@@ -88,16 +91,23 @@ def weather_end_to_end(tmp: Path, frames: int) -> dict:
             "ratio": seconds / bare, "target_ratio": 1.6}
 
 
-def scaling(tmp: Path, frames: int) -> dict:
-    common = ["--scenes", "2", "--frames", str(frames), "--rates", "0,50,100"]
-    result = {"frames_per_scene": frames}
+def scaling(tmp: Path, frames: int, workers: int = 2, rates: str = "0,50,100") -> dict:
+    """``workers`` workers on ``workers`` scenes against one worker on 2 scenes (the same scenes'
+    first two), in images per second; with 2 workers both runs do the same work."""
+    num_rates = len(parse_rates(rates))
+    result = {"frames_per_scene": frames, "rates": rates, "workers": workers}
     for label, env, threads in (("one_core_per_worker", {"LP_NUM_THREADS": "1"}, ["--threads", "1"]),
                                 ("default_threads", {}, [])):
-        one = cli_seconds(["--out", str(tmp / f"s1{label}"), "--workers", "1", *threads, *common],
-                          env)
-        two = cli_seconds(["--out", str(tmp / f"s2{label}"), "--workers", "2", *threads, *common],
-                          env)
-        result[label] = {"one_worker_s": one, "two_workers_s": two, "speedup": one / two}
+        runs = {}
+        for count, scenes in ((1, 2), (workers, workers)):
+            seconds = cli_seconds(["--out", str(tmp / f"s{count}{label}"), "--workers", str(count),
+                                   "--scenes", str(scenes), "--frames", str(frames),
+                                   "--rates", rates, *threads], env)
+            runs[count] = (seconds, scenes * frames * num_rates / seconds)
+        result[label] = {"one_worker_s": runs[1][0], "n_workers_s": runs[workers][0],
+                         "one_worker_images_per_s": runs[1][1],
+                         "n_workers_images_per_s": runs[workers][1],
+                         "speedup": runs[workers][1] / runs[1][1]}
     return result
 
 
@@ -146,6 +156,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--scaling-frames", type=int, default=40)
+    parser.add_argument("--scaling-workers", type=int, default=2,
+                        help="workers (and scenes) against one worker on 2 scenes (default 2)")
+    parser.add_argument("--scaling-rates", default="0,50,100")
     parser.add_argument("--weather-frames", type=int, default=200)
     parser.add_argument("--reader-frames", type=int, default=100)
     parser.add_argument("--skip", default="", help="comma list of e2e,weather,scaling,reader")
@@ -166,11 +179,14 @@ def main() -> None:
                   f"{weather['generate_s']:.1f} s, bare RGB x11 {weather['bare_render_11x_s']:.1f}"
                   f" s, ratio {weather['ratio']:.2f} (target <= 1.6)")
         if "scaling" not in skip:
-            results["scaling"] = scale = scaling(tmp, args.scaling_frames)
+            results["scaling"] = scale = scaling(tmp, args.scaling_frames, args.scaling_workers,
+                                                 args.scaling_rates)
             for label in ("one_core_per_worker", "default_threads"):
                 row = scale[label]
-                print(f"scaling ({label}): 1 worker {row['one_worker_s']:.1f} s, 2 workers "
-                      f"{row['two_workers_s']:.1f} s, speed-up {row['speedup']:.2f}x")
+                print(f"scaling ({label}): 1 worker {row['one_worker_images_per_s']:.0f} images/s"
+                      f" ({row['one_worker_s']:.1f} s), {args.scaling_workers} workers "
+                      f"{row['n_workers_images_per_s']:.0f} images/s ({row['n_workers_s']:.1f} s),"
+                      f" speed-up {row['speedup']:.2f}x")
         if "reader" not in skip:
             results["reader"] = read = reader(tmp, args.reader_frames)
             print(f"reader: ShardDataset {read['shard_dataset_images_per_s']:.0f} images/s, "

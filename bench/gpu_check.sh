@@ -1,0 +1,94 @@
+#!/usr/bin/env bash
+# Issue 17's measurements on a lent GPU machine, in one call of the device tool (under its
+# 10-minute limit), after `bash bench/gpu_prepare.sh` here:
+#
+#   run(command="bash bench/gpu_check.sh", carry=[".whl", ".gl"], timeout_s=600)
+#
+# Steps, in this order (GPU_CHECK_STEPS picks some; each is cut at its own cap, and a step is
+# skipped once fewer than 30 s are left before GPU_CHECK_SECONDS, default 540, have passed):
+#   env        the GPU, torch, the GL renderer that MuJoCo's EGL context gets, core count
+#   inference  bench/inference.py: rainbench-yolo11s at 960 px, batch 64 (eval images/s, the
+#              fp16 forward pass, ultralytics' predict; target >= 800 images/s from shards)
+#   dataset    bench/dataset.py end to end: the paper clip, jeon2022 (target <= 3.0x the bare
+#              loop) and physical with the weather following the rate (<= 4.0x)
+#   paper      `rainbench paper --workers 14` with both shipped models and both rain models,
+#              timed (target <= 60 s); its report comes back
+#   agreement  bench/backend_agreement.py on the paper's jeon2022 data: batched backend against
+#              ultralytics' predict, AP@0.5 within 0.002 per class
+#   scaling    bench/dataset.py scaling: 16 workers on 16 scenes against 1 worker, 50 frames,
+#              11 rates (target >= 10x)
+# Everything it prints goes to $OUT/check.log too; JSON and the report go to $OUT (7 files).
+# Locally (no install, the project's venv): GPU_CHECK_PYTHON=.venv/bin/python GPU_CHECK_INSTALL=0
+set -uo pipefail
+cd "$(dirname "$0")/.."
+
+OUT=${OUT:-results/gpu-check}
+mkdir -p "$OUT"
+exec > >(tee -a "$OUT/check.log") 2>&1
+start=$(date +%s)
+deadline=$((start + ${GPU_CHECK_SECONDS:-540}))
+steps=${GPU_CHECK_STEPS:-"env inference dataset paper agreement scaling"}
+python=${GPU_CHECK_PYTHON:-python3}
+
+if [[ ${GPU_CHECK_INSTALL:-1} == 1 ]]; then
+    for deb in .gl/*.deb; do dpkg -x "$deb" /; done
+    ldconfig
+    "$python" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/site .whl/*.whl || { echo "gpu_check: installing .whl failed"; exit 1; }
+    "$python" -m pip install -q --no-index --no-deps --no-build-isolation --no-compile \
+        --no-cache-dir --target /tmp/site . || { echo "gpu_check: installing rainbench failed"; exit 1; }
+    export PYTHONPATH=/tmp/site
+fi
+export MUJOCO_GL=egl YOLO_OFFLINE=1 PYTHONUNBUFFERED=1
+echo "== installed in $(($(date +%s) - start)) s"
+
+step() {  # step NAME CAP_SECONDS COMMAND...
+    local name=$1 cap=$2
+    shift 2
+    [[ " $steps " == *" $name "* ]] || return 0
+    local left=$((deadline - $(date +%s)))
+    if ((left < 30)); then
+        echo "== $name: skipped, ${left} s left"
+        return 0
+    fi
+    ((cap > left)) && cap=$left
+    echo "== $name (at most $cap s)"
+    local t0 rc
+    t0=$(date +%s.%N)
+    timeout "$cap" "$@"
+    rc=$?
+    echo "== $name: exit $rc after $(awk -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%.1f", b - a }') s"
+}
+
+cat > /tmp/gpu_check_env.py <<'EOF'
+import os, platform
+import torch, mujoco
+from OpenGL import GL
+context = mujoco.GLContext(64, 64)
+context.make_current()
+print("gl renderer:", GL.glGetString(GL.GL_RENDERER).decode())
+context.free()
+print("python", platform.python_version(), "torch", torch.__version__, "cuda",
+      torch.cuda.is_available() and torch.cuda.get_device_name(0), "mujoco", mujoco.__version__,
+      "cores", os.cpu_count())
+EOF
+
+if [[ " $steps " == *" env "* ]]; then
+    { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null \
+          || echo "no nvidia-smi"
+      step env 60 "$python" /tmp/gpu_check_env.py; } | tee "$OUT/env.txt"
+fi
+step inference 120 "$python" bench/inference.py --weights rainbench-yolo11s --imgsz 960 \
+    --images 256 --batch 64 --json "$OUT/inference.json"
+step dataset 150 "$python" bench/dataset.py --skip scaling,reader --json "$OUT/dataset.json"
+# the paper step's time is the figure of the target (<= 60 s)
+step paper 300 "$python" -m rainbench.cli paper --workers 14 --data data/paper --out results/paper \
+    --quiet
+if [[ " $steps " == *" paper "* && -f results/paper/report.md ]]; then
+    cp results/paper/report.md "$OUT/paper_report.md"
+fi
+step agreement 120 "$python" bench/backend_agreement.py --weights rainbench-yolo11s \
+    --data data/paper/jeon2022 --json "$OUT/agreement.json"
+step scaling 200 "$python" bench/dataset.py --skip e2e,weather,reader --scaling-workers 16 \
+    --scaling-frames 50 --scaling-rates 0:100:10 --json "$OUT/scaling.json"
+echo "== done in $(($(date +%s) - start)) s"
