@@ -11,8 +11,8 @@ from pathlib import Path
 
 from rainbench import gl
 from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
-from rainbench.gen.config import (HFOV_DEG, MAX_FPS, MAX_FRAMES, MAX_SCENES, MAX_SEED, PAPER_CLIP,
-                                  SIDE_PX, DatasetConfig)
+from rainbench.gen.config import (HFOV_DEG, MAX_FPS, MAX_FRAME_OFFSET, MAX_FRAMES, MAX_SCENES,
+                                  MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig)
 from rainbench.rain.config import RAIN_MODELS
 from rainbench.rain.weather import SKIES, TIMES_OF_DAY
 
@@ -127,7 +127,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
         raise CliError("--ray-address: only used with --executor ray")
     # the whole config is checked before anything is written or rendered
     config = DatasetConfig(**_scene_fields(args), scenes=args.scenes,
-                           frames_per_shard=args.frames_per_shard, rates=parse_rates(args.rates),
+                           frames_per_shard=args.frames_per_shard, first_frame=args.first_frame,
+                           clip_frames=args.clip_frames, rates=parse_rates(args.rates),
                            rain_model=args.rain_model, rain_seed=args.rain_seed, store=args.store,
                            weather_follows_rate=args.weather_follows_rate)
     out = _writable_dir(Path(args.out), "OUT")
@@ -434,7 +435,8 @@ def _add_scene_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sky", choices=SKIES, default=None,
                         help="base weather (default: the seed decides; the paper's clip: cloudy)")
     parser.add_argument("--frames", type=_positive_int("FRAMES", MAX_FRAMES), default=DatasetConfig.frames,
-                        help=f"frames per scene, 1..{MAX_FRAMES} (default {DatasetConfig.frames})")
+                        help=f"frames per scene, 1..{MAX_FRAMES} (default {DatasetConfig.frames}); "
+                             "a scene is planned for its clip's length")
     parser.add_argument("--fps", type=_number("FPS", 0, MAX_FPS, low_open=True), default=DatasetConfig.fps,
                         help=f"frames per second, (0, {MAX_FPS:g}] (default {DatasetConfig.fps:g})")
     parser.add_argument("--width", type=_positive_int("WIDTH", SIDE_PX[1], SIDE_PX[0]),
@@ -474,6 +476,15 @@ def build_parser() -> argparse.ArgumentParser:
     generate.add_argument("--frames-per-shard", type=_positive_int("FRAMES_PER_SHARD"),
                           default=DatasetConfig.frames_per_shard,
                           help="split longer clips into shards of this many frames")
+    generate.add_argument("--clip-frames", type=_positive_int("CLIP_FRAMES", MAX_FRAME_OFFSET),
+                          default=None,
+                          help="length of the clip each scene is planned for (its actors, sky and "
+                               "time of day depend on it); --frames of it are rendered (default: "
+                               "--first-frame + --frames; e.g. --frames 10 --clip-frames 200: the "
+                               "first 10 frames of the seed's 200-frame clip)")
+    generate.add_argument("--first-frame", type=_positive_int("FIRST_FRAME", MAX_FRAME_OFFSET, low=0),
+                          default=0,
+                          help="first frame of the clip to render (default 0)")
     generate.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=None,
                           help="parallel worker processes (default: cores, at most one per shard)")
     generate.add_argument("--render-threads", type=_positive_int("RENDER_THREADS", 1024), default=None,

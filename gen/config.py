@@ -162,10 +162,18 @@ class ClipConfig:
 @dataclass(frozen=True, kw_only=True)
 class DatasetConfig(ClipConfig):
     """A dataset: ``scenes`` clips of ``frames`` frames, seeds ``seed .. seed + scenes - 1``,
-    each split into shards of at most ``frames_per_shard`` frames."""
+    each split into shards of at most ``frames_per_shard`` frames.
+
+    A scene is planned for its clip's length (its actors meet the ego car within it, and the
+    sky and time of day are drawn after them), so a seed's world depends on that length. The
+    clip is ``clip_frames`` frames long (default ``first_frame + frames``) and the dataset
+    holds its frames ``first_frame .. first_frame + frames - 1``: ``frames=10,
+    clip_frames=200`` are the first 10 frames of the seed's 200-frame clip, byte for byte."""
 
     scenes: int = 1
     frames_per_shard: int = 200
+    first_frame: int = 0
+    clip_frames: int | None = None
 
     def __post_init__(self) -> None:
         if not (is_int(self.scenes) and 1 <= self.scenes <= MAX_SCENES):
@@ -173,7 +181,14 @@ class DatasetConfig(ClipConfig):
         if not (is_int(self.frames_per_shard) and self.frames_per_shard >= 1):
             raise DatasetError(
                 f"frames-per-shard: expected an integer >= 1, got {self.frames_per_shard!r}")
+        if not (is_int(self.first_frame) and 0 <= self.first_frame <= MAX_FRAME_OFFSET):
+            raise DatasetError(f"first-frame: expected an integer in 0..{MAX_FRAME_OFFSET}, got "
+                               f"{self.first_frame!r}")
         super().__post_init__()
+        if self.clip_frames is not None and not (
+                is_int(self.clip_frames) and self.clip_frames >= self.first_frame + self.frames):
+            raise DatasetError(f"clip-frames: expected an integer >= first-frame + frames = "
+                               f"{self.first_frame + self.frames}, got {self.clip_frames!r}")
         if self.shard_count > MAX_SHARDS:
             raise DatasetError(f"SCENES x ceil(FRAMES / FRAMES_PER_SHARD) = {self.shard_count} "
                                f"shards; at most {MAX_SHARDS} (raise --frames-per-shard)")
@@ -181,13 +196,15 @@ class DatasetConfig(ClipConfig):
             raise DatasetError(f"SEED: seed + scenes - 1 must be <= {MAX_SEED}, got "
                                f"{self.seed + self.scenes - 1}")
         if self.scenario is not None and abs(self.scenario.duration_s - self.duration_s) > 1e-9:
-            raise DatasetError(f"scenario.duration_s: expected frames / fps = {self.duration_s:g} s "
-                               f"(the clip's length), got {self.scenario.duration_s:g}")
+            raise DatasetError(f"scenario.duration_s: expected clip frames / fps = "
+                               f"{self.duration_s:g} s (the clip's length), got "
+                               f"{self.scenario.duration_s:g}")
 
     @property
     def duration_s(self) -> float:
-        """Length of every clip in seconds."""
-        return self.frames / self.fps
+        """Length of every scene's clip in seconds (what its layout is planned for)."""
+        clip = self.clip_frames if self.clip_frames is not None else self.first_frame + self.frames
+        return clip / self.fps
 
     @property
     def shard_count(self) -> int:
@@ -198,17 +215,25 @@ class DatasetConfig(ClipConfig):
         """One GenerateConfig per shard, in manifest order (scene, then frame offset): the shared
         fields as they are here, with the scene's seed and the shard's frames."""
         shared = {f.name: getattr(self, f.name) for f in dataclasses.fields(ClipConfig)}
+        end = self.first_frame + self.frames
+        clip = self.clip_frames if self.clip_frames is not None else end
         return [GenerateConfig(**{**shared, "seed": self.seed + scene,
-                                  "frames": min(self.frames_per_shard, self.frames - offset)},
-                               frame_offset=offset, clip_frames=self.frames)
+                                  "frames": min(self.frames_per_shard, end - offset)},
+                               frame_offset=offset, clip_frames=clip)
                 for scene in range(self.scenes)
-                for offset in range(0, self.frames, self.frames_per_shard)]
+                for offset in range(self.first_frame, end, self.frames_per_shard)]
 
     def to_dict(self) -> dict:
-        """The config as the manifest's ``config`` object (rates as floats)."""
+        """The config as the manifest's ``config`` object (rates as floats; ``first_frame`` and
+        ``clip_frames`` only where they are not their defaults, so that datasets written before
+        they existed still match their config)."""
         config = dataclasses.asdict(self)
         config["rates"] = [float(rate) for rate in self.rates]
         config["store"] = list(self.store)
+        if self.first_frame == 0:
+            del config["first_frame"]
+        if self.clip_frames is None:
+            del config["clip_frames"]
         return config
 
 

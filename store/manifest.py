@@ -225,14 +225,15 @@ def _expected_shards(config: dict) -> dict[tuple[int, int], int] | None:
     has (the split of ``DatasetConfig.tasks``), or None when the config does not say (a
     manifest written by other tools, or fields out of range)."""
     fields = [config.get(key) for key in ("seed", "scenes", "frames", "frames_per_shard")]
-    if not all(is_int(value) for value in fields):
+    first = config.get("first_frame", 0)  # absent: a dataset from frame 0 (and older manifests)
+    if not all(is_int(value) for value in fields + [first]):
         return None
     seed, scenes, frames, per_shard = fields
-    if seed < 0 or not (1 <= scenes and 1 <= frames and 1 <= per_shard) \
+    if seed < 0 or first < 0 or not (1 <= scenes and 1 <= frames and 1 <= per_shard) \
             or scenes * math.ceil(frames / per_shard) > MAX_EXPECTED_SHARDS:
         return None
-    return {(seed + scene, offset): min(per_shard, frames - offset)
-            for scene in range(scenes) for offset in range(0, frames, per_shard)}
+    return {(seed + scene, offset): min(per_shard, first + frames - offset)
+            for scene in range(scenes) for offset in range(first, first + frames, per_shard)}
 
 
 MAX_EXPECTED_SHARDS = 1_000_000

@@ -296,3 +296,20 @@ def test_scene_refuses_to_replace_a_scene_unless_asked(tmp_path, capsys):
     assert _cli(["scene", "--seed", "4", "--width", "96", "--height", "72", "--out", out,
                  "--overwrite"]) == 0
     assert (out / "scene.xml").read_bytes() != first
+
+
+def test_clip_frames_and_first_frame_flags(tmp_path, capsys):
+    """--first-frame and --clip-frames reach the dataset (the shard starts at the first frame and
+    records the clip it was planned for); a clip shorter than the frames asked is refused before
+    anything is written."""
+    out = tmp_path / "part"
+    assert _cli(GENERATE + ["--first-frame", "3", "--clip-frames", "200", "--out", out]) == 0
+    assert sorted(path.name for path in out.glob("*.h5")) == ["scene000000_f00003.h5",
+                                                            "scene000000_f00005.h5"]
+    with h5py.File(out / "scene000000_f00003.h5") as handle:
+        assert json.loads(handle.attrs["config"])["clip_frames"] == 200
+    _one_line_error(capsys, _cli(GENERATE + ["--clip-frames", "3", "--out", tmp_path / "short"]),
+                    re.escape("clip-frames: expected an integer >= first-frame + frames = 4, got 3"))
+    _one_line_error(capsys, _cli(GENERATE + ["--first-frame", "-2", "--out", tmp_path / "neg"]),
+                    re.escape("argument --first-frame: FIRST_FRAME: expected >= 0, got -2"))
+    assert not (tmp_path / "short").exists() and not (tmp_path / "neg").exists()

@@ -97,6 +97,21 @@ def test_shards_share_the_dataset_fields_and_keep_their_keys():
     assert config.to_dict()["rates"] == [0.0, 25.0] and config.to_dict()["store"] == ["depth"]
 
 
+def test_a_dataset_can_hold_part_of_a_longer_clip():
+    """first_frame and clip_frames: the shards cover frames first_frame.. of the scene's clip of
+    clip_frames frames, which the layout is planned for; the manifest's config names them only
+    where they are not their defaults (so older manifests still match)."""
+    config = DatasetConfig(seed=4, frames=5, first_frame=3, clip_frames=20, frames_per_shard=2)
+    assert [(t.seed, t.frame_offset, t.frames, t.clip_frames) for t in config.tasks()] == [
+        (4, 3, 2, 20), (4, 5, 2, 20), (4, 7, 1, 20)]
+    assert config.duration_s == 2.0 and config.tasks()[0].duration_s == 2.0
+    assert config.to_dict()["first_frame"] == 3 and config.to_dict()["clip_frames"] == 20
+    from_the_start = DatasetConfig(frames=5, clip_frames=20)
+    assert "first_frame" not in from_the_start.to_dict()
+    assert [t.frame_offset for t in from_the_start.tasks()] == [0]
+    assert DatasetConfig(first_frame=3).tasks()[0].clip_frames == 203  # default: to the last frame
+
+
 @pytest.mark.parametrize("fields, pattern", [
     (dict(rain_model="snow"), r"^RAIN_MODEL: expected one of jeon2022, physical, got 'snow'$"),
     (dict(rates=(50.0, 0.0)), r"^rates: expected ascending distinct values in \[0, 1000\] mm/h"),
@@ -123,8 +138,13 @@ def test_dataset_only_and_shard_only_fields():
         DatasetConfig(scenes=0)
     with pytest.raises(ValueError, match=r"^frames-per-shard: expected an integer >= 1, got 0$"):
         DatasetConfig(frames_per_shard=0)
-    with pytest.raises(ValueError, match=re.escape("scenario.duration_s: expected frames / fps = 20 s")):
+    with pytest.raises(ValueError, match=re.escape("scenario.duration_s: expected clip frames / fps = 20 s")):
         DatasetConfig(scenario=ScenarioConfig(duration_s=5.0))
+    with pytest.raises(ValueError, match=r"^first-frame: expected an integer in 0\.\.10000000, got -1$"):
+        DatasetConfig(first_frame=-1)
+    with pytest.raises(ValueError, match=r"^clip-frames: expected an integer >= first-frame \+ frames "
+                                         r"= 8, got 7$"):
+        DatasetConfig(frames=5, first_frame=3, clip_frames=7)
     with pytest.raises(ValueError, match=r"^frame_offset: expected an integer in 0\.\.10000000, "):
         GenerateConfig(frame_offset=-1)
     with pytest.raises(ValueError, match=r"^clip_frames: expected >= frame_offset \+ frames = 210, "

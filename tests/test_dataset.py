@@ -70,6 +70,21 @@ def test_split_shards_continue_one_clip(dataset_dir, tmp_path):
         np.testing.assert_array_equal(one["camera/T_world_cam"][2:4], part["camera/T_world_cam"][()])
 
 
+def test_part_of_a_clip_is_that_clip_s_frames(dataset_dir, tmp_path):
+    """first_frame=1, frames=2, clip_frames=4: frames 1..2 of scene 0's 4-frame clip, byte for
+    byte (the layout is planned for the whole clip), in a dataset that verifies."""
+    part = dict(SMALL, scenes=1, frames=2, first_frame=1, clip_frames=4)
+    ds.run_dataset(DatasetConfig(**part), tmp_path, workers=1)
+    assert [p.name for p in sorted(tmp_path.glob("*.h5"))] == ["scene000000_f00001.h5"]
+    assert store.verify_dataset(tmp_path) == []
+    with h5py.File(tmp_path / "scene000000_f00001.h5") as got, \
+            h5py.File(dataset_dir / "scene000000_f00000.h5") as first, \
+            h5py.File(dataset_dir / "scene000000_f00002.h5") as second:
+        np.testing.assert_array_equal(got["rgb"][:, 0], first["rgb"][:, 1])
+        np.testing.assert_array_equal(got["rgb"][:, 1], second["rgb"][:, 0])
+        assert got.attrs["time_of_day"] == first.attrs["time_of_day"]
+
+
 def test_worker_and_thread_counts_give_the_same_bytes(dataset_dir, tmp_path):
     # dataset_dir: 1 worker with the default threads (one per core, frames pipelined)
     ds.run_dataset(DatasetConfig(**SMALL), tmp_path / "two", workers=2, threads=1)
