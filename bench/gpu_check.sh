@@ -28,18 +28,7 @@ exec > >(tee -a "$OUT/check.log") 2>&1
 start=$(date +%s)
 deadline=$((start + ${GPU_CHECK_SECONDS:-540}))
 steps=${GPU_CHECK_STEPS:-"env inference dataset paper agreement scaling"}
-python=${GPU_CHECK_PYTHON:-python3}
-
-if [[ ${GPU_CHECK_INSTALL:-1} == 1 ]]; then
-    for deb in .gl/*.deb; do dpkg -x "$deb" /; done
-    ldconfig
-    "$python" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-        --target /tmp/site .whl/*.whl || { echo "gpu_check: installing .whl failed"; exit 1; }
-    "$python" -m pip install -q --no-index --no-deps --no-build-isolation --no-compile \
-        --no-cache-dir --target /tmp/site . || { echo "gpu_check: installing rainbench failed"; exit 1; }
-    export PYTHONPATH=/tmp/site
-fi
-export MUJOCO_GL=egl YOLO_OFFLINE=1 PYTHONUNBUFFERED=1
+source bench/gpu_env.sh
 echo "== installed in $(($(date +%s) - start)) s"
 
 step() {  # step NAME CAP_SECONDS COMMAND...

@@ -10,6 +10,7 @@
 #
 # Usage:  bash bench/gpu_prepare.sh
 # Then:   run(command="bash bench/gpu_check.sh", carry=[".whl", ".gl"], timeout_s=600)
+#    or:  run(command="bash bench/gpu_train.sh RECIPE", carry=[".whl", ".gl"], timeout_s=600)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

@@ -78,6 +78,22 @@ def test_rain_recipes_differ_from_their_controls_only_in_the_rain():
     assert rain.stages(cuda=False)[-1]["tiles"]["size"] == 320  # the tile stage sees the rain too
 
 
+def test_small_rain_recipes_are_the_nano_ones_for_the_small_model():
+    """rainbench-yolo11s-rain and -randomrain (for a GPU machine): the nano rain recipes'
+    curriculum, RandomRain and stages, started from the shipped small model on its scenes."""
+    small = train.load_recipe("rainbench-yolo11s")
+    for kind in ("rain", "randomrain"):
+        nano_twin = train.load_recipe(f"rainbench-yolo11n-{kind}")
+        recipe = train.load_recipe(f"rainbench-yolo11s-{kind}")
+        assert recipe.architecture == "yolo11s.yaml"
+        assert recipe.init_weights == registry.WEIGHTS_DIR / "rainbench-yolo11s.pt"
+        assert (recipe.classes, recipe.eval_imgsz, recipe.reader) == (small.classes, small.eval_imgsz, "shards")
+        assert recipe.curriculum == nano_twin.curriculum and recipe.random_rain == nano_twin.random_rain
+        assert recipe.train_data == nano_twin.train_data and recipe.val_data == small.val_data
+        for cuda in (False, True):
+            assert recipe.stages(cuda=cuda) == nano_twin.stages(cuda=cuda)
+
+
 def test_bad_recipes_are_one_line_errors(tmp_path):
     def write(text):
         path = tmp_path / "r.yaml"
