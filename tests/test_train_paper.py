@@ -626,3 +626,15 @@ def test_shipped_model_without_onnx_builds_its_copy_once_into_the_cache(tmp_path
     assert isinstance(onnx_copy, OnnxDetector)
     assert_same_detections(checkpoint.predict([image], **settings)[0],
                            onnx_copy.predict([image], **settings)[0], top=5)
+
+
+def test_rain_more_pilot_is_the_rain_recipe_with_one_more_stage():
+    """bench/recipes/pilot-yolo11n-rain-more.yaml (bench/RESULTS.md): its first stages are the
+    shipped rain model's, so a run folder holding that run trains only the added tile stage."""
+    rain = train.load_recipe("rainbench-yolo11n-rain")
+    pilot = train.load_recipe(Path(__file__).resolve().parent.parent / "bench" / "recipes" / "pilot-yolo11n-rain-more.yaml")
+    assert pilot.init_weights == rain.init_weights and pilot.curriculum == rain.curriculum
+    assert pilot.train_data == rain.train_data and pilot.val_data == rain.val_data
+    stages = pilot.stages(cuda=False)
+    assert stages[:-1] == rain.stages(cuda=False) and len(stages) == len(rain.stages(cuda=False)) + 1
+    assert stages[-1]["tiles"] == stages[-2]["tiles"] and stages[-1]["lr0"] == stages[-2]["lr0"] / 2
