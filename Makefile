@@ -56,7 +56,9 @@ dataset: $(STAMP)
 		--rain-model $(RAIN_MODEL) $(if $(STORE),--store $(STORE),) \
 		$(if $(filter on,$(WEATHER)),--weather-follows-rate,) \
 		$(if $(filter off,$(WEATHER)),--no-weather-follows-rate,) \
-		$(if $(WORKERS),--workers $(WORKERS),) $(if $(THREADS),--threads $(THREADS),)
+		$(if $(WORKERS),--workers $(WORKERS),) $(if $(THREADS),--threads $(THREADS),) \
+		$(if $(CLIP_FRAMES),--clip-frames $(CLIP_FRAMES),) \
+		$(if $(FIRST_FRAME),--first-frame $(FIRST_FRAME),)
 
 eval: $(STAMP)
 	$(BIN)/rainbench eval --data '$(OUT)' --out '$(RESULTS)' \

@@ -175,6 +175,10 @@ def test_make_dataset_refuses_a_bad_weather_and_quotes_paths():
                           capture_output=True, text=True, timeout=60)
     assert good.returncode == 0, good.stderr
     assert "--out 'a b'" in good.stdout and "--no-weather-follows-rate" in good.stdout
+    part = subprocess.run(["make", "-n", "-C", REPO, "dataset", "FRAMES=10", "CLIP_FRAMES=200",
+                           "FIRST_FRAME=70"], capture_output=True, text=True, timeout=60)
+    assert part.returncode == 0, part.stderr
+    assert all(flag in part.stdout for flag in ("--frames 10", "--clip-frames 200", "--first-frame 70"))
 
 
 # -- a corrupt manifest and --overwrite ---------------------------------------------------------
