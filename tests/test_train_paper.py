@@ -628,13 +628,20 @@ def test_shipped_model_without_onnx_builds_its_copy_once_into_the_cache(tmp_path
                            onnx_copy.predict([image], **settings)[0], top=5)
 
 
-def test_rain_more_pilot_is_the_rain_recipe_with_one_more_stage():
-    """bench/recipes/pilot-yolo11n-rain-more.yaml (bench/RESULTS.md): its first stages are the
-    shipped rain model's, so a run folder holding that run trains only the added tile stage."""
-    rain = train.load_recipe("rainbench-yolo11n-rain")
-    pilot = train.load_recipe(Path(__file__).resolve().parent.parent / "bench" / "recipes" / "pilot-yolo11n-rain-more.yaml")
-    assert pilot.init_weights == rain.init_weights and pilot.curriculum == rain.curriculum
-    assert pilot.train_data == rain.train_data and pilot.val_data == rain.val_data
-    stages = pilot.stages(cuda=False)
-    assert stages[:-1] == rain.stages(cuda=False) and len(stages) == len(rain.stages(cuda=False)) + 1
-    assert stages[-1]["tiles"] == stages[-2]["tiles"] and stages[-1]["lr0"] == stages[-2]["lr0"] / 2
+def test_rain_more_pilots_are_the_twin_recipes_with_the_same_extra_stage():
+    """bench/recipes/pilot-yolo11n-rain-more.yaml and its RandomRain twin (bench/RESULTS.md):
+    their first stages are the shipped twins', so a run folder holding that run trains only the
+    added tile stage, and both get the same one."""
+    pilots = Path(__file__).resolve().parent.parent / "bench" / "recipes"
+    added = []
+    for kind in ("rain", "randomrain"):
+        shipped = train.load_recipe(f"rainbench-yolo11n-{kind}")
+        pilot = train.load_recipe(pilots / f"pilot-yolo11n-{kind}-more.yaml")
+        assert pilot.init_weights == shipped.init_weights and pilot.curriculum == shipped.curriculum
+        assert pilot.random_rain == shipped.random_rain
+        assert pilot.train_data == shipped.train_data and pilot.val_data == shipped.val_data
+        stages = pilot.stages(cuda=False)
+        assert stages[:-1] == shipped.stages(cuda=False) and len(stages) == len(shipped.stages(cuda=False)) + 1
+        assert stages[-1]["tiles"] == stages[-2]["tiles"] and stages[-1]["lr0"] == stages[-2]["lr0"] / 2
+        added.append(stages[-1])
+    assert added[0] == added[1]
