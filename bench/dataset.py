@@ -164,6 +164,8 @@ def main() -> None:
     parser.add_argument("--skip", default="", help="comma list of e2e,weather,scaling,reader")
     parser.add_argument("--json", default=None)
     args = parser.parse_args()
+    if args.scaling_workers < 2:
+        parser.error(f"--scaling-workers: expected an integer >= 2, got {args.scaling_workers}")
     skip = set(filter(None, args.skip.split(",")))
     tmp = Path(tempfile.mkdtemp(prefix="rainbench-bench-"))
     results: dict = {"benchmark": "dataset", "cpu_count": os.cpu_count(),
