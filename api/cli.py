@@ -486,7 +486,9 @@ def build_parser() -> argparse.ArgumentParser:
                           default=0,
                           help="first frame of the clip to render (default 0)")
     generate.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=None,
-                          help="parallel worker processes (default: cores, at most one per shard)")
+                          help="parallel worker processes (default: cores, at most one per shard); "
+                               "more workers than shards render each shard in pieces of at least 8 "
+                               "frames, joined into the same file")
     generate.add_argument("--render-threads", type=_positive_int("RENDER_THREADS", 1024), default=None,
                           help="Mesa software-render threads per worker (LP_NUM_THREADS)")
     generate.add_argument("--threads", type=_positive_int("THREADS", 1024), default=None,
@@ -631,7 +633,8 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--n-boot", type=_positive_int("N_BOOT", 1_000_000), default=1000)
     paper.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
     paper.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=1,
-                       help="generation processes")
+                       help="generation processes (the clip is rendered in up to that many pieces, "
+                            "docs/datasets.md)")
     paper.add_argument("--classes", default=None,
                        help="classes to report, names or ids (default: the paper's four; e.g. add bus,truck)")
     _add_compare_arg(paper, "X-rain against X-randomrain when both are evaluated, else the model its "

@@ -10,14 +10,15 @@
 #   inference  bench/inference.py: rainbench-yolo11s at 960 px, batch 64 (eval images/s, the
 #              fp16 forward pass, ultralytics' predict; target >= 800 images/s from shards)
 #   dataset    bench/dataset.py end to end: the paper clip, jeon2022 (target <= 3.0x the bare
-#              loop) and physical with the weather following the rate (<= 4.0x)
+#              loop) and physical with the weather following the rate (<= 4.0x), one worker
+#   pieces     the same with 16 workers: the clip in 16 pieces, each its own GL context
 #   paper      `rainbench paper --workers 14` with both shipped models and both rain models,
 #              timed (target <= 60 s); its report comes back
 #   agreement  bench/backend_agreement.py on the paper's jeon2022 data: batched backend against
 #              ultralytics' predict, AP@0.5 within 0.002 per class
 #   scaling    bench/dataset.py scaling: 16 workers on 16 scenes against 1 worker, 50 frames,
 #              11 rates (target >= 10x)
-# Everything it prints goes to $OUT/check.log too; JSON and the report go to $OUT (7 files).
+# Everything it prints goes to $OUT/check.log too; JSON and the report go to $OUT (8 files).
 # Locally (no install, the project's venv): GPU_CHECK_PYTHON=.venv/bin/python GPU_CHECK_INSTALL=0
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -27,7 +28,7 @@ mkdir -p "$OUT"
 exec > >(tee -a "$OUT/check.log") 2>&1
 start=$(date +%s)
 deadline=$((start + ${GPU_CHECK_SECONDS:-540}))
-steps=${GPU_CHECK_STEPS:-"env inference dataset paper agreement scaling"}
+steps=${GPU_CHECK_STEPS:-"env inference dataset pieces paper agreement scaling"}
 source bench/gpu_env.sh
 echo "== installed in $(($(date +%s) - start)) s"
 
@@ -70,6 +71,7 @@ fi
 step inference 120 "$python" bench/inference.py --weights rainbench-yolo11s --imgsz 960 \
     --images 256 --batch 64 --json "$OUT/inference.json"
 step dataset 150 "$python" bench/dataset.py --skip scaling,reader --json "$OUT/dataset.json"
+step pieces 120 "$python" bench/dataset.py --skip scaling,reader --workers 16 --json "$OUT/dataset_pieces.json"
 # the paper step's time is the figure of the target (<= 60 s)
 step paper 300 "$python" -m rainbench.cli paper --workers 14 --data data/paper --out results/paper \
     --quiet

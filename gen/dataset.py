@@ -32,6 +32,7 @@ import json
 import multiprocessing
 import os
 import queue
+import shutil
 import signal
 import socket
 import sys
@@ -47,7 +48,7 @@ from rainbench.store.manifest import (MANIFEST, SHARD_GLOB, DatasetError, is_int
 from rainbench.store.shard import ShardFormatError, open_checked, read_rgb, shard_name
 
 from .config import DatasetConfig, GenerateConfig
-from .generate import generate_shard
+from .generate import ShardAssembler, generate_shard, piece_configs
 
 EXECUTORS = ("local", "ray")
 LOCK = ".rainbench-generate.lock"
@@ -145,8 +146,13 @@ def _entry(path: Path, task: GenerateConfig, root: Path) -> dict:
 
 
 def _remove_temporaries(root: Path) -> None:
+    """Remove what a run leaves behind when it is killed: temporary shards (``.NAME.tmp-PID``)
+    and folders of shard pieces (``.pieces.tmp-PID``)."""
     for stale in root.glob(".*.tmp-*"):
-        stale.unlink(missing_ok=True)
+        if stale.is_dir() and not stale.is_symlink():
+            shutil.rmtree(stale, ignore_errors=True)
+        else:
+            stale.unlink(missing_ok=True)
 
 
 def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> dict[str, dict]:
@@ -209,7 +215,11 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
     """Generate (or finish) the dataset ``config`` in ``out``; returns the manifest path.
 
     ``workers`` processes (local) or Ray tasks render one shard each; the bytes do not depend on
-    the worker count. ``render_threads`` sets ``LP_NUM_THREADS`` (Mesa's software renderer
+    the worker count. With more local workers than shards to make, each shard is rendered in
+    up to ``ceil(workers / shards)`` pieces of consecutive frames (at least
+    :data:`~rainbench.gen.generate.MIN_PIECE_FRAMES` each) by separate workers and joined in
+    frame order into the same file (:class:`~rainbench.gen.generate.ShardAssembler`), so one
+    long clip keeps every worker busy. ``render_threads`` sets ``LP_NUM_THREADS`` (Mesa's software renderer
     threads) in local workers; None keeps Mesa's default (all cores). ``threads``: rain,
     statistics and compression threads per worker (see :func:`generate_shard`; 1 = one core
     per worker); None gives each local worker cores / workers and each Ray task its node's
@@ -303,33 +313,63 @@ def _stop_workers(pool: ProcessPoolExecutor) -> None:
 
 def _run_local_pool(tasks, pending, root, workers, render_threads, threads, record,
                     progress) -> None:
+    # More workers than shards: each shard in pieces of consecutive frames, joined in order.
+    pieces_per_shard = -(-workers // len(pending))
+    jobs = []  # (task index, piece number, config, folder)
+    pieces_dir = root / f".pieces.tmp-{os.getpid()}"
+    for index in pending:
+        pieces = piece_configs(tasks[index], pieces_per_shard)
+        for number, piece in enumerate(pieces):
+            jobs.append((index, number, piece, root if len(pieces) == 1 else pieces_dir))
+    piece_count = {index: sum(1 for job in jobs if job[0] == index) for index in pending}
     context = multiprocessing.get_context("spawn")  # a fresh GL context in every worker
     progress_queue = context.Queue()
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=context,
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=context,
                                initializer=_init_worker,
                                initargs=(progress_queue, render_threads, threads, os.getpid()))
     futures = {}
-    try:
-        # Workers are started with SIGINT blocked (the mask is inherited through fork and exec)
-        # so that a Ctrl-C while they start cannot kill one with a traceback; the parent gets
-        # it as soon as its mask is restored, and stops them.
-        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    finished: dict[int, dict[int, Path]] = {index: {} for index in pending}  # pieces not yet joined
+    with contextlib.ExitStack() as assemblers:
+        joining: dict[int, tuple[ShardAssembler, list[int]]] = {}
+
+        def piece_done(index: int, number: int, path: Path) -> None:
+            if piece_count[index] == 1:
+                record(index, path)
+                return
+            if index not in joining:
+                joining[index] = (assemblers.enter_context(ShardAssembler(tasks[index], root)), [0])
+            assembler, next_piece = joining[index]
+            finished[index][number] = path
+            while next_piece[0] in finished[index]:
+                piece = finished[index].pop(next_piece[0])
+                assembler.add(piece)
+                piece.unlink()
+                next_piece[0] += 1
+            if next_piece[0] == piece_count[index]:
+                record(index, assembler.commit())
+
         try:
-            for index in pending:
-                futures[pool.submit(_generate_task, tasks[index], str(root), threads)] = index
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-        remaining = set(futures)
-        while remaining:
-            done, remaining = wait(remaining, timeout=0.2, return_when=FIRST_COMPLETED)
-            _drain(progress_queue, progress)
-            for future in done:
-                record(futures[future], Path(future.result()))
-    except BaseException:
-        _stop_workers(pool)
-        raise
+            # Workers are started with SIGINT blocked (the mask is inherited through fork and exec)
+            # so that a Ctrl-C while they start cannot kill one with a traceback; the parent gets
+            # it as soon as its mask is restored, and stops them.
+            mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            try:
+                for index, number, piece, folder in jobs:
+                    futures[pool.submit(_generate_task, piece, str(folder), threads)] = (index, number)
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+            remaining = set(futures)
+            while remaining:
+                done, remaining = wait(remaining, timeout=0.2, return_when=FIRST_COMPLETED)
+                _drain(progress_queue, progress)
+                for future in done:
+                    piece_done(*futures[future], Path(future.result()))
+        except BaseException:
+            _stop_workers(pool)
+            raise
     pool.shutdown(wait=True)
     _drain(progress_queue, progress)
+    shutil.rmtree(pieces_dir, ignore_errors=True)
 
 
 def _drain(progress_queue, progress) -> None:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
+import h5py
 import numpy as np
 
 from rainbench import __version__
@@ -143,11 +144,24 @@ def render_clip(config: GenerateConfig, setup: SceneSetup | None = None, weather
                                       weathers, depth), renderer
 
 
-def sweep_weathers(config: GenerateConfig, setup: SceneSetup) -> list[Weather]:
-    """The weather of each rate of ``config`` (the base weather at every rate when the weather
-    does not follow the rate)."""
-    return [weather_at(setup.layout.sky, rate, config.follows_rate,
-                       time_of_day=setup.layout.time_of_day) for rate in config.rates]
+def sweep_weathers(config: GenerateConfig, layout: L.Layout) -> list[Weather]:
+    """The weather of each rate of ``config`` in the scene ``layout`` (the base weather at every
+    rate when the weather does not follow the rate)."""
+    return [weather_at(layout.sky, rate, config.follows_rate, time_of_day=layout.time_of_day)
+            for rate in config.rates]
+
+
+def shard_attrs(config: GenerateConfig, layout: L.Layout) -> dict:
+    """The attributes of ``config``'s shard (docs/format.md), in the order they are written."""
+    return {
+        "sky": layout.sky, "weather_follows_rate": config.follows_rate,
+        "layout": layout.name, "time_of_day": layout.time_of_day,
+        "scene_seed": config.seed, "rain_seed": config.rain_seed,
+        "frame_offset": config.frame_offset, "fps": config.fps,
+        "class_names": json.dumps(list(L.CLASS_NAMES)), "rain_model": config.rain_model,
+        "gl_backend": os.environ.get("MUJOCO_GL", ""), "generator_version": __version__,
+        "config": config.to_json(),
+    }
 
 
 def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int,
@@ -322,18 +336,10 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     setup = build_scene(config)
-    weathers = sweep_weathers(config, setup)
+    weathers = sweep_weathers(config, setup.layout)
     base_weather = setup.base_weather
     path = out_dir / shard_name(config.seed, config.frame_offset)
-    attrs = {
-        "sky": setup.layout.sky, "weather_follows_rate": config.follows_rate,
-        "layout": setup.layout.name, "time_of_day": setup.layout.time_of_day,
-        "scene_seed": config.seed, "rain_seed": config.rain_seed,
-        "frame_offset": config.frame_offset, "fps": config.fps,
-        "class_names": json.dumps(list(L.CLASS_NAMES)), "rain_model": config.rain_model,
-        "gl_backend": os.environ.get("MUJOCO_GL", ""), "generator_version": __version__,
-        "config": config.to_json(),
-    }
+    attrs = shard_attrs(config, setup.layout)
     writer = None
     in_flight: collections.deque[concurrent.futures.Future] = collections.deque()
 
@@ -389,3 +395,90 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
             if writer is not None and not writer.committed:
                 writer.abort()
 
+
+MIN_PIECE_FRAMES = 8
+"""The fewest frames a piece of a shard gets (:func:`piece_configs`): each piece builds the scene,
+opens a GL context and simulates from the clip's start, about a second of setup, so shorter
+pieces would cost more than they save."""
+
+
+def piece_configs(config: GenerateConfig, pieces: int) -> list[GenerateConfig]:
+    """``config``'s frames as at most ``pieces`` runs of consecutive frames of the same clip, in
+    frame order, each at least :data:`MIN_PIECE_FRAMES` long, their lengths differing by at
+    most one; ``[config]`` itself when it makes one piece. Each run is a shard config of its own
+    (its ``frame_offset``, ``frames``, and the clip length made explicit), whose frames equal
+    those frames of ``config``'s shard byte for byte; :class:`ShardAssembler` joins their
+    shards."""
+    if not (isinstance(pieces, int) and not isinstance(pieces, bool) and pieces >= 1):
+        raise ValueError(f"pieces: expected an integer >= 1, got {pieces!r}")
+    count = max(1, min(pieces, config.frames // MIN_PIECE_FRAMES))
+    if count == 1:
+        return [config]
+    clip = config.clip_frames if config.clip_frames is not None else config.frame_offset + config.frames
+    size, extra = divmod(config.frames, count)
+    configs, offset = [], config.frame_offset
+    for piece in range(count):
+        frames = size + (piece < extra)
+        configs.append(dataclasses.replace(config, frame_offset=offset, frames=frames, clip_frames=clip))
+        offset += frames
+    return configs
+
+
+class ShardAssembler:
+    """``config``'s shard built from the shards of its pieces (:func:`piece_configs`, each made
+    by :func:`generate_shard`), added in frame order as they are ready: their stored images
+    (compressed chunks as they are, not re-encoded), labels, poses and rain statistics are
+    copied into one shard under ``config``'s name and attributes, byte for byte the file that
+    ``generate_shard(config)`` writes. Use as a context manager; :meth:`commit` when every piece
+    is in (leaving the block without it removes the temporary file). A piece that is not the
+    next run of frames of ``config``'s clip (its frames, or any other field of its config) is
+    refused (ValueError)."""
+
+    def __init__(self, config: GenerateConfig, out_dir: str | Path) -> None:
+        self.config = config
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        self.path = Path(out_dir) / shard_name(config.seed, config.frame_offset)
+        self._layout = L.sample_layout(config.seed, config.scenario_config(),
+                                       np.random.default_rng(config.seed))
+        self._writer: ShardWriter | None = None
+        self._next_frame = 0
+
+    def __enter__(self) -> "ShardAssembler":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if self._writer is not None and not self._writer.committed:
+            self._writer.abort()
+
+    def add(self, piece: str | Path) -> None:
+        """Copy the next piece's shard (frames from the first not yet copied)."""
+        config = self.config
+        with h5py.File(piece, "r") as source:
+            offset, frames = int(source.attrs["frame_offset"]), int(source["rgb"].shape[1])
+            expected = config.frame_offset + self._next_frame
+            clip = config.clip_frames if config.clip_frames is not None else config.frame_offset + config.frames
+            same_clip = json.loads(source.attrs["config"]) == json.loads(dataclasses.replace(
+                config, frame_offset=offset, frames=frames, clip_frames=clip).to_json())
+            if offset != expected or self._next_frame + frames > config.frames or not same_clip \
+                    or not np.array_equal(source["rates"][()], np.asarray(config.rates, np.float32)) \
+                    or source["rgb"].shape[2:4] != (config.height, config.width):
+                raise ValueError(f"{piece}: expected a piece of {self.path.name} from clip frame "
+                                 f"{expected} (at most {config.frames - self._next_frame} frames of "
+                                 f"its config, rates {list(config.rates)}, {config.width}x{config.height}); got "
+                                 f"{frames} frames from {offset}, rates {source['rates'][()].tolist()}, "
+                                 f"{source['rgb'].shape[3]}x{source['rgb'].shape[2]}")
+            if self._writer is None:
+                self._writer = ShardWriter(
+                    self.path, attrs=shard_attrs(config, self._layout), rates=np.asarray(config.rates),
+                    num_frames=config.frames, width=config.width, height=config.height,
+                    K=source["camera/K"][()], store=config.store, threads=1,
+                    weather=[w.as_record() for w in sweep_weathers(config, self._layout)])
+            self._writer.copy_frames(source, self._next_frame)
+        self._next_frame += frames
+
+    def commit(self) -> Path:
+        """Finish the shard (every frame must be in) and move it to its final name."""
+        if self._writer is None or self._next_frame != self.config.frames:
+            raise RuntimeError(f"shard {self.path.name}: {self._next_frame} of {self.config.frames} "
+                               "frames were added")
+        return self._writer.commit()

@@ -225,6 +225,50 @@ class ShardWriter:
             zeros if contrast_loss is None else np.asarray(contrast_loss, np.float32),
         )
 
+    def copy_frames(self, source: h5py.File, first: int) -> None:
+        """Store every frame of ``source``, an open shard of the same rates, image size and stored
+        arrays, as frames ``first``, ``first + 1``, ...: its compressed image chunks as they
+        are (no re-encoding), depth and instance maps, poses, labels, ignore regions and rain
+        statistics, with the same writes :meth:`write_frame` makes, so the file is the one
+        writing those frames would give. Used to join a shard rendered in pieces."""
+        f = self._file
+        rgb, source_rgb = f["rgb"], source["rgb"]
+        num_rates, frames = source_rgb.shape[:2]
+        if num_rates != self._rates.shape[0] or source_rgb.shape[2:] != rgb.shape[2:] \
+                or first + frames > self._num_frames:
+            raise ValueError(f"{source.filename}: expected at most {self._num_frames - first} frames of "
+                             f"{rgb.shape[2:]} at {self._rates.shape[0]} rates, got {source_rgb.shape}")
+        stored = [key for key in STORABLE if key in f]
+        if sorted(stored) != sorted(key for key in STORABLE if key in source):
+            raise ValueError(f"{source.filename}: expected the stored arrays {stored}")
+        offsets = source["labels/offsets"][()]
+        labels = {key: source[f"labels/{key}"][()] for key in (
+            "bbox", "bbox_amodal", "class_id", "instance_id", "visible_fraction", "truncation",
+            "rain_coverage", "contrast_loss")}
+        ignore_offsets = source["ignore/offsets"][()]
+        ignore = {key: source[f"ignore/{key}"][()] for key, _, _ in _IGNORE_ARRAYS}
+        poses = source["camera/T_world_cam"][()]
+        drop_count, ssim, psnr = (source[f"rain/{key}"][()] for key in ("drop_count", "ssim", "psnr"))
+        for frame in range(frames):
+            index = first + frame
+            with _naming(self.path):
+                for rate_index in range(num_rates):
+                    mask, chunk = source_rgb.id.read_direct_chunk((rate_index, frame, 0, 0, 0))
+                    rgb.id.write_direct_chunk((rate_index, index, 0, 0, 0), chunk, mask)
+                for key in stored:
+                    f[key][index] = source[key][frame]
+            start, stop = int(offsets[frame]), int(offsets[frame + 1])
+            low, high = int(ignore_offsets[frame]), int(ignore_offsets[frame + 1])
+            self._labels[index] = FrameLabels(
+                **{key: labels[key][start:stop] for key in (
+                    "bbox", "bbox_amodal", "class_id", "instance_id", "visible_fraction", "truncation")},
+                **{f"ignore_{key}": values[low:high] for key, values in ignore.items()})
+            self._rain_box[index] = (labels["rain_coverage"][:, start:stop], labels["contrast_loss"][:, start:stop])
+            self._poses[index] = poses[frame]
+            self._drop_count[:, index] = drop_count[:, frame]
+            self._ssim[:, index] = ssim[:, frame]
+            self._psnr[:, index] = psnr[:, frame]
+
     def commit(self) -> Path:
         """Write the labels, flush, and move the shard to its final name. A failed write (a
         full disk) raises a one-line OSError naming the shard (``PATH: <reason>``)."""

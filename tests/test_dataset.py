@@ -1,5 +1,6 @@
 """Datasets: manifest, resume after crashes, verify, worker-count independence, Ray, readers."""
 
+import dataclasses
 import json
 import signal
 import subprocess
@@ -93,6 +94,85 @@ def test_worker_and_thread_counts_give_the_same_bytes(dataset_dir, tmp_path):
     assert _hashes(tmp_path / "serial") == _hashes(dataset_dir)
     with pytest.raises(ds.DatasetError, match="THREADS: expected an integer >= 1, got 0"):
         ds.run_dataset(DatasetConfig(**SMALL), tmp_path / "bad", threads=0)
+
+
+PIECES = dict(scenes=1, frames=16, fps=2.0, width=96, height=72, rates=(0.0, 50.0), rain_model="physical",
+              store=("depth", "instance"))  # one 16-frame shard: two pieces of 8 frames
+
+
+@pytest.fixture(scope="module")
+def one_worker_shard(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pieces")
+    ds.run_dataset(DatasetConfig(**PIECES), root, workers=1)
+    return root
+
+
+def test_one_shard_rendered_in_pieces_by_several_workers_is_the_same_file(one_worker_shard, tmp_path):
+    """More workers than shards: the one shard is rendered in two pieces by two workers and
+    joined; the file (`physical` rain with re-rendered weather, stored depth and instance maps)
+    is byte for byte the one worker's, and no piece is left behind."""
+    ds.run_dataset(DatasetConfig(**PIECES), tmp_path, workers=3)
+    assert _hashes(tmp_path) == _hashes(one_worker_shard)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["manifest.json", "scene000000_f00000.h5"]
+
+
+def test_piece_configs_split_a_shard_into_runs_of_its_clip():
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import MIN_PIECE_FRAMES, piece_configs
+
+    assert MIN_PIECE_FRAMES == 8
+    shard = GenerateConfig(frames=25, frame_offset=100)  # the clip ends with the shard: 125 frames
+    runs = [(c.frame_offset, c.frames, c.clip_frames) for c in piece_configs(shard, 3)]
+    assert runs == [(100, 9, 125), (109, 8, 125), (117, 8, 125)]
+    assert [c.frames for c in piece_configs(shard, 8)] == [9, 8, 8]  # at least 8 frames a piece
+    assert [c.frames for c in piece_configs(GenerateConfig(frames=7), 4)] == [7]
+    assert piece_configs(shard, 1) == [shard]  # unchanged: its shard is the same file
+    with pytest.raises(ValueError, match="pieces: expected an integer >= 1, got 0"):
+        piece_configs(shard, 0)
+
+
+def test_assembler_refuses_pieces_out_of_order_and_an_unfinished_shard(tmp_path):
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import ShardAssembler, generate_shard, piece_configs
+
+    shard = GenerateConfig(frames=16, fps=2.0, width=96, height=72)
+    first, second = (generate_shard(piece, tmp_path / "pieces", threads=1) for piece in piece_configs(shard, 2))
+    with ShardAssembler(shard, tmp_path / "out") as assembler:
+        with pytest.raises(ValueError, match=r"scene000000_f00008\.h5: expected a piece of "
+                                             r"scene000000_f00000\.h5 from clip frame 0 .* got 8 frames from 8"):
+            assembler.add(second)
+        other_rain = generate_shard(dataclasses.replace(piece_configs(shard, 2)[0], rain_seed=1), tmp_path / "other")
+        with pytest.raises(ValueError, match=r"expected a piece of scene000000_f00000\.h5 from clip frame 0"):
+            assembler.add(other_rain)  # the right frames of another config
+        assembler.add(first)
+        with pytest.raises(RuntimeError, match="shard scene000000_f00000.h5: 8 of 16 frames were added"):
+            assembler.commit()
+    assert list((tmp_path / "out").iterdir()) == []  # leaving without commit removes the temporary file
+
+
+def test_a_failure_while_joining_pieces_leaves_no_shard_and_no_pieces(tmp_path, monkeypatch):
+    from rainbench.gen.generate import ShardAssembler
+
+    def disk_full(self, piece):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ShardAssembler, "add", disk_full)
+    with pytest.raises(OSError, match="No space left on device"):
+        ds.run_dataset(DatasetConfig(**dict(PIECES, rain_model="jeon2022", store=())), tmp_path, workers=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # a fresh run that finished nothing
+    monkeypatch.undo()
+
+    def interrupt(frames):  # Ctrl-C once the workers have rendered a frame
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        ds.run_dataset(DatasetConfig(**dict(PIECES, rain_model="jeon2022", store=())), tmp_path, workers=2,
+                       progress=interrupt)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # workers stopped, pieces removed
+    (tmp_path / ".pieces.tmp-99999").mkdir()  # a folder of pieces left by kill -9
+    (tmp_path / ".pieces.tmp-99999" / "scene000000_f00008.h5").write_bytes(b"piece")
+    ds._remove_temporaries(tmp_path)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_ray_executor_on_a_local_cluster(dataset_dir, tmp_path):
