@@ -631,6 +631,27 @@ def test_shipped_model_without_onnx_builds_its_copy_once_into_the_cache(tmp_path
                            onnx_copy.predict([image], **settings)[0], top=5)
 
 
+def test_tile_scale_pilot_is_the_clean_control_with_tiles_at_the_evaluator_scale():
+    """bench/recipes/pilot-yolo11n-cleanft-tile12.yaml (bench/RESULTS.md): the clean fine-tune
+    control with its tiles cut at 1.2, the letterbox factor of the cards' 960 px on 800 px
+    frames; nothing else differs, so its first stage is the control's."""
+    recipes = Path(__file__).resolve().parent.parent / "bench" / "recipes"
+    control = train.load_recipe(recipes / "rainbench-yolo11n-cleanft.yaml")
+    pilot = train.load_recipe(recipes / "pilot-yolo11n-cleanft-tile12.yaml")
+    assert pilot.eval_imgsz / 800 == 1.2  # the letterbox factor of 800 px frames at the card's size
+    for field in ("architecture", "init_weights", "classes", "reader", "eval_imgsz", "curriculum", "random_rain",
+                  "train_data", "val_data", "wise_alpha"):
+        assert getattr(pilot, field) == getattr(control, field), field
+    for cuda in (False, True):
+        control_stages, pilot_stages = control.stages(cuda=cuda), pilot.stages(cuda=cuda)
+        assert len(pilot_stages) == len(control_stages)
+        for ours, theirs in zip(pilot_stages, control_stages):
+            if "tiles" in theirs:
+                assert ours["tiles"] == {**theirs["tiles"], "scale": 1.2}
+                ours, theirs = ({k: v for k, v in stage.items() if k != "tiles"} for stage in (ours, theirs))
+            assert ours == theirs
+
+
 def test_rain_more_pilots_are_the_shipped_twins_without_the_weight_mix():
     """bench/recipes/pilot-yolo11n-rain-more.yaml and its RandomRain twin (bench/RESULTS.md) added
     a third tile stage at half the learning rate to the v1 twins; v2 ships them with that stage,
