@@ -201,10 +201,14 @@ class DatasetConfig(ClipConfig):
                                f"{self.scenario.duration_s:g}")
 
     @property
+    def clip_length(self) -> int:
+        """Frames of every scene's clip: ``clip_frames``, default ``first_frame + frames``."""
+        return self.clip_frames if self.clip_frames is not None else self.first_frame + self.frames
+
+    @property
     def duration_s(self) -> float:
         """Length of every scene's clip in seconds (what its layout is planned for)."""
-        clip = self.clip_frames if self.clip_frames is not None else self.first_frame + self.frames
-        return clip / self.fps
+        return self.clip_length / self.fps
 
     @property
     def shard_count(self) -> int:
@@ -215,8 +219,7 @@ class DatasetConfig(ClipConfig):
         """One GenerateConfig per shard, in manifest order (scene, then frame offset): the shared
         fields as they are here, with the scene's seed and the shard's frames."""
         shared = {f.name: getattr(self, f.name) for f in dataclasses.fields(ClipConfig)}
-        end = self.first_frame + self.frames
-        clip = self.clip_frames if self.clip_frames is not None else end
+        end, clip = self.first_frame + self.frames, self.clip_length
         return [GenerateConfig(**{**shared, "seed": self.seed + scene,
                                   "frames": min(self.frames_per_shard, end - offset)},
                                frame_offset=offset, clip_frames=clip)
@@ -270,10 +273,14 @@ class GenerateConfig(ClipConfig):
         return self.rain_model == "physical" or self.follows_rate or "depth" in self.store
 
     @property
+    def clip_length(self) -> int:
+        """Frames of the whole clip: ``clip_frames``, default ``frame_offset + frames``."""
+        return self.clip_frames if self.clip_frames is not None else self.frame_offset + self.frames
+
+    @property
     def duration_s(self) -> float:
         """Length of the whole clip the layout is planned for (all shards of a scene share it)."""
-        clip = self.clip_frames if self.clip_frames is not None else self.frame_offset + self.frames
-        return clip / self.fps
+        return self.clip_length / self.fps
 
     def scenario_config(self) -> ScenarioConfig:
         """The scenario the layout is sampled from: ``scenario`` (default the paper's mix over

@@ -316,12 +316,13 @@ def _run_local_pool(tasks, pending, root, workers, render_threads, threads, reco
     # More workers than shards: each shard in pieces of consecutive frames, joined in order.
     pieces_per_shard = -(-workers // len(pending))
     jobs = []  # (task index, piece number, config, folder)
+    piece_count: dict[int, int] = {}
     pieces_dir = root / f".pieces.tmp-{os.getpid()}"
     for index in pending:
         pieces = piece_configs(tasks[index], pieces_per_shard)
+        piece_count[index] = len(pieces)
         for number, piece in enumerate(pieces):
             jobs.append((index, number, piece, root if len(pieces) == 1 else pieces_dir))
-    piece_count = {index: sum(1 for job in jobs if job[0] == index) for index in pending}
     context = multiprocessing.get_context("spawn")  # a fresh GL context in every worker
     progress_queue = context.Queue()
     pool = ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=context,
@@ -329,24 +330,24 @@ def _run_local_pool(tasks, pending, root, workers, render_threads, threads, reco
                                initargs=(progress_queue, render_threads, threads, os.getpid()))
     futures = {}
     finished: dict[int, dict[int, Path]] = {index: {} for index in pending}  # pieces not yet joined
+    joined = dict.fromkeys(pending, 0)  # pieces of each shard joined so far
     with contextlib.ExitStack() as assemblers:
-        joining: dict[int, tuple[ShardAssembler, list[int]]] = {}
+        joining: dict[int, ShardAssembler] = {}
 
         def piece_done(index: int, number: int, path: Path) -> None:
             if piece_count[index] == 1:
                 record(index, path)
                 return
             if index not in joining:
-                joining[index] = (assemblers.enter_context(ShardAssembler(tasks[index], root)), [0])
-            assembler, next_piece = joining[index]
+                joining[index] = assemblers.enter_context(ShardAssembler(tasks[index], root))
             finished[index][number] = path
-            while next_piece[0] in finished[index]:
-                piece = finished[index].pop(next_piece[0])
-                assembler.add(piece)
+            while joined[index] in finished[index]:
+                piece = finished[index].pop(joined[index])
+                joining[index].add(piece)
                 piece.unlink()
-                next_piece[0] += 1
-            if next_piece[0] == piece_count[index]:
-                record(index, assembler.commit())
+                joined[index] += 1
+            if joined[index] == piece_count[index]:
+                record(index, joining[index].commit())
 
         try:
             # Workers are started with SIGINT blocked (the mask is inherited through fork and exec)

@@ -414,12 +414,12 @@ def piece_configs(config: GenerateConfig, pieces: int) -> list[GenerateConfig]:
     count = max(1, min(pieces, config.frames // MIN_PIECE_FRAMES))
     if count == 1:
         return [config]
-    clip = config.clip_frames if config.clip_frames is not None else config.frame_offset + config.frames
     size, extra = divmod(config.frames, count)
     configs, offset = [], config.frame_offset
     for piece in range(count):
         frames = size + (piece < extra)
-        configs.append(dataclasses.replace(config, frame_offset=offset, frames=frames, clip_frames=clip))
+        configs.append(dataclasses.replace(config, frame_offset=offset, frames=frames,
+                                           clip_frames=config.clip_length))
         offset += frames
     return configs
 
@@ -456,9 +456,8 @@ class ShardAssembler:
         with h5py.File(piece, "r") as source:
             offset, frames = int(source.attrs["frame_offset"]), int(source["rgb"].shape[1])
             expected = config.frame_offset + self._next_frame
-            clip = config.clip_frames if config.clip_frames is not None else config.frame_offset + config.frames
             same_clip = json.loads(source.attrs["config"]) == json.loads(dataclasses.replace(
-                config, frame_offset=offset, frames=frames, clip_frames=clip).to_json())
+                config, frame_offset=offset, frames=frames, clip_frames=config.clip_length).to_json())
             if offset != expected or self._next_frame + frames > config.frames or not same_clip \
                     or not np.array_equal(source["rates"][()], np.asarray(config.rates, np.float32)) \
                     or source["rgb"].shape[2:4] != (config.height, config.width):

@@ -227,10 +227,10 @@ class ShardWriter:
 
     def copy_frames(self, source: h5py.File, first: int) -> None:
         """Store every frame of ``source``, an open shard of the same rates, image size and stored
-        arrays, as frames ``first``, ``first + 1``, ...: its compressed image chunks as they
-        are (no re-encoding), depth and instance maps, poses, labels, ignore regions and rain
-        statistics, with the same writes :meth:`write_frame` makes, so the file is the one
-        writing those frames would give. Used to join a shard rendered in pieces."""
+        arrays, as frames ``first``, ``first + 1``, ...: its compressed image, depth and instance
+        chunks as they are (nothing inflated or deflated again), poses, labels, ignore regions
+        and rain statistics, in the order :meth:`write_frame` stores them, so the file is the
+        one writing those frames would give. Used to join a shard rendered in pieces."""
         f = self._file
         rgb, source_rgb = f["rgb"], source["rgb"]
         num_rates, frames = source_rgb.shape[:2]
@@ -242,28 +242,27 @@ class ShardWriter:
         if sorted(stored) != sorted(key for key in STORABLE if key in source):
             raise ValueError(f"{source.filename}: expected the stored arrays {stored}")
         offsets = source["labels/offsets"][()]
-        labels = {key: source[f"labels/{key}"][()] for key in (
-            "bbox", "bbox_amodal", "class_id", "instance_id", "visible_fraction", "truncation",
-            "rain_coverage", "contrast_loss")}
+        labels = {key: source[f"labels/{key}"][()] for key, _, _ in _LABEL_ARRAYS}
+        rain_box = [source[f"labels/{key}"][()] for key in ("rain_coverage", "contrast_loss")]
         ignore_offsets = source["ignore/offsets"][()]
         ignore = {key: source[f"ignore/{key}"][()] for key, _, _ in _IGNORE_ARRAYS}
         poses = source["camera/T_world_cam"][()]
         drop_count, ssim, psnr = (source[f"rain/{key}"][()] for key in ("drop_count", "ssim", "psnr"))
         for frame in range(frames):
             index = first + frame
-            with _naming(self.path):
+            with _naming(self.path):  # every chunk as it is stored: nothing inflated or deflated again
                 for rate_index in range(num_rates):
                     mask, chunk = source_rgb.id.read_direct_chunk((rate_index, frame, 0, 0, 0))
                     rgb.id.write_direct_chunk((rate_index, index, 0, 0, 0), chunk, mask)
                 for key in stored:
-                    f[key][index] = source[key][frame]
+                    mask, chunk = source[key].id.read_direct_chunk((frame, 0, 0))
+                    f[key].id.write_direct_chunk((index, 0, 0), chunk, mask)
             start, stop = int(offsets[frame]), int(offsets[frame + 1])
             low, high = int(ignore_offsets[frame]), int(ignore_offsets[frame + 1])
             self._labels[index] = FrameLabels(
-                **{key: labels[key][start:stop] for key in (
-                    "bbox", "bbox_amodal", "class_id", "instance_id", "visible_fraction", "truncation")},
+                **{key: values[start:stop] for key, values in labels.items()},
                 **{f"ignore_{key}": values[low:high] for key, values in ignore.items()})
-            self._rain_box[index] = (labels["rain_coverage"][:, start:stop], labels["contrast_loss"][:, start:stop])
+            self._rain_box[index] = tuple(values[:, start:stop] for values in rain_box)
             self._poses[index] = poses[frame]
             self._drop_count[:, index] = drop_count[:, frame]
             self._ssim[:, index] = ssim[:, frame]
@@ -289,10 +288,7 @@ class ShardWriter:
         counts = np.array([len(labels) for labels in self._labels], dtype=np.int64)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         f.create_dataset("labels/offsets", data=offsets)
-        for key, dtype, width in (("bbox", np.float32, 4), ("bbox_amodal", np.float32, 4),
-                                  ("class_id", np.int32, 0), ("instance_id", np.int32, 0),
-                                  ("visible_fraction", np.float32, 0),
-                                  ("truncation", np.float32, 0)):
+        for key, dtype, width in _LABEL_ARRAYS:
             parts = [getattr(labels, key) for labels in self._labels]
             shape = (0, width) if width else (0,)
             data = np.concatenate(parts).astype(dtype) if counts.sum() else np.zeros(shape, dtype)
@@ -385,6 +381,10 @@ def read_frame_labels(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
     return labels
 
 
+_LABEL_ARRAYS = (("bbox", np.float32, 4), ("bbox_amodal", np.float32, 4), ("class_id", np.int32, 0),
+                 ("instance_id", np.int32, 0), ("visible_fraction", np.float32, 0), ("truncation", np.float32, 0))
+"""``/labels/<key>`` (besides offsets and the per-rate rain labels): dtype and row width (0: one
+value a row), in the order they are written."""
 _IGNORE_ARRAYS = (("bbox", np.float32, 4), ("class_id", np.int32, 0), ("instance_id", np.int32, 0))
 """``/ignore/<key>``: dtype and row width (0: one value a row) of the ignore regions."""
 
