@@ -82,8 +82,12 @@ verify: $(STAMP)
 scene: $(STAMP)
 	$(BIN)/rainbench scene $(SCENE_FLAGS) --out '$(OUT)/scene_$(or $(SEED),0)'
 
+# Two test processes (pytest-xdist), one per core of the 2-core CI machine: 263 s against 435 s
+# in one process (bench/RESULTS.md). A test file's tests stay in one process (--dist loadfile),
+# so its module fixtures are built once. TEST_WORKERS=0 runs everything in this process.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # The slow checks, then the fuzzer (tests/test_fuzz.py) with many more random examples than in
 # make test (hypothesis profile rainbench-slow).

@@ -495,8 +495,18 @@ def units_collide(a: Unit, b: Unit, times: np.ndarray, margin: float = COLLISION
         return False
     times = np.asarray(times, dtype=np.float64)
     centre_a, centre_b = unit_position(a, times), unit_position(b, times)
-    reach = (math.hypot(*a.footprint) + math.hypot(*b.footprint)) / 2 + margin
-    near = np.linalg.norm(centre_a - centre_b, axis=-1) < reach
+    near = np.linalg.norm(centre_a - centre_b, axis=-1) < _reach(a, b, margin)
+    return _footprints_overlap(a, b, times, near, margin)
+
+
+def _reach(a: Unit, b: Unit, margin: float) -> float:
+    """Centre distance (m) beyond which the grown footprints of ``a`` and ``b`` cannot touch."""
+    return (math.hypot(*a.footprint) + math.hypot(*b.footprint)) / 2 + margin
+
+
+def _footprints_overlap(a: Unit, b: Unit, times: np.ndarray, near: np.ndarray,
+                        margin: float) -> bool:
+    """:func:`units_collide` at the ``times`` (T,) where ``near`` (T,) bool holds."""
     if not near.any():
         return False
     corners_a = footprint_corners(a, times[near], margin / 2)
@@ -576,6 +586,7 @@ class _Builder:
         self.times = planning_times(self.duration)
         self.ego = ego
         self.placed: list[Unit] = [ego]
+        self._centres: list[np.ndarray] = [unit_position(ego, self.times)]  # of self.placed
         self.units: list[Unit] = []
         self.actors: list[Actor] = []
         self.props: list[Prop] = []
@@ -603,13 +614,26 @@ class _Builder:
         actors; None when ``tries`` draws all collide."""
         for _ in range(tries):
             unit = make()
-            if not any(units_collide(unit, other, self.times) for other in self.placed):
+            if not self._collides(unit):
                 self.placed.append(unit)
+                self._centres.append(unit_position(unit, self.times))
                 self.units.append(unit)
                 for class_id, role in roles:
                     self.actors.append(Actor(len(self.actors), class_id, len(self.units) - 1, role))
                 return unit
         return None
+
+    def _collides(self, unit: Unit) -> bool:
+        """``any(units_collide(unit, other, self.times) for other in self.placed)``, with the
+        placed units' positions computed once and the distance test done for all at once."""
+        centres = unit_position(unit, self.times)
+        placed_centres = np.stack(self._centres)  # (P, T, 2)
+        reach = np.array([_reach(unit, other, COLLISION_MARGIN_M) for other in self.placed])
+        near = np.linalg.norm(centres[None] - placed_centres, axis=-1) < reach[:, None]
+        return any(other.level == unit.level and near[index].any()
+                   and _footprints_overlap(unit, other, self.times, near[index],
+                                           COLLISION_MARGIN_M)
+                   for index, other in enumerate(self.placed))
 
     def place(self, make, what: str, roles: tuple[tuple[int, str], ...]) -> Unit:
         """:meth:`try_place` with 200 tries, or a one-line RuntimeError."""
@@ -654,8 +678,8 @@ class _Builder:
         return unit_distance(self.ego, meet_time) + ahead - direction * speed * meet_time
 
     def build(self, camera_height, camera_pitch_deg, sun_direction) -> Layout:
-        xs = [unit_position(u, self.times)[:, 0] for u in self.placed]
-        ys = [unit_position(u, self.times)[:, 1] for u in self.placed]
+        xs = [centres[:, 0] for centres in self._centres]
+        ys = [centres[:, 1] for centres in self._centres]
         for prop in self.props:
             xs.append(np.array([prop.pos[0]]))
             ys.append(np.array([prop.pos[1]]))
@@ -908,7 +932,8 @@ def _span(b: _Builder, road: Road, before: float = 40.0, after: float = 120.0) -
     lo = hi = 0.0
     for unit in b.placed:
         xy = unit_position(unit, b.times[::5])
-        nearest = grid[((xy[:, None, :] - centre[None]) ** 2).sum(-1).argmin(axis=1)]
+        squared = (xy[:, 0, None] - centre[None, :, 0]) ** 2 + (xy[:, 1, None] - centre[None, :, 1]) ** 2
+        nearest = grid[squared.argmin(axis=1)]
         lo, hi = min(lo, float(nearest.min())), max(hi, float(nearest.max()))
     return lo - before, hi + after
 

@@ -180,6 +180,14 @@ CHROMA_NOISE_SHARE = 0.15
 a (G - G0) I + b (G^2 - G0^2), so rate 0 stays the clean render. A camera's ISP suppresses
 chroma noise: 85 % of the variance is shared by the three channels (luma noise), 15 % is per
 channel."""
+ISP_NOISE_REDUCTION = 0.45
+"""The camera's noise reduction (an automotive ISP denoises in space and over frames) leaves
+this fraction of the sensor noise's standard deviation in its output image: 5.2 DN at mid-grey
+at the night's 32x gain instead of the sensor's 11.6. Chosen for the look (the output of a
+denoised night camera, fine grain rather than snow); no particular camera was measured."""
+ISP_NOISE_SIGMA_PX = 0.7
+"""What the noise reduction leaves is grain a pixel or two across, not independent pixels: the
+noise field is smoothed by a Gaussian of this sigma (pixels) and scaled back to unit variance."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -309,8 +317,8 @@ def weather_at(sky: str, rate_mm_h: float, follows_rate: bool = True,
     light_level = 1.0 if time_of_day == "day" else (
         (base_lux / day_base_lux) ** AE_RESIDUAL * base_shortfall)
     relative_gain = gain / day_gain
-    noise = math.sqrt(NOISE_SIGNAL_DN * (relative_gain - 1.0) * MID_GREY_DN
-                      + NOISE_FLOOR_DN2 * (relative_gain ** 2 - 1.0))
+    noise = ISP_NOISE_REDUCTION * math.sqrt(NOISE_SIGNAL_DN * (relative_gain - 1.0) * MID_GREY_DN
+                                            + NOISE_FLOOR_DN2 * (relative_gain ** 2 - 1.0))
     return Weather(
         sky=sky, rain_mm_h=rate,
         cloud_cover=round(1.0 - (1.0 - BASE_CLOUD_COVER[sky]) * clearing, 6),
@@ -866,11 +874,24 @@ def composite_spray(rgb: np.ndarray, opacity: np.ndarray, colour_rgb: np.ndarray
 
 def noise_field(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
     """(H, W, 3) float32 unit-variance noise: luma noise shared by the channels plus
-    :data:`CHROMA_NOISE_SHARE` of the variance per channel."""
+    :data:`CHROMA_NOISE_SHARE` of the variance per channel, smoothed into grain of
+    :data:`ISP_NOISE_SIGMA_PX` (what a camera's noise reduction leaves)."""
     shared = rng.standard_normal((height, width, 1), dtype=np.float32)
     per_channel = rng.standard_normal((height, width, 3), dtype=np.float32)
-    return (np.float32(math.sqrt(1 - CHROMA_NOISE_SHARE)) * shared
-            + np.float32(math.sqrt(CHROMA_NOISE_SHARE)) * per_channel)
+    white = (np.float32(math.sqrt(1 - CHROMA_NOISE_SHARE)) * shared
+             + np.float32(math.sqrt(CHROMA_NOISE_SHARE)) * per_channel)
+    kernel, gain = _grain_kernel()
+    grain = cv2.sepFilter2D(white, -1, kernel, kernel, borderType=cv2.BORDER_REFLECT_101)
+    return grain * gain
+
+
+@functools.lru_cache(maxsize=1)
+def _grain_kernel() -> tuple[np.ndarray, np.float32]:
+    """(1-D Gaussian kernel of :data:`ISP_NOISE_SIGMA_PX`, the factor that brings white noise
+    smoothed by it back to unit variance: 1 / sum of the 2-D kernel's squared weights)."""
+    radius = max(1, math.ceil(3 * ISP_NOISE_SIGMA_PX))
+    kernel = cv2.getGaussianKernel(2 * radius + 1, ISP_NOISE_SIGMA_PX, cv2.CV_32F)
+    return kernel, np.float32(1.0 / float((kernel.astype(np.float64) ** 2).sum()))
 
 
 # -- camera response --------------------------------------------------------------------------
@@ -885,8 +906,8 @@ def camera_response(rgb: np.ndarray, weather: Weather, noise: np.ndarray | None)
             by each rate's gain), or None.
 
     Returns:
-        (H, W, 3) uint8: ``I' = level I + n sqrt(a (G - 1) level I + b (G^2 - 1))``, rounded and
-        clipped. Identity when level = G = 1.
+        (H, W, 3) uint8: ``I' = level I + r n sqrt(a (G - 1) level I + b (G^2 - 1))``, r the
+        ISP's :data:`ISP_NOISE_REDUCTION`, rounded and clipped. Identity when level = G = 1.
     """
     if weather.image_level == 1.0 and weather.gain == 1.0:
         return rgb.copy()
@@ -895,5 +916,5 @@ def camera_response(rgb: np.ndarray, weather: Weather, noise: np.ndarray | None)
         gain = np.float32(weather.gain)
         variance = (np.float32(NOISE_SIGNAL_DN) * (gain - 1) * signal
                     + np.float32(NOISE_FLOOR_DN2) * (gain * gain - 1))
-        signal += noise * np.sqrt(variance)
+        signal += noise * (np.float32(ISP_NOISE_REDUCTION) * np.sqrt(variance))
     return np.clip(np.rint(signal), 0, 255).astype(np.uint8)

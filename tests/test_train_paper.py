@@ -477,7 +477,8 @@ def test_paper_reduced_end_to_end(tmp_path, capsys):
                 continue
             assert row["clean"] == pytest.approx(ap[0], abs=1e-9)
             assert row["mpc"] == pytest.approx((ap[50] + ap[100]) / 2, abs=1e-9)
-            assert row["mpc_low"] <= row["mpc"] <= row["mpc_high"]
+            # a percentile interval of 5 resamples need not hold its point: only its order
+            assert 0.0 <= row["mpc_low"] <= row["mpc_high"] <= 1.0
     # Rate 0 is the same clean render in every condition: inferred once, its detections reused.
     assert "Rate 0 is the same clean render in every condition" in report
     for model in ("rainbench-yolo11n", "rainbench-yolo11n-weak"):

@@ -81,9 +81,24 @@ def test_camera_response_is_identity_at_base_and_darker_and_noisier_in_rain():
     out = wx.camera_response(image, heavy, noise)
     assert out.mean() == pytest.approx(image.mean() * heavy.image_level, abs=1.0)
     residual = out.astype(np.float64) - image * heavy.image_level
-    expected = math.sqrt(wx.NOISE_SIGNAL_DN * (heavy.gain - 1) * image.mean() * heavy.image_level
-                         + wx.NOISE_FLOOR_DN2 * (heavy.gain ** 2 - 1))
+    expected = wx.ISP_NOISE_REDUCTION * math.sqrt(
+        wx.NOISE_SIGNAL_DN * (heavy.gain - 1) * image.mean() * heavy.image_level
+        + wx.NOISE_FLOOR_DN2 * (heavy.gain ** 2 - 1))
     assert residual.std() == pytest.approx(expected, rel=0.1)
+
+
+def test_noise_field_is_unit_variance_grain_mostly_shared_by_the_channels():
+    field = wx.noise_field(np.random.default_rng(3), 240, 320)
+    assert field.shape == (240, 320, 3) and field.dtype == np.float32
+    noise = field.astype(np.float64)
+    assert noise.var() == pytest.approx(1.0, rel=0.03)
+    # smoothed by the ISP's noise reduction: neighbours correlate (white noise: 0), but the grain
+    # is fine (4 px apart: nearly independent)
+    assert np.corrcoef(noise[:, :-1, 1].ravel(), noise[:, 1:, 1].ravel())[0, 1] > 0.4
+    assert abs(np.corrcoef(noise[:, :-4, 1].ravel(), noise[:, 4:, 1].ravel())[0, 1]) < 0.05
+    # luma noise: 85 % of the variance shared by the channels
+    assert np.corrcoef(noise[..., 0].ravel(), noise[..., 2].ravel())[0, 1] == pytest.approx(
+        1 - wx.CHROMA_NOISE_SHARE, abs=0.03)
 
 
 def test_spray_is_occluded_by_nearer_surfaces():
