@@ -2,9 +2,9 @@
 
     python docs/time_of_day.py [OUT]
 
-Seed 0's street, cloudy, 8 s into the 200-frame clip at 800x600: day, dusk and night at 0 mm/h,
-and night at 50 mm/h with the weather only (the wet road, its mirror and streaks, the light and
-the camera's response; no drops). Each image goes through the camera's response of its weather,
+Seed 0's street, cloudy, 8 s into the 200-frame clip at 800x600: day, dusk and night at 0 mm/h
+(top row) and at 50 mm/h with the weather only (bottom row: the wet road, its mirror and streaks,
+the light and the camera's response; no drops). Each image goes through the camera's response of its weather,
 the night's sensor noise included (one noise field, seed 0).
 """
 
@@ -20,7 +20,8 @@ from rainbench.gen.generate import build_scene, render_clip
 from rainbench.rain import weather as wx
 
 SKY = "cloudy"
-PANELS = (("day", 0.0), ("dusk", 0.0), ("night", 0.0), ("night", 50.0))
+PANELS = (("day", 0.0), ("dusk", 0.0), ("night", 0.0), ("day", 50.0), ("dusk", 50.0),
+          ("night", 50.0))
 WIDTH, HEIGHT = 800, 600
 
 
@@ -36,7 +37,7 @@ def panel(time_of_day: str, rate: float, noise: np.ndarray) -> np.ndarray:
 
 
 def montage() -> np.ndarray:
-    """(HEIGHT, WIDTH, 3) uint8 RGB: the four panels at half size, labelled, 2 x 2."""
+    """(HEIGHT, 3 * WIDTH / 2, 3) uint8 RGB: the six panels at half size, labelled, 2 rows of 3."""
     noise = wx.noise_field(np.random.default_rng(0), HEIGHT, WIDTH)
     tiles = []
     for time_of_day, rate in PANELS:
@@ -46,7 +47,7 @@ def montage() -> np.ndarray:
         cv2.putText(image, label, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
                     cv2.LINE_AA)
         tiles.append(image)
-    return np.vstack([np.hstack(tiles[:2]), np.hstack(tiles[2:])])
+    return np.vstack([np.hstack(tiles[:3]), np.hstack(tiles[3:])])
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from rainbench.rain.weather import (GRASS_WET_DARKENING, NIGHT_SKY_LUX, PAVEMENT_WET_DARKENING,
                                     ROAD_WET_DARKENING, STRAY_LIGHT_LUX, Weather, airlight_rgb,
-                                    display_light)
+                                    daylight_level, display_light)
 
 # The clear-sky sun (light "sun", directional, casts shadows) and the camera's headlight.
 SUN_DIFFUSE = (0.75, 0.72, 0.66)
@@ -98,9 +98,10 @@ def scene_lighting(weather: Weather) -> SceneLighting:
         lamp = _scaled(STREET_LIGHT_RGB, display_light(weather, STREET_LIGHT_PEAK_LUX))
         beam = _scaled(HEADLAMP_RGB, display_light(weather, HEADLAMP_PEAK_LUX))
     if weather.time_of_day == "dusk":
-        # daylight dims to the dusk level (after auto-exposure) and turns blue; the sun is low
-        # and orange (its direction is set once in the scene: rainbench.mjcf.lights)
-        level = weather.light_level
+        # daylight dims to the dusk level (after auto-exposure; lower still under rain, where
+        # the lamps gain on it) and turns blue; the sun is low and orange (its direction is set
+        # once in the scene: rainbench.mjcf.lights)
+        level = daylight_level(weather)
         sun_diffuse = _scaled(DUSK_SUN_RGB, weather.sun * level * DUSK_SUN_STRENGTH
                               * SUN_DIFFUSE[0])
         sun_specular = weather.sun * SUN_SPECULAR * level

@@ -334,14 +334,36 @@ def weather_at(sky: str, rate_mm_h: float, follows_rate: bool = True,
 
 def display_light(weather: Weather, lux: float) -> float:
     """Display level, in the renderer's light units (1 = the light on a horizontal surface in the
-    daytime base weather), of a surface lit by ``lux`` in the base weather of ``weather``'s sky and
-    time of day: ``light_level x (lux / E0)^(1 / 2.2)``, E0 the base weather's metered light.
+    daytime base weather), of a surface lit by ``lux`` under ``weather``, before the camera's
+    ``image_level``: ``light_level x (lux / E)^(1 / 2.2)``, E the light the camera meters in this
+    weather (``illuminance_lux``).
 
     The renderer adds lights linearly in display values, so each light source is given its own
-    tone-mapped level (exact for one source, a fair approximation where two overlap).
+    tone-mapped level (exact for one source, a fair approximation where two overlap). E is the
+    base weather's own at rate 0, by day and at night (where rain leaves the street lights as
+    they are); at dusk rain takes daylight away, the camera exposes for less light and the lamps
+    gain on the fading day (:func:`daylight_level`).
     """
-    base_lux = sum(_metered_lux(weather.sky, weather.time_of_day, 0.0))
-    return weather.light_level * (max(float(lux), 0.0) / base_lux) ** (1.0 / DISPLAY_LIGHT_GAMMA)
+    return weather.light_level * (max(float(lux), 0.0) / weather.illuminance_lux) ** (
+        1.0 / DISPLAY_LIGHT_GAMMA)
+
+
+def daylight_level(weather: Weather) -> float:
+    """Display level of the daylight (sun, sky light, ambient and the sky itself) in the render of
+    ``weather``, before the camera's ``image_level``: ``light_level`` times how much the
+    daylight's share of the metered light has changed from the base weather's, through the tone
+    curve, ``((D / E) / (D0 / E0))^(1 / 2.2)``.
+
+    1 by day (daylight is all the light), ``light_level`` at night (rain changes neither part);
+    at dusk under rain below ``light_level``: 0.56 x at 25 mm/h under a clear sky, where 5.6 lux
+    of daylight is left beside 15 lux of street light.
+    """
+    base_daylight, base_street = _metered_lux(weather.sky, weather.time_of_day, 0.0)
+    if weather.daylight_lux <= 0.0 or base_daylight <= 0.0:
+        return weather.light_level
+    share = weather.daylight_lux / weather.illuminance_lux
+    base_share = base_daylight / (base_daylight + base_street)
+    return weather.light_level * (share / base_share) ** (1.0 / DISPLAY_LIGHT_GAMMA)
 
 
 def sky_colours(weather: Weather, sin_elevation: np.ndarray) -> np.ndarray:
@@ -354,7 +376,7 @@ def sky_colours(weather: Weather, sin_elevation: np.ndarray) -> np.ndarray:
     horizon (cloud). Night: near black, with the city's brown-grey glow at the horizon (clear) or
     over the whole cloud deck, brightest low. Below the horizon the horizon colour is kept.
     """
-    sky, cover, closing, time_of_day = sky_key(weather)
+    sky, cover, closing, time_of_day, dimming = sky_key(weather)
     s = np.clip(np.asarray(sin_elevation, dtype=np.float64), 0.0, 1.0)[..., None]
     if time_of_day == "night":
         clear = (np.asarray(NIGHT_CLEAR_ZENITH)
@@ -371,7 +393,7 @@ def sky_colours(weather: Weather, sin_elevation: np.ndarray) -> np.ndarray:
         tint = (np.asarray(DUSK_CLOUD_HORIZON_TINT)
                 + (np.asarray(DUSK_CLOUD_ZENITH_TINT) - np.asarray(DUSK_CLOUD_HORIZON_TINT)) * band)
         cloud = DUSK_CLOUD_LEVEL * white * cie * tint
-        return np.clip(clear * (1.0 - cover) + cloud * cover, 0.0, 1.0)
+        return np.clip((clear * (1.0 - cover) + cloud * cover) * dimming, 0.0, 1.0)
     zenith, horizon = np.asarray(CLEAR_SKY_ZENITH), np.asarray(CLEAR_SKY_HORIZON)
     # the clear gradient is linear in (1 + sin e) / 2 (what MuJoCo's builtin gradient does)
     weight = (1.0 + s) / 2.0
@@ -381,12 +403,15 @@ def sky_colours(weather: Weather, sin_elevation: np.ndarray) -> np.ndarray:
     return np.clip(clear * (1.0 - cover) + cloud * cover, 0.0, 1.0)
 
 
-def sky_key(weather: Weather) -> tuple[str, float, float, str]:
+def sky_key(weather: Weather) -> tuple[str, float, float, str, float]:
     """What the sky's colours depend on: (base sky, cloud cover, how far rain has closed the
-    deck, time of day), rounded to 1e-6 so that heavy rates, whose sky no longer changes, share
+    deck, time of day, the daylight's dimming ``daylight_level / light_level``: below 1 only at
+    dusk under rain), rounded to 1e-6 so that heavy rates, whose sky no longer changes, share
     one sky."""
     closing = 1.0 - math.exp(-weather.rain_mm_h / CLOUD_RATE_MM_H)
-    return weather.sky, weather.cloud_cover, round(closing, 6), weather.time_of_day
+    dimming = daylight_level(weather) / weather.light_level
+    return (weather.sky, weather.cloud_cover, round(closing, 6), weather.time_of_day,
+            round(dimming, 6))
 
 
 @functools.lru_cache(maxsize=256)

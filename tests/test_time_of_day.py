@@ -1,5 +1,6 @@
 """Time of day: the laws of dusk and night, the lights after dark, and what they do to a frame."""
 
+import dataclasses
 import math
 
 import cv2
@@ -100,6 +101,38 @@ def test_weather_after_dark_is_monotonic_in_the_rate(time_of_day):
             values = [getattr(w, name) for w in series]
             assert values == sorted(values, reverse=True), name
         assert {w.light_level for w in series} == {series[0].light_level}  # the base's
+
+
+@pytest.mark.parametrize("sky", wx.SKIES)
+def test_at_dusk_under_rain_the_lamps_gain_on_the_fading_daylight(sky):
+    """The camera exposes for the light it meters: at dusk rain takes daylight away, so the lamps'
+    level rises against the daylight's (a rainy dusk is lit by its street lights); by day and at
+    night every level is the base weather's at any rate."""
+    rates = [0.0, 5.0, 10.0, 25.0, 50.0, 100.0]
+    dusk = [wx.weather_at(sky, rate, time_of_day="dusk") for rate in rates]
+    base = dusk[0]
+    base_lux = base.illuminance_lux
+    # rate 0: the law of the base weather (light_level x (lux / E0)^(1 / 2.2); daylight at its level)
+    assert wx.display_light(base, 30.0) == pytest.approx(base.light_level * (30.0 / base_lux) ** (1 / 2.2))
+    assert wx.daylight_level(base) == base.light_level and wx.sky_key(base)[-1] == 1.0
+    daylight = [wx.daylight_level(w) for w in dusk]
+    lamps = [scene_lighting(w).lamp_diffuse[0] for w in dusk]
+    assert daylight == sorted(daylight, reverse=True) and daylight[-1] < 0.7 * daylight[0]
+    assert lamps == sorted(lamps) and lamps[-1] > 2 * lamps[0]
+    # what the image shows (after the camera's image_level): the lamps brighter, the day dimmer
+    assert lamps[-1] * dusk[-1].image_level > 1.5 * lamps[0]
+    assert daylight[-1] * dusk[-1].image_level < 0.6 * daylight[0]
+    # the dusk sky dims with the daylight: darker at 100 mm/h than the base's rain-free deck
+    up = np.array([0.25])
+    assert (wx.sky_colours(dusk[-1], up) < wx.sky_colours(
+        dataclasses.replace(dusk[-1], daylight_lux=base.daylight_lux,
+                            illuminance_lux=base_lux), up)).all()
+    for time_of_day in ("day", "night"):
+        series = [wx.weather_at(sky, rate, time_of_day=time_of_day) for rate in rates]
+        assert {wx.daylight_level(w) for w in series} == {series[0].light_level}
+        assert {wx.sky_key(w)[-1] for w in series} == {1.0}
+    night = [wx.weather_at(sky, rate, time_of_day="night") for rate in rates]  # lamps as at rate 0
+    assert {wx.display_light(w, 30.0) for w in night} == {wx.display_light(night[0], 30.0)}
 
 
 def test_rain_at_night_keeps_the_street_lights_and_rain_at_dusk_darkens():
