@@ -131,8 +131,16 @@ STYLE_WEIGHTS: dict[str, tuple[float, ...]] = {
 }
 HEDGE = (0.13, 0.30, 0.12, 1.0)
 TRUNK = (0.35, 0.25, 0.16, 1.0)
-FOLIAGE = (0.18, 0.38, 0.15, 1.0)
-FOLIAGE_TOP = (0.22, 0.44, 0.18, 1.0)
+FOLIAGE_TINTS = ((0.25, 0.50, 0.20), (0.21, 0.43, 0.17), (0.31, 0.53, 0.20), (0.18, 0.38, 0.20),
+                 (0.36, 0.50, 0.21))
+"""Crown colours (RGB) that tint the ``foliage`` texture (mean level ~0.75): mid, dark, yellow,
+blue-green and olive greens."""
+COLUMNAR_TREE_SHARE = 0.25
+"""Share of trees with a narrow, tall crown (poplar, hornbeam columns); the rest are round."""
+TREE_STREAM = 0x7EE
+"""Each tree draws its shape from its own generator, ``default_rng([seed, TREE_STREAM, n])`` for
+the layout's n-th tree, so that trees leave the layout's random stream (actors, weather) as it
+was."""
 POLE_METAL = (0.35, 0.36, 0.38, 1.0)
 WHITE_PAINT = (0.92, 0.92, 0.90, 1.0)
 YELLOW_PAINT = (0.95, 0.75, 0.10, 1.0)
@@ -245,13 +253,18 @@ class Actor:
     role: str  # "car" (any vehicle), "pedestrian", "bicycle", "motorcycle", "rider"
 
 
+TINTED_MATERIALS = ("foliage",)
+"""Materials whose props keep their own ``rgba``: one leaf texture, every tree its own green."""
+
+
 @dataclass(frozen=True)
 class Prop:
     """One static scenery geom, named ``scenery/{name}`` in the scene.
 
     ``shape``: box, cylinder, ellipsoid or sphere with MuJoCo ``size``; ``pos`` its centre;
     ``quat`` (w, x, y, z) its orientation; ``material`` a scene material name (asphalt,
-    concrete, grass, facade0..6) or "" for the plain ``rgba`` colour.
+    concrete, grass, facade0..6, foliage) or "" for the plain ``rgba`` colour; a material of
+    :data:`TINTED_MATERIALS` takes the prop's ``rgba`` as its colour (the texture modulates it).
     """
 
     name: str
@@ -788,11 +801,40 @@ def _road_surface(builder: _Builder, road: Road, name: str, gaps=(), sidewalk_ga
 
 
 def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
-    builder.prop("tree", "cylinder", (0.15 * scale, 1.6 * scale), (x, y, 1.6 * scale), rgba=TRUNK)
-    builder.prop("tree_crown", "ellipsoid", (1.9 * scale, 1.9 * scale, 2.3 * scale),
-                 (x, y, 4.9 * scale), rgba=FOLIAGE)
-    builder.prop("tree_crown_top", "sphere", (1.3 * scale,), (x + 0.3 * scale, y, 6.6 * scale),
-                 rgba=FOLIAGE_TOP)
+    """A tree at (x, y): a trunk and a crown of the textured ``foliage`` material, round (a main
+    ellipsoid and 2-3 lobes) or columnar (:data:`COLUMNAR_TREE_SHARE`), its size, shape and green
+    drawn from the tree's own generator (:data:`TREE_STREAM`)."""
+    rng = np.random.default_rng([builder.seed, TREE_STREAM, builder._counts.get("tree", 0)])
+    tint = np.array(FOLIAGE_TINTS[int(rng.integers(len(FOLIAGE_TINTS)))])
+
+    def crown(name: str, shape: str, size, pos) -> None:
+        shade = tuple(float(c) for c in np.clip(tint * rng.uniform(0.9, 1.1), 0.0, 1.0))
+        builder.prop(name, shape, tuple(v * scale for v in size),
+                     (x + pos[0] * scale, y + pos[1] * scale, pos[2] * scale),
+                     material="foliage", rgba=shade + (1.0,))
+
+    if rng.random() < COLUMNAR_TREE_SHARE:
+        trunk = rng.uniform(1.0, 1.3)
+        radius, half_height = rng.uniform(1.0, 1.3), rng.uniform(3.0, 3.8)
+        builder.prop("tree", "cylinder", (0.13 * scale, trunk * scale), (x, y, trunk * scale),
+                     rgba=TRUNK)
+        top = 2 * trunk + 0.85 * half_height
+        crown("tree_crown", "ellipsoid", (radius, radius, half_height), (0.0, 0.0, top))
+        crown("tree_lobe", "sphere", (0.75 * radius,),
+              (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), top + 0.6 * half_height))
+        return
+    trunk = rng.uniform(1.45, 1.9)
+    radius, half_height = rng.uniform(1.6, 2.1), rng.uniform(1.9, 2.4)
+    builder.prop("tree", "cylinder", (rng.uniform(0.13, 0.18) * scale, trunk * scale),
+                 (x, y, trunk * scale), rgba=TRUNK)
+    centre = 2 * trunk + 0.75 * half_height
+    crown("tree_crown", "ellipsoid", (radius, radius * rng.uniform(0.85, 1.0), half_height),
+          (0.0, 0.0, centre))
+    for angle in rng.uniform(0.0, 2 * math.pi) + np.arange(int(rng.integers(2, 4))) * 2.1:
+        reach = rng.uniform(0.55, 0.85) * radius
+        crown("tree_lobe", "sphere", (rng.uniform(0.5, 0.7) * radius,),
+              (reach * math.cos(angle), reach * math.sin(angle),
+               centre + rng.uniform(-0.2, 0.6) * half_height))
 
 
 def _lamp(builder: _Builder, x: float, y: float, towards: float, z0: float = 0.0) -> None:

@@ -124,6 +124,9 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     for index, wall in enumerate(L.FACADES):
         # One tile = 4 floors x 4 windows, 12.8 m square.
         _add_texture_material(spec, f"facade{index}", textures.facade(tex_rng, wall), 1 / 12.8)
+    # Leaves: one 2 m tile of clumps, tinted per crown (layout.TINTED_MATERIALS); drawn last from
+    # tex_rng so that the textures above stay as they were.
+    _add_texture_material(spec, "foliage", textures.foliage(tex_rng), 0.5, specular=0.05)
 
     world = spec.worldbody
     x0, y0, x1, y1 = layout.extent
@@ -210,6 +213,8 @@ def _add_prop(world, prop: L.Prop) -> None:
         raise ValueError(f"prop {prop.name}: expected a shape in {', '.join(_PROP_SHAPES)}, "
                          f"got {prop.shape!r}")
     kwargs = {"material": prop.material} if prop.material else {"rgba": list(prop.rgba)}
+    if prop.material in L.TINTED_MATERIALS:
+        kwargs["rgba"] = list(prop.rgba)
     world.add_geom(name=f"scenery/{prop.name}", type=_PROP_SHAPES[prop.shape],
                    size=list(prop.size), pos=list(prop.pos), quat=list(prop.quat),
                    contype=0, conaffinity=0, **kwargs)

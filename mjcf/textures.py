@@ -84,6 +84,22 @@ def grass(rng: np.random.Generator, size: int = 256) -> np.ndarray:
     return _to_uint8(green)
 
 
+def foliage(rng: np.random.Generator, size: int = 256) -> np.ndarray:
+    """Leaf clumps in grey (a crown's ``rgba`` gives the green): lit masses and shaded hollows
+    (4 cells a tile), clumps (16 cells), leaves (48 cells and pixel noise) and soft dark gaps
+    between them (64 cells); mean level ~0.7 of white."""
+    masses = _smooth_noise(rng, size, 4)
+    clumps = _smooth_noise(rng, size, 16)
+    leaves = _smooth_noise(rng, size, 48)
+    level = 0.38 + 0.3 * masses + 0.25 * clumps + 0.15 * leaves
+    level += rng.normal(0.0, 0.05, (size, size)).astype(np.float32)
+    gaps = np.clip((0.3 - _smooth_noise(rng, size, 64)) / 0.3, 0.0, 1.0)
+    level *= 1.0 - 0.6 * gaps
+    warm = 1.0 + 0.06 * (masses - 0.5)  # sunlit masses a little yellower
+    rgb = np.stack([level * warm, level, level / warm], axis=-1) * 255.0
+    return _to_uint8(rgb)
+
+
 def encode_png(image: np.ndarray) -> bytes:
     """PNG bytes of an (H, W, 3) uint8 RGB image."""
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:

@@ -157,6 +157,39 @@ def test_puddles_lie_on_road_surfaces():
 
 # -- seed, overrides, camera rig -------------------------------------------------------------------
 
+def test_trees_vary_in_shape_and_green_and_leave_the_layouts_draws_alone(monkeypatch):
+    layout = _layout("residential", seed=3)
+    crowns = [p for p in layout.props if p.name.startswith("tree_crown")]
+    trunks = [p for p in layout.props if p.name.startswith("tree") and p.shape == "cylinder"]
+    assert len(crowns) == len(trunks) > 10
+    assert all(p.material == "foliage" for p in layout.props if p.name.startswith(("tree_crown", "tree_lobe")))
+    assert len({p.rgba for p in crowns}) > 5  # every crown its own shade
+    tints = {min(L.FOLIAGE_TINTS, key=lambda t: np.abs(np.array(p.rgba[:3]) - t).sum()) for p in crowns}
+    assert len(tints) >= 3
+    # round crowns (wide, 2-3 lobes) and columnar ones (narrow and tall)
+    shapes = {"columnar" if p.size[2] > 2 * p.size[0] else "round" for p in crowns}
+    assert shapes == {"columnar", "round"}
+    # each tree draws from its own generator: with plain trees, every other draw is the same
+    monkeypatch.setattr(L, "_tree", lambda builder, x, y, scale=1.0: builder.prop(
+        "tree", "cylinder", (0.15, 1.6), (x, y, 1.6)))
+    plain = _layout("residential", seed=3)
+    assert (plain.units, plain.actors, plain.puddles, plain.sky, plain.time_of_day) == (
+        layout.units, layout.actors, layout.puddles, layout.sky, layout.time_of_day)
+
+
+def test_crowns_are_textured_and_tinted_in_the_scene():
+    layout = _layout("street", seed=1)
+    model = build_spec(layout, 160, 120).compile()
+    foliage = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, "foliage")
+    crowns = [p for p in layout.props if p.material == "foliage"]
+    assert foliage >= 0 and crowns
+    for prop in crowns:
+        geom = model.geom(f"scenery/{prop.name}")
+        assert geom.matid[0] == foliage
+        assert np.allclose(geom.rgba, prop.rgba)  # the crown's own green over the leaf texture
+    assert model.mat_texid[foliage].max() >= 0
+
+
 def test_seed_decides_the_layout_and_overrides_win():
     config = L.ScenarioConfig()
     names = {L.sample_layout(seed, config, np.random.default_rng(seed)).name for seed in range(8)}
