@@ -831,10 +831,10 @@ def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
     crown("tree_crown", "ellipsoid", (radius, radius * rng.uniform(0.85, 1.0), half_height),
           (0.0, 0.0, centre))
     for angle in rng.uniform(0.0, 2 * math.pi) + np.arange(int(rng.integers(2, 4))) * 2.1:
-        reach = rng.uniform(0.55, 0.85) * radius
-        crown("tree_lobe", "sphere", (rng.uniform(0.5, 0.7) * radius,),
+        reach = rng.uniform(0.45, 0.75) * radius  # lobes bulge the crown's sides, not its top
+        crown("tree_lobe", "sphere", (rng.uniform(0.55, 0.75) * radius,),
               (reach * math.cos(angle), reach * math.sin(angle),
-               centre + rng.uniform(-0.2, 0.6) * half_height))
+               centre + rng.uniform(-0.35, 0.3) * half_height))
 
 
 def _lamp(builder: _Builder, x: float, y: float, towards: float, z0: float = 0.0) -> None:
