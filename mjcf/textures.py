@@ -52,27 +52,51 @@ def facade(
     floors: int = 4,
     windows_per_floor: int = 4,
 ) -> np.ndarray:
-    """A building facade: wall colour with noise and a grid of dark, slightly reflective windows.
+    """A building facade: wall colour with noise and a grid of framed windows.
 
     ``wall_rgb`` is in [0, 1]. One texture tile holds ``floors`` x ``windows_per_floor`` windows;
-    the material repeats it over the wall.
+    the material repeats it over the wall. Each pane is dark glass with its own share of the
+    sky's reflection (brightest at the top), some with curtains or blinds behind them and a few
+    with the warm light of a room; the facade's frames are white or dark, with or without a
+    mullion, and each window has a sill.
     """
     wall = np.asarray(wall_rgb, dtype=np.float32) * 255.0
     noise = 12.0 * (_smooth_noise(rng, size, 10) - 0.5) + rng.normal(0.0, 4.0, (size, size))
     image = wall[None, None, :] + noise[..., None]
     cell_h = size // floors
     cell_w = size // windows_per_floor
-    glass = np.array([45.0, 60.0, 80.0], dtype=np.float32)
+    dark_glass = np.array([38.0, 48.0, 62.0], dtype=np.float32)
+    sky_glass = np.array([150.0, 160.0, 175.0], dtype=np.float32)  # an overcast sky, mirrored
+    frame = np.array([205.0, 205.0, 200.0] if rng.random() < 0.6 else [70.0, 68.0, 66.0],
+                     dtype=np.float32)
+    mullion = rng.random() < 0.5
     for row in range(floors):
         for col in range(windows_per_floor):
             y0 = row * cell_h + cell_h // 4
             y1 = row * cell_h + 3 * cell_h // 4
             x0 = col * cell_w + cell_w // 5
             x1 = col * cell_w + 4 * cell_w // 5
-            lit = rng.random() < 0.15
-            shade = glass + (rng.uniform(80, 120) if lit else rng.uniform(-10, 25))
-            image[y0:y1, x0:x1] = shade
-            image[y1 : y1 + 3, x0 - 2 : x1 + 2] = wall * 0.75  # sill
+            height, width = y1 - y0, x1 - x0
+            down = np.linspace(0.0, 1.0, height, dtype=np.float32)[:, None, None]
+            reflection = rng.uniform(0.1, 0.55) * (1.0 - down) ** 1.5
+            pane = dark_glass + (sky_glass - dark_glass) * reflection
+            pane = np.broadcast_to(pane, (height, width, 3)).copy()
+            behind = rng.random()
+            if behind < 0.3:  # curtains or blinds, seen through the glass
+                drop = int(height * rng.uniform(0.25, 0.7))
+                fabric = np.array([rng.uniform(150, 220)] * 3, np.float32) * (
+                    np.array([1.0, 0.95, 0.85], np.float32) if rng.random() < 0.6 else 1.0)
+                pane[:drop] = pane[:drop] * 0.45 + fabric * 0.55 * 0.6
+            elif behind < 0.4:  # a lit room
+                pane += np.array([90.0, 70.0, 35.0], np.float32) * rng.uniform(0.6, 1.0)
+            image[y0:y1, x0:x1] = pane
+            image[y0 - 2:y0, x0 - 2:x1 + 2] = frame  # the frame: lintel, jambs, mullion
+            image[y0:y1, x0 - 2:x0] = frame
+            image[y0:y1, x1:x1 + 2] = frame
+            if mullion:
+                middle = (x0 + x1) // 2
+                image[y0:y1, middle - 1:middle + 1] = frame
+            image[y1 : y1 + 3, x0 - 3 : x1 + 3] = wall * 0.75  # sill
     return _to_uint8(image)
 
 
