@@ -298,10 +298,12 @@ SHIPPED_GUARD = {
     # small (v1): car 0.938, person 0.816 (the v1 nano model, person 0.717, would fail it).
     "rainbench-yolo11s": (0.88, 0.75),
     # nano fine-tuned on rendered rain (issue 19), v2 (a third tile stage, mixed back with the
-    # clean model at wise_alpha 0.95): car 0.979, person 0.799 (v1 0.976 / 0.782; docs/models.md).
+    # clean model at wise_alpha 0.95): car 0.979, person 0.799 (v1 0.976 / 0.782; docs/models.md);
+    # 0.982 / 0.760 since the scene's trees and windows changed (2026-11-26; on 4 unseen seeds
+    # its person AP did not fall: bench/RESULTS.md).
     "rainbench-yolo11n-rain": (0.93, 0.75),
     # nano fine-tuned on albumentations RandomRain, its baseline twin, v2 alike: car 0.966,
-    # person 0.794 (v1 0.970 / 0.836).
+    # person 0.794 (v1 0.970 / 0.836); 0.967 / 0.774 with the new trees and windows.
     "rainbench-yolo11n-randomrain": (0.92, 0.75),
 }
 
