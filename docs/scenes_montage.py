@@ -40,9 +40,11 @@ def tile(seed: int) -> np.ndarray:
 
 
 def montage() -> np.ndarray:
-    """(720, 1280, 3) uint8 RGB: the twelve tiles, 3 rows of 4."""
+    """(rows x 240, 4 x 320, 3) uint8 RGB: the tiles of :data:`SEEDS` in rows of 4 (3 rows)."""
+    if len(SEEDS) % 4:
+        raise ValueError(f"SEEDS: expected a multiple of 4 seeds, got {len(SEEDS)}")
     tiles = [tile(seed) for seed in SEEDS]
-    return np.vstack([np.hstack(tiles[row * 4:row * 4 + 4]) for row in range(3)])
+    return np.vstack([np.hstack(tiles[row:row + 4]) for row in range(0, len(tiles), 4)])
 
 
 if __name__ == "__main__":

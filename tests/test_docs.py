@@ -1,8 +1,11 @@
-"""The runnable examples of docs/reading.md run on a small dataset."""
+"""The runnable examples of docs/reading.md run on a small dataset; the scripts that draw the
+docs' images run."""
 
+import importlib.util
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from rainbench.gen.config import DatasetConfig
@@ -20,3 +23,45 @@ def test_reading_examples_run(tmp_path, index, monkeypatch, capsys):
     exec(compile(blocks[index], f"docs/reading.md block {index}", "exec"), {})
     if index < 3:
         assert capsys.readouterr().out.strip()
+
+
+def _docs_script(name):
+    spec = importlib.util.spec_from_file_location(name, DOCS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_scenes_montage_script_draws_labelled_tiles(monkeypatch):
+    script = _docs_script("scenes_montage")
+    monkeypatch.setattr(script, "SEEDS", (2, 3, 4, 8))
+    monkeypatch.setattr(script, "WIDTH", 160)
+    monkeypatch.setattr(script, "HEIGHT", 120)
+    monkeypatch.setattr(script, "TILE", (160, 120))
+    labels = []
+    put_text = script.cv2.putText
+    monkeypatch.setattr(script.cv2, "putText", lambda image, text, *args, **kwargs: (
+        labels.append(text), put_text(image, text, *args, **kwargs))[1])
+    image = script.montage()
+    assert image.shape == (120, 640, 3) and image.dtype == np.uint8
+    tiles = [image[:, 160 * k:160 * (k + 1)] for k in range(4)]
+    assert len({tile.tobytes() for tile in tiles}) == 4
+    # each tile names its seed and what the seed drew (seed 2: the street at night)
+    assert [label.split(":")[0] for label in labels] == ["seed 2", "seed 3", "seed 4", "seed 8"]
+    assert labels[0].endswith("night") and "street" in labels[0]
+    monkeypatch.setattr(script, "SEEDS", (2, 3))
+    with pytest.raises(ValueError, match="SEEDS: expected a multiple of 4 seeds, got 2"):
+        script.montage()
+
+
+def test_time_of_day_script_draws_day_dusk_and_night(monkeypatch):
+    script = _docs_script("time_of_day")
+    monkeypatch.setattr(script, "WIDTH", 160)
+    monkeypatch.setattr(script, "HEIGHT", 120)
+    image = script.montage()
+    assert image.shape == (120, 240, 3)
+    luma = [image[60 * row + 25:60 * (row + 1), 80 * col:80 * (col + 1)].mean()
+            for row in range(2) for col in range(3)]  # below the labels
+    day, dusk, night = luma[:3]
+    assert day > dusk > night  # the top row at 0 mm/h
+    assert luma[3] < day  # rain darkens the day
