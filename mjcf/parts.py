@@ -31,6 +31,11 @@ GEOM = mujoco.mjtGeom
 HINGE = mujoco.mjtJoint.mjJNT_HINGE
 
 GLASS = (0.10, 0.14, 0.20, 1.0)
+SCREEN_GLASS = (0.17, 0.21, 0.27, 1.0)
+"""A windscreen's or rear window's colour: a raked pane faces up and mirrors the bright sky, so
+it shows lighter than the upright side windows (:data:`GLASS`), which mirror the darker street
+and buildings. Chosen for the look: MuJoCo mirrors only planes, so no reflection is drawn, and
+the colour does not follow the weather."""
 TYRE = (0.06, 0.06, 0.06, 1.0)
 RIM = (0.55, 0.56, 0.58, 1.0)
 TRIM = (0.05, 0.05, 0.05, 1.0)

@@ -9,8 +9,9 @@ truck a separate cargo box, a chassis frame and twin rear tyres.
 :func:`sample_vehicle` draws a :class:`VehicleShape` (pure data) from an explicit ``rng``;
 :func:`add_vehicle` builds it under a ``mujoco.MjSpec`` body. Every geom is named
 ``{prefix}{part}`` and never collides; mesh assets are named ``{prefix}shell``,
-``{prefix}glass`` (and ``{prefix}cladding``, ``{prefix}cargo``) so that several vehicles share
-one spec and its exported MJCF. Body frame: x forward, y left, z up, origin on the ground at the
+``{prefix}screen`` (windscreen and rear window, lighter: raked glass mirrors the sky),
+``{prefix}glass`` (side windows), ``{prefix}cladding`` and ``{prefix}cargo``, so that several
+vehicles share one spec and its exported MJCF. Body frame: x forward, y left, z up, origin on the ground at the
 footprint centre; the vehicle spans x in [-length/2, length/2] (lamps on rounded corners may
 poke out by a few mm), z in [0, height] and y in [-width/2, width/2] (mirrors, arch flares and
 tyre rims stick out sideways).
@@ -31,7 +32,7 @@ from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from . import layout as L
-from .parts import GLASS, HEADLIGHT, RIM, TAILLIGHT, TRIM, TYRE, Y_AXIS_QUAT, _geom, rgba, unit_yaw_quat
+from .parts import GLASS, HEADLIGHT, SCREEN_GLASS, RIM, TAILLIGHT, TRIM, TYRE, Y_AXIS_QUAT, _geom, rgba, unit_yaw_quat
 
 GEOM = mujoco.mjtGeom
 
@@ -650,21 +651,25 @@ def _cladding(shape: VehicleShape, loft: _Loft) -> Mesh:
 
 
 def vehicle_meshes(shape: VehicleShape) -> dict[str, Mesh]:
-    """The vehicle's closed meshes by part name ("shell", "glass", an SUV's or pickup's
-    "cladding", a truck's "cargo"), in the body frame."""
+    """The vehicle's closed meshes by part name ("shell"; "screen", the windscreen and rear
+    window; "glass", the side windows, when it has any; an SUV's or pickup's "cladding", a
+    truck's "cargo"), in the body frame."""
     loft = _shell_loft(shape)
     rings = _loft_rings(loft)
     xs = rings[:, 0, 0]
-    panes = [_pane(rings, xs, shape.windscreen, TOP_GLASS_T)]
+    screens = [_pane(rings, xs, shape.windscreen, TOP_GLASS_T)]
     if shape.rear_window is not None:
-        panes.append(_pane(rings, xs, shape.rear_window, TOP_GLASS_T))
+        screens.append(_pane(rings, xs, shape.rear_window, TOP_GLASS_T))
+    panes = []
     for x_range in shape.side_windows:
         span = _greenhouse_span(rings, xs, x_range)
         if span is None:
             continue
         right_t = (SECTION_POINTS - 1 - SIDE_GLASS_T[1], SECTION_POINTS - 1 - SIDE_GLASS_T[0])
         panes += [_pane(rings, xs, span, SIDE_GLASS_T), _pane(rings, xs, span, right_t)]
-    meshes = {"shell": _loft_mesh(loft), "glass": _merge(panes)}
+    meshes = {"shell": _loft_mesh(loft), "screen": _merge(screens)}
+    if panes:
+        meshes["glass"] = _merge(panes)
     if shape.style in ("suv", "pickup"):
         meshes["cladding"] = _cladding(shape, loft)
     if shape.cargo is not None:
@@ -739,8 +744,8 @@ def add_vehicle(spec: mujoco.MjSpec, body, prefix: str, shape: VehicleShape,
                 paint: tuple[float, float, float]) -> None:
     """Build ``shape`` under ``body`` of ``spec`` with ``paint`` (rgb 0..1) bodywork.
 
-    Adds mesh assets ``{prefix}shell``, ``{prefix}glass`` (and ``{prefix}cladding``,
-    ``{prefix}cargo``; see :func:`vehicle_meshes`) to ``spec``;
+    Adds mesh assets ``{prefix}shell``, ``{prefix}screen``, ``{prefix}glass`` (and
+    ``{prefix}cladding``, ``{prefix}cargo``; see :func:`vehicle_meshes`) to ``spec``;
     every geom is named ``{prefix}{part}`` with contype = conaffinity = 0.
     """
     _check_style(shape.style)
@@ -748,7 +753,8 @@ def add_vehicle(spec: mujoco.MjSpec, body, prefix: str, shape: VehicleShape,
         raise ValueError(f"paint: expected an rgb triple in 0..1, got {paint!r}")
     body_rgba = rgba(paint)
     meshes = vehicle_meshes(shape)
-    colours = {"shell": body_rgba, "glass": list(GLASS), "cladding": list(BED),
+    colours = {"shell": body_rgba, "glass": list(GLASS), "screen": list(SCREEN_GLASS),
+               "cladding": list(BED),
                "cargo": rgba(shape.cargo_colour or paint)}
     for part, mesh in meshes.items():
         _add_mesh(spec, f"{prefix}{part}", mesh)

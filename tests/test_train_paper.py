@@ -293,17 +293,19 @@ def test_tile_stage_trains_on_tiles_of_the_rescaled_frames(tmp_path, capsys):
 # evaluator's default; before them, 0.001-0.011 lower).
 SHIPPED_GUARD = {
     # nano (v2): car 0.970, person 0.809 (its v1 predecessor, 0.933 and 0.717 before ignore
-    # regions, and the weak control, 0.409 and 0.079, would fail it).
+    # regions, and the weak control, 0.409 and 0.079, would fail it); 0.957 / 0.809 since the
+    # windscreens are lighter (2026-11-26, bench/RESULTS.md).
     "rainbench-yolo11n": (0.92, 0.75),
-    # small (v1): car 0.938, person 0.816 (the v1 nano model, person 0.717, would fail it).
+    # small (v1): car 0.938, person 0.816 (the v1 nano model, person 0.717, would fail it); 0.927 /
+    # 0.819 with the new trees, windows and windscreens (2026-11-26).
     "rainbench-yolo11s": (0.88, 0.75),
     # nano fine-tuned on rendered rain (issue 19), v2 (a third tile stage, mixed back with the
     # clean model at wise_alpha 0.95): car 0.979, person 0.799 (v1 0.976 / 0.782; docs/models.md);
-    # 0.982 / 0.760 since the scene's trees and windows changed (2026-11-26; on 4 unseen seeds
-    # its person AP did not fall: bench/RESULTS.md).
+    # 0.982 / 0.760 since the scene's trees and windows changed, 0.975 / 0.761 with the lighter
+    # windscreens (2026-11-26; bench/RESULTS.md).
     "rainbench-yolo11n-rain": (0.93, 0.75),
     # nano fine-tuned on albumentations RandomRain, its baseline twin, v2 alike: car 0.966,
-    # person 0.794 (v1 0.970 / 0.836); 0.967 / 0.774 with the new trees and windows.
+    # person 0.794 (v1 0.970 / 0.836); 0.966 / 0.777 with the new trees, windows and windscreens.
     "rainbench-yolo11n-randomrain": (0.92, 0.75),
 }
 

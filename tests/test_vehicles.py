@@ -138,7 +138,26 @@ def test_two_vehicles_share_a_spec_with_their_own_meshes():
     V.add_vehicle(spec, other, "actor001/", _shape("bus"), (0.9, 0.7, 0.1))
     model = mujoco.MjModel.from_xml_string(spec.to_xml())
     names = {model.mesh(i).name for i in range(model.nmesh)}
-    assert {"actor000/shell", "actor000/glass", "actor001/shell", "actor001/glass"} <= names
+    assert {"actor000/shell", "actor000/glass", "actor000/screen", "actor001/shell",
+            "actor001/glass", "actor001/screen"} <= names
+
+
+@pytest.mark.parametrize("style", V.VEHICLE_STYLES)
+def test_raked_screens_are_lighter_than_the_side_windows(style):
+    """Windscreen and rear window mirror the sky (lighter), the side windows the street."""
+    shape = _shape(style)
+    meshes = V.vehicle_meshes(shape)
+    screen = meshes["screen"]
+    # the screens lie across the car (front and back), the side panes along its sides
+    assert np.ptp(screen.verts[:, 1]) > 0.6 * shape.width
+    if "glass" in meshes:
+        assert np.abs(meshes["glass"].verts[:, 1]).min() > 0.3 * shape.width
+    model = mujoco.MjModel.from_xml_string(_spec(shape).to_xml())
+    rgba = {name: model.geom(f"{PREFIX}{name}").rgba for name in meshes if name in ("screen", "glass")}
+    assert np.allclose(rgba["screen"], V.SCREEN_GLASS)
+    assert rgba["screen"][:3].mean() > 1.3 * np.asarray(V.GLASS[:3]).mean()
+    if "glass" in rgba:
+        assert np.allclose(rgba["glass"], V.GLASS)
 
 
 @pytest.mark.parametrize("style", V.VEHICLE_STYLES)
