@@ -62,7 +62,7 @@ class ActorDriver:
         heights = np.zeros(units.shape[:2])
         for index, unit in enumerate(layout.units):
             if unit.kind == "pedestrian":
-                heights[index] = [L.ground_height(layout, x, y) for x, y in units[index, :, :2]]
+                heights[index] = L.ground_heights(layout, units[index, :, :2])
         return _Targets(times, ego, units, heights)
 
     def write(self, data: mujoco.MjData, targets: "_Targets", step: int) -> None:

@@ -471,14 +471,21 @@ def unit_position(unit: Unit, t: np.ndarray | float) -> np.ndarray:
 def ground_height(layout: Layout, x: float, y: float) -> float:
     """Height (m) of the surface people stand on at (x, y): the highest of the layout's
     walkways (sidewalks, the overpass deck) containing the point, else the road's 0."""
+    return float(ground_heights(layout, np.array([[x, y]], dtype=np.float64))[0])
+
+
+def ground_heights(layout: Layout, xy: np.ndarray) -> np.ndarray:
+    """(N,) float64: :func:`ground_height` of each point of ``xy`` (N, 2), all at once."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     if not layout.walkways:
-        return 0.0
+        return np.zeros(len(xy))
     table = _walkway_table(layout.walkways)
-    dx, dy = x - table[:, 0], y - table[:, 1]
+    dx, dy = xy[:, 0, None] - table[None, :, 0], xy[:, 1, None] - table[None, :, 1]
     along = dx * table[:, 4] + dy * table[:, 5]
     across = -dx * table[:, 5] + dy * table[:, 4]
     inside = (np.abs(along) <= table[:, 2]) & (np.abs(across) <= table[:, 3])
-    return float(table[inside, 6].max()) if inside.any() else 0.0
+    tops = np.where(inside, table[:, 6], -np.inf).max(axis=1)
+    return np.where(inside.any(axis=1), tops, 0.0)
 
 
 @lru_cache(maxsize=32)

@@ -138,6 +138,16 @@ def test_people_stand_on_each_layouts_sidewalks_and_decks():
     street = _layout("street", 0)
     assert L.ground_height(street, 10.0, L.ROAD_HALF_WIDTH + 1.0) == L.CURB_HEIGHT
     assert L.ground_height(street, 10.0, 0.0) == 0.0
+    # many points at once: the same heights (the deck, sidewalks, the road, nothing)
+    rng = np.random.default_rng(0)
+    for layout in (curved, highway, street):
+        x0, y0, x1, y1 = layout.extent
+        xy = np.column_stack([rng.uniform(x0, x1, 400), rng.uniform(-20.0, 20.0, 400)])
+        heights = L.ground_heights(layout, xy)
+        assert heights.shape == (400,)
+        assert heights.tolist() == [L.ground_height(layout, x, y) for x, y in xy]
+        assert len(set(heights.tolist())) >= 2
+    assert L.ground_heights(_layout("street", 0), np.zeros((0, 2))).shape == (0,)
 
 
 def test_puddles_lie_on_road_surfaces():
