@@ -981,7 +981,8 @@ def _span(b: _Builder, road: Road, before: float = 40.0, after: float = 120.0) -
     lo = hi = 0.0
     for unit in b.placed:
         xy = unit_position(unit, b.times[::5])
-        squared = (xy[:, 0, None] - centre[None, :, 0]) ** 2 + (xy[:, 1, None] - centre[None, :, 1]) ** 2
+        squared = ((xy[:, 0, None] - centre[None, :, 0]) ** 2
+                   + (xy[:, 1, None] - centre[None, :, 1]) ** 2)
         nearest = grid[squared.argmin(axis=1)]
         lo, hi = min(lo, float(nearest.min())), max(hi, float(nearest.max()))
     return lo - before, hi + after

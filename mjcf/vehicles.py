@@ -11,10 +11,10 @@ truck a separate cargo box, a chassis frame and twin rear tyres.
 ``{prefix}{part}`` and never collides; mesh assets are named ``{prefix}shell``,
 ``{prefix}screen`` (windscreen and rear window, lighter: raked glass mirrors the sky),
 ``{prefix}glass`` (side windows), ``{prefix}cladding`` and ``{prefix}cargo``, so that several
-vehicles share one spec and its exported MJCF. Body frame: x forward, y left, z up, origin on the ground at the
-footprint centre; the vehicle spans x in [-length/2, length/2] (lamps on rounded corners may
-poke out by a few mm), z in [0, height] and y in [-width/2, width/2] (mirrors, arch flares and
-tyre rims stick out sideways).
+vehicles share one spec and its exported MJCF. Body frame: x forward, y left, z up, origin on
+the ground at the footprint centre; the vehicle spans x in [-length/2, length/2] (lamps on
+rounded corners may poke out by a few mm), z in [0, height] and y in [-width/2, width/2]
+(mirrors, arch flares and tyre rims stick out sideways).
 
 Shell section: 17 points per station, ``_HALF`` = 8 on the left (y > 0) from the underside to
 the roof edge, the top centre, then the right side mirrored. Points 0-1 chamfer the lower edge,
@@ -32,7 +32,8 @@ from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from . import layout as L
-from .parts import GLASS, HEADLIGHT, SCREEN_GLASS, RIM, TAILLIGHT, TRIM, TYRE, Y_AXIS_QUAT, _geom, rgba, unit_yaw_quat
+from .parts import (GLASS, HEADLIGHT, RIM, SCREEN_GLASS, TAILLIGHT, TRIM, TYRE, Y_AXIS_QUAT, _geom,
+                    rgba, unit_yaw_quat)
 
 GEOM = mujoco.mjtGeom
 

@@ -172,9 +172,11 @@ def test_trees_vary_in_shape_and_green_and_leave_the_layouts_draws_alone(monkeyp
     crowns = [p for p in layout.props if p.name.startswith("tree_crown")]
     trunks = [p for p in layout.props if p.name.startswith("tree") and p.shape == "cylinder"]
     assert len(crowns) == len(trunks) > 10
-    assert all(p.material == "foliage" for p in layout.props if p.name.startswith(("tree_crown", "tree_lobe")))
+    assert all(p.material == "foliage" for p in layout.props
+               if p.name.startswith(("tree_crown", "tree_lobe")))
     assert len({p.rgba for p in crowns}) > 5  # every crown its own shade
-    tints = {min(L.FOLIAGE_TINTS, key=lambda t: np.abs(np.array(p.rgba[:3]) - t).sum()) for p in crowns}
+    tints = {min(L.FOLIAGE_TINTS, key=lambda t: np.abs(np.array(p.rgba[:3]) - t).sum())
+             for p in crowns}
     assert len(tints) >= 3
     # round crowns (wide, 2-3 lobes) and columnar ones (narrow and tall)
     shapes = {"columnar" if p.size[2] > 2 * p.size[0] else "round" for p in crowns}

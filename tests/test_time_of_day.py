@@ -112,8 +112,9 @@ def test_at_dusk_under_rain_the_lamps_gain_on_the_fading_daylight(sky):
     dusk = [wx.weather_at(sky, rate, time_of_day="dusk") for rate in rates]
     base = dusk[0]
     base_lux = base.illuminance_lux
-    # rate 0: the law of the base weather (light_level x (lux / E0)^(1 / 2.2); daylight at its level)
-    assert wx.display_light(base, 30.0) == pytest.approx(base.light_level * (30.0 / base_lux) ** (1 / 2.2))
+    # rate 0: the base weather's law, light_level x (lux / E0)^(1 / 2.2); daylight at its level
+    assert wx.display_light(base, 30.0) == pytest.approx(
+        base.light_level * (30.0 / base_lux) ** (1 / 2.2))
     assert wx.daylight_level(base) == base.light_level and wx.sky_key(base)[-1] == 1.0
     daylight = [wx.daylight_level(w) for w in dusk]
     lamps = [scene_lighting(w).lamp_diffuse[0] for w in dusk]

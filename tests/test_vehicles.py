@@ -153,7 +153,8 @@ def test_raked_screens_are_lighter_than_the_side_windows(style):
     if "glass" in meshes:
         assert np.abs(meshes["glass"].verts[:, 1]).min() > 0.3 * shape.width
     model = mujoco.MjModel.from_xml_string(_spec(shape).to_xml())
-    rgba = {name: model.geom(f"{PREFIX}{name}").rgba for name in meshes if name in ("screen", "glass")}
+    rgba = {name: model.geom(f"{PREFIX}{name}").rgba for name in meshes
+            if name in ("screen", "glass")}
     assert np.allclose(rgba["screen"], V.SCREEN_GLASS)
     assert rgba["screen"][:3].mean() > 1.3 * np.asarray(V.GLASS[:3]).mean()
     if "glass" in rgba:
