@@ -253,18 +253,15 @@ class Actor:
     role: str  # "car" (any vehicle), "pedestrian", "bicycle", "motorcycle", "rider"
 
 
-TINTED_MATERIALS = ("foliage",)
-"""Materials whose props keep their own ``rgba``: one leaf texture, every tree its own green."""
-
-
 @dataclass(frozen=True)
 class Prop:
     """One static scenery geom, named ``scenery/{name}`` in the scene.
 
     ``shape``: box, cylinder, ellipsoid or sphere with MuJoCo ``size``; ``pos`` its centre;
     ``quat`` (w, x, y, z) its orientation; ``material`` a scene material name (asphalt,
-    concrete, grass, facade0..6, foliage) or "" for the plain ``rgba`` colour; a material of
-    :data:`TINTED_MATERIALS` takes the prop's ``rgba`` as its colour (the texture modulates it).
+    concrete, grass, facade0..6, foliage) or ""; ``rgba`` the geom's colour, over the
+    material's when both are given (the texture modulates it: one leaf texture, every crown its
+    own green), None for the material's own colour (mid grey without a material).
     """
 
     name: str
@@ -273,7 +270,7 @@ class Prop:
     pos: tuple[float, float, float]
     quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     material: str = ""
-    rgba: tuple[float, float, float, float] = (0.5, 0.5, 0.5, 1.0)
+    rgba: tuple[float, float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -622,12 +619,12 @@ class _Builder:
         return f"{base}{count}"
 
     def prop(self, base: str, shape: str, size, pos, quat=(1.0, 0.0, 0.0, 0.0), material="",
-             rgba=(0.5, 0.5, 0.5, 1.0), exact: bool = False) -> None:
+             rgba=None, exact: bool = False) -> None:
         name = base if exact else self.label(base)
         size = tuple(float(v) for v in (list(size) + [0.0] * (3 - len(size))))
         self.props.append(Prop(name, shape, size, tuple(float(v) for v in pos),
                                tuple(float(v) for v in quat), material,
-                               tuple(float(v) for v in rgba)))
+                               None if rgba is None else tuple(float(v) for v in rgba)))
 
     def try_place(self, make, roles: tuple[tuple[int, str], ...], tries: int = 200) -> Unit | None:
         """Draw units from ``make()`` until one collides with nothing placed and label its
@@ -734,7 +731,7 @@ def _intervals(road: Road, s_lo: float, s_hi: float, gaps=()):
 
 def _strip(builder: _Builder, road: Road, base: str, lateral: float, half_width: float,
            top: float, thickness: float, s_range=None, gaps=(), material: str = "",
-           rgba=(0.5, 0.5, 0.5, 1.0), walkway: bool = False, road_surface: bool = False) -> None:
+           rgba=None, walkway: bool = False, road_surface: bool = False) -> None:
     """Boxes covering the band ``lateral +- half_width`` along ``road`` with their top at
     ``top``: one box per straight stretch, short boxes (at most ARC_STEP_RAD each) on arcs,
     lengthened so that the outer edge has no gaps."""

@@ -29,6 +29,7 @@ PUDDLE_GROUP = 3  # puddle outlines: never drawn; the renderer lays the water ov
 CLOUD_DECK_GROUP = 4  # the rain-cloud deck: drawn only in renders of a sunless rainy weather
 CLOUD_DECK_HEIGHT_M = 60.0  # low enough that the deck is inside zfar (1000 m) down to 3.4 deg
 SKY_TEXTURE_SIZE = 128  # skybox face size: re-uploaded whenever the weather changes the sky
+PLAIN_GREY = (0.5, 0.5, 0.5, 1.0)  # a prop with neither a material nor a colour
 
 
 def padded_size(width: int, height: int) -> tuple[int, int, int, int]:
@@ -124,7 +125,7 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     for index, wall in enumerate(L.FACADES):
         # One tile = 4 floors x 4 windows, 12.8 m square.
         _add_texture_material(spec, f"facade{index}", textures.facade(tex_rng, wall), 1 / 12.8)
-    # Leaves: one 2 m tile of clumps, tinted per crown (layout.TINTED_MATERIALS); drawn last from
+    # Leaves: one 2 m tile of clumps, tinted per crown (the crowns' rgba); drawn last from
     # tex_rng so that the textures above stay as they were.
     _add_texture_material(spec, "foliage", textures.foliage(tex_rng), 0.5, specular=0.05)
 
@@ -212,9 +213,9 @@ def _add_prop(world, prop: L.Prop) -> None:
     if prop.shape not in _PROP_SHAPES:
         raise ValueError(f"prop {prop.name}: expected a shape in {', '.join(_PROP_SHAPES)}, "
                          f"got {prop.shape!r}")
-    kwargs = {"material": prop.material} if prop.material else {"rgba": list(prop.rgba)}
-    if prop.material in L.TINTED_MATERIALS:
-        kwargs["rgba"] = list(prop.rgba)
+    kwargs = {"material": prop.material} if prop.material else {}
+    if prop.rgba is not None or not prop.material:
+        kwargs["rgba"] = list(prop.rgba or PLAIN_GREY)
     world.add_geom(name=f"scenery/{prop.name}", type=_PROP_SHAPES[prop.shape],
                    size=list(prop.size), pos=list(prop.pos), quat=list(prop.quat),
                    contype=0, conaffinity=0, **kwargs)
