@@ -17,7 +17,8 @@ import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
 from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY,
-                                     Weather, film_streak_sigma_px, mirrored_light_pixels,
+                                     Weather, add_glow, film_streak_sigma_px, light_glow,
+                                     mirrored_light_pixels,
                                      plane_pixels,
                                      puddle_coverage_at, puddle_pixels, puddle_ripple_slope,
                                      road_mirror_weight, streak_reflection)
@@ -219,7 +220,7 @@ class FrameRenderer:
         self._set_segmentation(False)
         surface = self._render_rgb(data, option)
         if not wet:
-            return surface
+            return self._glow(surface, data, weather, depth)
         # MuJoCo's mirror is angle independent: render the road as a full mirror and blend it
         # over the plain render with water's Fresnel weight per pixel (rain/weather.py), on the
         # pixels that show the mirrored road only
@@ -262,7 +263,18 @@ class FrameRenderer:
                 small = streak_reflection(small, road_small, sigma, gain, lights)
             mirror = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR)
             self._lay_puddles(blended, surface, mirror, pose, depth)
-        return np.clip(np.rint(blended), 0, 255).astype(np.uint8)
+        return self._glow(np.clip(np.rint(blended), 0, 255).astype(np.uint8), data, weather, depth)
+
+    def _glow(self, image: np.ndarray, data: mujoco.MjData, weather: Weather,
+              depth: np.ndarray | None) -> np.ndarray:
+        """``image`` with the glow rain lays around the lights when they are on (dusk, night)
+        and it rains (:func:`~rainbench.rain.weather.light_glow`); else ``image`` itself."""
+        if weather.time_of_day == "day" or weather.rain_mm_h <= 0 or depth is None:
+            return image
+        pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
+        centres, intensity, colours = self._rig.lamp_lights(data, pose[:3, 3])
+        glow = light_glow(self.K, pose, centres, intensity, colours, depth, weather)
+        return add_glow(image, glow)
 
     def _road_pixel_mask(self, slabs: np.ndarray, pose: np.ndarray, depth: np.ndarray,
                          small: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:

@@ -127,6 +127,12 @@ class WeatherRig:
         self.lamp_geoms = np.flatnonzero(np.isin(model.geom_matid,
                                                  [m for m in lamp_materials if m >= 0]))
         """(L,) int64: the geoms drawn as lights (head and tail lights, street lamp heads)."""
+        material_names = {m: name for m, name in zip(lamp_materials, tod.LAMP_MATERIALS) if m >= 0}
+        self.lamp_kinds = tuple(tod.LAMP_KINDS[material_names[int(m)]]
+                                for m in model.geom_matid[self.lamp_geoms])
+        """(L,) each lamp geom's kind: ``"head"``, ``"tail"`` or ``"street"``."""
+        self._lamp_colours = np.array([tod.lamp_colour(kind) for kind in self.lamp_kinds],
+                                      np.float64).reshape(-1, 3)
         asphalt = self._materials.get("asphalt", -2)
         self._mirror_candidates = np.flatnonzero(model.geom_matid == asphalt)
         # road geoms of the world body never move: their tops are measured once
@@ -252,6 +258,17 @@ class WeatherRig:
         ``data`` and its bounding radius, metres."""
         return np.column_stack([data.geom_xpos[self.lamp_geoms],
                                 self.model.geom_rbound[self.lamp_geoms]])
+
+    def lamp_lights(self, data: mujoco.MjData, viewer: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The scene's lights as seen from ``viewer`` ((3,) world metres) in the state ``data``:
+        ``(centres (L, 3) m, intensity towards the viewer (L,) cd, colours (L, 3) in 0..1)``
+        (:func:`rainbench.mjcf.lights.lamp_intensity_cd`; a vehicle's forward axis is its
+        body's x axis)."""
+        centres = data.geom_xpos[self.lamp_geoms].astype(np.float64)
+        forwards = data.xmat[self.model.geom_bodyid[self.lamp_geoms]].reshape(-1, 9)[:, [0, 3, 6]]
+        intensity = tod.lamp_intensity_cd(self.lamp_kinds, centres, forwards, viewer)
+        return centres, intensity, self._lamp_colours
 
     def set_mirror(self, on: bool) -> None:
         """Full mirror reflectance on the road (``on``), or none."""

@@ -29,7 +29,7 @@ import numpy as np
 
 from rainbench.rain.weather import DUSK_SUN_ELEVATION_DEG, check_time_of_day, weather_at
 
-from .weather import scene_lighting
+from .weather import HEADLAMP_RGB, STREET_LIGHT_PEAK_LUX, STREET_LIGHT_RGB, scene_lighting
 
 LIGHT_PREFIX = "tod/"
 """Names of every light added here start with this (``tod/lamp3``, ``tod/ego_beam_l``,
@@ -101,6 +101,54 @@ LAMP_MATERIALS = ("tod_headlamp", "tod_taillamp", "tod_streetlamp")
 a camera sees them (their mirror images on a wet road streak, rainbench.rain.weather)."""
 TAILLAMP_RGBA = (1.0, 0.06, 0.04, 1.0)
 STREET_LAMP_RGBA = (1.0, 0.86, 0.66, 1.0)
+
+# -- the lights' intensity towards a viewer (the glow rain lays around them) ----------------------
+STREET_LAMP_NADIR_CD = STREET_LIGHT_PEAK_LUX * LAMP_REFERENCE_M**2
+"""A street light's luminous intensity straight down: its peak illuminance from a head 7.9 m up,
+30 lux x (7.9 m)^2 = 1 872 cd. Towards a viewer at gamma from the vertical it sends
+cos(gamma)^LAMP_EXPONENT of that inside the LAMP_CUTOFF_DEG cone and nothing beyond (the render's
+spot light below it): a cut-off luminaire, which a camera farther than ~12 m along the street
+sees lit but receives little light from."""
+HEADLAMP_ONCOMING_CD = 350.0
+"""A low beam's intensity towards an oncoming driver: UN ECE R112 caps its point B50L (the
+oncoming driver's eyes at 50 m) at 350 cd."""
+TAILLAMP_CD = 10.0
+"""A rear position lamp's intensity on its axis (UN ECE R7: 4 to 17 cd)."""
+LAMP_KINDS = {"tod_headlamp": "head", "tod_taillamp": "tail", "tod_streetlamp": "street"}
+
+
+def lamp_intensity_cd(kinds: Sequence[str], positions: np.ndarray, forwards: np.ndarray,
+                      viewer: np.ndarray) -> np.ndarray:
+    """(N,) float64: each light's luminous intensity (cd) towards ``viewer``.
+
+    Args:
+        kinds: (N,) of ``"street"``, ``"head"`` or ``"tail"`` (:data:`LAMP_KINDS`).
+        positions: (N, 3) world metres, each light's centre.
+        forwards: (N, 3) the forward axis of each light's vehicle (street lamps: unused).
+        viewer: (3,) world metres.
+
+    A street lamp: :data:`STREET_LAMP_NADIR_CD` x cos(gamma)^:data:`LAMP_EXPONENT`, gamma the
+    viewer's angle from the vertical below the lamp, 0 beyond :data:`LAMP_CUTOFF_DEG`; a head
+    lamp: :data:`HEADLAMP_ONCOMING_CD` if the viewer is ahead of its vehicle, else 0; a tail lamp:
+    :data:`TAILLAMP_CD` if the viewer is behind it, else 0.
+    """
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    to_viewer = np.asarray(viewer, np.float64).reshape(3) - positions
+    distance = np.maximum(np.linalg.norm(to_viewer, axis=1), 1e-9)
+    ahead = np.einsum("ij,ij->i", np.asarray(forwards, np.float64).reshape(-1, 3), to_viewer)
+    cos_gamma = -to_viewer[:, 2] / distance
+    kinds = np.asarray(kinds)
+    street = np.where(cos_gamma >= math.cos(math.radians(LAMP_CUTOFF_DEG)),
+                      STREET_LAMP_NADIR_CD * np.maximum(cos_gamma, 0.0) ** LAMP_EXPONENT, 0.0)
+    return np.select([kinds == "street", kinds == "head", kinds == "tail"],
+                     [street, np.where(ahead > 0, HEADLAMP_ONCOMING_CD, 0.0),
+                      np.where(ahead < 0, TAILLAMP_CD, 0.0)], 0.0)
+
+
+def lamp_colour(kind: str) -> tuple[float, float, float]:
+    """The colour (RGB in 0..1) of a light of ``kind`` (:data:`LAMP_KINDS`)."""
+    return {"street": STREET_LIGHT_RGB, "head": HEADLAMP_RGB, "tail": tuple(TAILLAMP_RGBA[:3])}[kind]
+
 
 STREET_LAMP_NAME = re.compile(r"^scenery/(?!signal)[a-z0-9_]*lamp\d*$")
 """Street lamp heads: ``scenery/pole_lamp3``, ``scenery/median_lamp0``, ``scenery/pole3_lamp``;

@@ -44,7 +44,13 @@ class RainConfig:
         lens_drops: physical model only: also draw water on the lens (the jeon2022 lens water,
             on top of the streaks and extinction). On by default.
         lens_drop_fraction: physical model with lens_drops: lens drop count = this fraction of the
-            eq. 5 count (the first slots of the same lens, so the drops are those of jeon2022).
+            count of drops that land on the cover glass (``physical.lens_drop_count``); they take
+            the first slots of the same lens, so they are a subset of jeon2022's drops.
+        lens_glass_distance_m: physical model: distance u of the cover glass in front of the lens
+            (the glass area the camera sees is u^2 (W / fx) (H / fy)).
+        lens_sweep_speed_m_s: physical model: speed at which the forward-facing cover glass
+            meets the rain (the car's speed; the hood keeps the vertical fall off the glass).
+        lens_min_diameter_mm: physical model: smallest falling drop counted on the glass.
 
         lens_radius_min_px, lens_radius_max_px: lens-drop radius range on the glass, px @800x600.
         lens_radius_exponent: lens-drop radii follow a truncated power law p(r) ~ r^-exponent.
@@ -83,6 +89,9 @@ class RainConfig:
     # physical model: lens water (on by default)
     lens_drops: bool = True
     lens_drop_fraction: float = 1.0
+    lens_glass_distance_m: float = 0.03
+    lens_sweep_speed_m_s: float = 10.0
+    lens_min_diameter_mm: float = 0.5
 
     # lens water (jeon2022, and physical with lens_drops); docs/rain.md, "Lens water"
     lens_radius_min_px: float = 3.0
@@ -120,6 +129,9 @@ class RainConfig:
             "lens_opacity",
             "lens_life_min_s",
             "lens_life_max_s",
+            "lens_glass_distance_m",
+            "lens_sweep_speed_m_s",
+            "lens_min_diameter_mm",
         )
         for name in positive:
             value = getattr(self, name)

@@ -69,6 +69,35 @@ def marshall_palmer_density(rate_mm_h: float, min_diameter_mm: float) -> float:
     return MP_N0_PER_M3_MM / slope * math.exp(-slope * min_diameter_mm)
 
 
+def lens_drop_count(rate_mm_h: float, *, config: RainConfig, K: np.ndarray, height: int, width: int) -> int:
+    """Drops on the camera's cover glass at a rate: the physical model's lens water count.
+
+    The glass, ``lens_glass_distance_m`` (u) in front of the lens, faces forward and moves
+    through the rain at ``lens_sweep_speed_m_s`` (v); a hood keeps the vertical fall off it.
+    Drops of diameter >= ``lens_min_diameter_mm`` land on the part the camera sees, the
+    pyramid's section ``A = u^2 (W / fx) (H / fy)``, at ``n(R) v A`` per second (n from
+    Marshall-Palmer) and stay for the mean life of a lens slot, ``tau = (lens_life_min_s +
+    lens_life_max_s) / 2``, so the glass holds on average
+    ``N = round(lens_drop_fraction * n(R) * v * A * tau)`` drops (at 800x600, 90 degrees:
+    193 at 10 mm/h, 508 at 100 mm/h). Non-decreasing in the rate; independent of the image's
+    resolution for a given field of view.
+
+    Args:
+        rate_mm_h: rain rate in mm/h, >= 0.
+        config: the rain configuration (its lens_* fields).
+        K: (3, 3) intrinsics in pixels.
+        height, width: image size in pixels.
+
+    Returns:
+        the drop count, an int >= 0 (0 at rate 0).
+    """
+    density_per_m3 = marshall_palmer_density(rate_mm_h, config.lens_min_diameter_mm)
+    glass_area_m2 = config.lens_glass_distance_m**2 * (width / float(K[0, 0])) * (height / float(K[1, 1]))
+    mean_life_s = 0.5 * (config.lens_life_min_s + config.lens_life_max_s)
+    expected = config.lens_drop_fraction * density_per_m3 * config.lens_sweep_speed_m_s * glass_area_m2 * mean_life_s
+    return int(math.floor(expected + 0.5))
+
+
 def sample_marshall_palmer_diameters(rng: np.random.Generator, count: int, rate_mm_h: float, min_diameter_mm: float) -> np.ndarray:
     """Draw drop diameters from Marshall-Palmer truncated below at D_min.
 

@@ -110,13 +110,12 @@ def _check_depth(depth: object, height: int, width: int, required: bool) -> np.n
     return np.ascontiguousarray(depth)
 
 
-def _lens_count(rate: float, config: RainConfig, height: int, width: int) -> int:
-    count = lens_mod.jeon2022_drop_count(rate, height, width)
+def _lens_count(rate: float, config: RainConfig, K: np.ndarray | None, height: int, width: int) -> int:
     if config.model == "jeon2022":
-        return count
+        return lens_mod.jeon2022_drop_count(rate, height, width)
     if not config.lens_drops:
         return 0
-    return int(math.floor(count * config.lens_drop_fraction + 0.5))
+    return phys.lens_drop_count(rate, config=config, K=K, height=height, width=width)
 
 
 def sample_drops(
@@ -142,8 +141,8 @@ def sample_drops(
     Returns:
         Drops. jeon2022: ``lens`` = the drops in the first N(rate) slots of the clip's lens at the
         clock's frame, ``air`` empty. physical: ``air`` = the candidates present at the rate
-        (before occlusion), ``lens`` as jeon2022 scaled by ``lens_drop_fraction`` if
-        ``lens_drops`` else empty.
+        (before occlusion), ``lens`` the first :func:`physical.lens_drop_count` slots of the
+        same lens if ``lens_drops`` else empty.
     """
     config = _check_config(config)
     rate = _check_rate(rate_mm_h)
@@ -151,7 +150,7 @@ def sample_drops(
     check_seed_sequence(seed_sequence)
     clock = lens_mod.lens_clock_or_default(lens_clock, seed_sequence)
     matrix = _check_K(K, required=config.model == "physical")
-    lens = lens_mod.sample_lens_drops(_lens_count(rate, config, height, width), config=config, height=height, width=width, lens_clock=clock)
+    lens = lens_mod.sample_lens_drops(_lens_count(rate, config, matrix, height, width), config=config, height=height, width=width, lens_clock=clock)
     if config.model == "jeon2022" or rate == 0:
         return Drops(lens=lens, air=phys.empty_air_drops())
     candidates = phys.sample_air_candidates(config=config, K=matrix, height=height, width=width, seed_sequence=seed_sequence)
@@ -357,7 +356,7 @@ def _physical_sweep(
 
     shared_terms = blend_terms(rgb) if scene_of is None else None
 
-    lens_counts = [_lens_count(rate, config, height, width) for rate in ascending]
+    lens_counts = [_lens_count(rate, config, K, height, width) for rate in ascending]
     lens_accumulator = _LensAccumulator(max(lens_counts), config, height, width, lens_clock) if max(lens_counts) > 0 else None
 
     frames = []

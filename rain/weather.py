@@ -33,6 +33,8 @@ import math
 import cv2
 import numpy as np
 
+from rainbench.rain.physical import extinction_coefficient
+
 SKIES = ("clear", "cloudy", "overcast")
 """Base weathers a scene may have; the seed paper's CARLA clip was ``cloudy``."""
 TIMES_OF_DAY = ("day", "dusk", "night")
@@ -895,6 +897,120 @@ def composite_spray(rgb: np.ndarray, opacity: np.ndarray, colour_rgb: np.ndarray
     base = rgb.astype(np.float32)
     out = base + opacity[..., None] * (np.asarray(colour_rgb, np.float32)[None, None] - base)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+# -- lights seen through rain -----------------------------------------------------------------
+WATER_REFRACTIVE_INDEX = 1.333
+GLOW_SHARE = 0.5 * 0.88
+"""Share of the light a lamp loses to rain (extinction, 1 - exp(-beta d)) that reaches the camera
+as a glow around it: half the extinction of drops this large is diffraction, within a fraction
+of a degree (it stays on the lamp's own pixels), and of the geometric half, 88 % passes through
+the drop once (refraction, deviated 0-82 degrees; Fresnel-weighted over the drop's disc, computed
+by :func:`refraction_phase`); the rest is reflected, mostly away from the camera."""
+GLOW_SCALE = 8
+"""The glow is computed on a grid this many times coarser than the image and upsampled: it
+varies over tens of pixels."""
+
+
+@functools.lru_cache(maxsize=1)
+def refraction_phase() -> tuple[np.ndarray, np.ndarray]:
+    """Where light passing once through a water drop goes: ``(deviation_rad, density_per_sr)``,
+    (N,) float64 each, the deviation angle from the incoming direction and the light's density
+    per steradian there, integrating to 1 over the sphere.
+
+    Geometric optics of a sphere (n = 1.333): a ray at impact parameter b = sin(i) is refracted
+    to r (sin i = n sin r) and leaves deviated by 2 (i - r), weighted by its share of the disc
+    (2 b db) and the Fresnel transmittance (unpolarised) on entering and leaving; 88 % of the
+    light falling on the disc passes this way. Near the forward direction the deviation is ~2 b
+    (1 - 1 / n), so the density is flat there: (4 / pi) (1 - R0)^2 / 0.88 = 1.39 per sr, R0 the
+    reflectance at normal incidence. Half the light is deviated by more than 24 degrees, none by
+    more than 82.
+    """
+    impact = (np.arange(200_000, dtype=np.float64) + 0.5) / 200_000.0
+    incidence = np.arcsin(impact)
+    refracted = np.arcsin(impact / WATER_REFRACTIVE_INDEX)
+    cos_i, cos_r, n = np.cos(incidence), np.cos(refracted), WATER_REFRACTIVE_INDEX
+    r_s = ((cos_i - n * cos_r) / (cos_i + n * cos_r)) ** 2
+    r_p = ((n * cos_i - cos_r) / (n * cos_i + cos_r)) ** 2
+    weight = 2.0 * impact * (1.0 - 0.5 * (r_s + r_p)) ** 2
+    deviation = 2.0 * (incidence - refracted)
+    edges = np.linspace(0.0, math.radians(90.0), 181)
+    energy, _ = np.histogram(deviation, bins=edges, weights=weight)
+    solid_angle = 2.0 * math.pi * (np.cos(edges[:-1]) - np.cos(edges[1:]))
+    density = energy / energy.sum() / solid_angle
+    return 0.5 * (edges[:-1] + edges[1:]), density
+
+
+def light_glow(K: np.ndarray, pose_world_cam: np.ndarray, lamps: np.ndarray, intensity_cd: np.ndarray,
+               colours: np.ndarray, depth: np.ndarray, weather: Weather) -> np.ndarray:
+    """(H, W, 3) float32: the glow rain lays around lights, in linear display units (a Lambertian
+    white surface lit by the light the camera meters shows as ``light_level ** 2.2``), before the
+    camera's ``image_level``; zeros when it does not rain.
+
+    A lamp of luminous intensity I (towards the camera) d metres away lights the camera with
+    ``E = I / d^2`` lux; rain takes ``1 - exp(-beta d)`` of it off the direct path
+    (:func:`rainbench.rain.physical.extinction_coefficient`), and :data:`GLOW_SHARE` of that
+    reaches the camera deviated by theta with the density ``p(theta)`` of
+    :func:`refraction_phase`, so a pixel theta from the lamp sees ``L = E GLOW_SHARE (1 -
+    exp(-beta d)) p(theta)`` cd/m^2, which shows like a white surface under ``pi L`` lux. Single
+    scattering, as if the drops that scatter were at the camera's end of the path (the light
+    reaching drops near the lamp is stronger, but they turn it by more than theta). A lamp the
+    depth map hides (its pixel nearer than the lamp) glows not at all; a lamp outside the image
+    is taken as seen.
+
+    Args:
+        K: (3, 3) intrinsics. pose_world_cam: (4, 4) T_world_cam, OpenCV axes.
+        lamps: (N, 3) float, each light's centre in world metres.
+        intensity_cd: (N,) float >= 0, each light's luminous intensity towards the camera (cd).
+        colours: (N, 3) float in 0..1, each light's colour (the glow takes it).
+        depth: (H, W) float metres along the optical axis, +inf for sky.
+        weather: the image's weather (its rate and the light its camera meters).
+    """
+    height, width = depth.shape
+    glow = np.zeros((height, width, 3), np.float32)
+    lamps = np.asarray(lamps, np.float64).reshape(-1, 3)
+    intensity_cd = np.asarray(intensity_cd, np.float64).reshape(-1)
+    colours = np.asarray(colours, np.float64).reshape(-1, 3)
+    beta_per_m = extinction_coefficient(weather.rain_mm_h) / 1000.0
+    if beta_per_m <= 0 or not len(lamps):
+        return glow
+    points = (lamps - pose_world_cam[:3, 3]) @ pose_world_cam[:3, :3]  # camera frame
+    distance = np.linalg.norm(points, axis=1)
+    in_front = (points[:, 2] > 1e-3) & (intensity_cd > 0)
+    u = K[0, 0] * points[:, 0] / np.where(in_front, points[:, 2], 1.0) + K[0, 2]
+    v = K[1, 1] * points[:, 1] / np.where(in_front, points[:, 2], 1.0) + K[1, 2]
+    inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    col = np.clip(u, 0, width - 1).astype(np.int64)
+    row = np.clip(v, 0, height - 1).astype(np.int64)
+    hidden = inside & (depth[row, col] < points[:, 2] * 0.98)  # something stands in front of it
+    seen = in_front & ~hidden
+    if not seen.any():
+        return glow
+    small_h, small_w = -(-height // GLOW_SCALE), -(-width // GLOW_SCALE)
+    cols = ((np.arange(small_w) + 0.5) * GLOW_SCALE - K[0, 2]) / K[0, 0]
+    rows = ((np.arange(small_h) + 0.5) * GLOW_SCALE - K[1, 2]) / K[1, 1]
+    rays = np.stack(np.broadcast_arrays(cols[None, :], rows[:, None], 1.0), axis=-1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    deviation, density = refraction_phase()
+    radiance = np.zeros((small_h, small_w, 3), np.float64)
+    for point, dist, candela, colour in zip(points[seen], distance[seen], intensity_cd[seen], colours[seen]):
+        scattered = candela / dist**2 * GLOW_SHARE * -math.expm1(-beta_per_m * dist)
+        angle = np.arccos(np.clip(rays @ (point / dist), -1.0, 1.0))
+        radiance += (scattered * np.interp(angle, deviation, density, right=0.0))[..., None] * colour
+    level = radiance * (math.pi / weather.illuminance_lux) * weather.light_level ** DISPLAY_LIGHT_GAMMA
+    return cv2.resize(level.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
+
+
+_LINEAR_OF_DISPLAY = np.power(np.arange(256, dtype=np.float32) / np.float32(255.0),
+                              np.float32(DISPLAY_LIGHT_GAMMA))
+
+
+def add_glow(rgb: np.ndarray, glow: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8: ``rgb`` (display values) with ``glow`` ((H, W, 3) float32 linear display
+    units, :func:`light_glow`) added in linear light: ``255 ((rgb / 255)^2.2 + glow)^(1 / 2.2)``,
+    rounded and clipped (a pixel without glow keeps its value)."""
+    linear = cv2.add(_LINEAR_OF_DISPLAY[rgb], glow)
+    return cv2.convertScaleAbs(cv2.pow(linear, 1.0 / DISPLAY_LIGHT_GAMMA), alpha=255.0)
 
 
 def noise_field(rng: np.random.Generator, height: int, width: int) -> np.ndarray:

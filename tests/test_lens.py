@@ -11,6 +11,7 @@ import pytest
 from rainbench import rain
 from rainbench.rain import LensClock, RainConfig, image_quality, render_rain, render_rain_sweep, sample_drops
 from rainbench.rain import lens as lens_mod
+from rainbench.rain import physical
 from testframe import street_frame
 
 RATES = tuple(float(rate) for rate in range(0, 101, 10))
@@ -112,7 +113,8 @@ def test_nesting_across_rates_at_any_frame(model, frame_320):
         for lower, higher in zip(drops, drops[1:]):
             assert len(lower) <= len(higher)
             np.testing.assert_array_equal(lower.as_array(), higher.as_array()[: len(lower)])
-        assert len(drops[-1]) == lens_mod.jeon2022_drop_count(100.0, 240, 320)
+        top_count = lens_mod.jeon2022_drop_count(100.0, 240, 320) if model == "jeon2022" else physical.lens_drop_count(100.0, config=config, K=K, height=240, width=320)
+        assert len(drops[-1]) == top_count > 0
 
 
 @pytest.mark.parametrize(
@@ -242,11 +244,32 @@ def test_physical_lens_drop_fraction_takes_the_first_slots(frame_320):
     full = sample_drops(100.0, config=RainConfig(model="physical"), K=K, shape=rgb.shape, seed_sequence=CLIP, lens_clock=_clock(8)).lens
     half = sample_drops(100.0, config=RainConfig(model="physical", lens_drop_fraction=0.5), K=K, shape=rgb.shape, seed_sequence=CLIP, lens_clock=_clock(8)).lens
     jeon = sample_drops(100.0, config=RainConfig(), K=K, shape=rgb.shape, seed_sequence=CLIP, lens_clock=_clock(8)).lens
-    np.testing.assert_array_equal(full.as_array(), jeon.as_array())
-    assert len(half) == int(np.floor(len(full) * 0.5 + 0.5))  # half up, as the count
+    expected = physical.lens_drop_count(100.0, config=RainConfig(model="physical"), K=K, height=rgb.shape[0], width=rgb.shape[1])
+    assert 0 < len(full) == expected < len(jeon)
+    np.testing.assert_array_equal(full.as_array(), jeon.as_array()[: len(full)])  # jeon2022's first slots
+    assert len(half) == int(np.floor(expected * 0.5 + 0.5))  # half up, as the count
     np.testing.assert_array_equal(half.as_array(), full.as_array()[: len(half)])
     none = sample_drops(100.0, config=RainConfig(model="physical", lens_drops=False), K=K, shape=rgb.shape, seed_sequence=CLIP, lens_clock=_clock(8)).lens
     assert len(none) == 0
+
+
+def test_physical_lens_count_is_the_flux_onto_the_glass_over_a_drop_life():
+    # 90 degrees across 800x600 (fx = fy = 400): the glass 3 cm ahead shows 6 x 4.5 cm
+    K = np.array([[400.0, 0.0, 400.0], [0.0, 400.0, 300.0], [0.0, 0.0, 1.0]])
+    config = RainConfig(model="physical")
+    slope = 4.1 * 100.0**-0.21  # Marshall-Palmer Lambda at 100 mm/h, per mm
+    per_m3 = 8000.0 / slope * np.exp(-slope * 0.5)  # drops of D >= 0.5 mm
+    expected = per_m3 * 10.0 * (0.06 * 0.045) * 8.0  # x 10 m/s x glass area x mean life (4..12 s)
+    assert physical.lens_drop_count(100.0, config=config, K=K, height=600, width=800) == round(expected) == 508
+    counts = [physical.lens_drop_count(rate, config=config, K=K, height=600, width=800) for rate in (0.0, 1.0, 10.0, 50.0, 100.0)]
+    assert counts[0] == 0 and counts == sorted(counts)
+    assert counts[2] == 193  # about eq. 5's 204 in light rain, a sixth of its 3204 at 100 mm/h
+    # the same field of view at half the resolution sees the same glass, so the same drops
+    assert physical.lens_drop_count(100.0, config=config, K=K / np.array([[2.0], [2.0], [1.0]]), height=300, width=400) == 508
+    faster = RainConfig(model="physical", lens_sweep_speed_m_s=20.0, lens_glass_distance_m=0.015)
+    assert physical.lens_drop_count(100.0, config=faster, K=K, height=600, width=800) == round(expected * 2.0 / 4.0)
+    with pytest.raises(ValueError, match=r"RainConfig.lens_sweep_speed_m_s must be a finite number > 0"):
+        RainConfig(model="physical", lens_sweep_speed_m_s=0.0)
 
 
 # --------------------------------------------------------------------------------------------

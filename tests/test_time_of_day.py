@@ -386,7 +386,11 @@ def test_the_weather_rig_knows_the_lamps_whose_reflections_streak(night_scene):
     assert spheres.shape == (len(names), 4) and (spheres[:, 3] > 0).all()
 
 
-def test_wet_night_road_mirrors_the_strip_the_camera_sees(night_scene):
+def test_wet_night_road_mirrors_the_strip_the_camera_sees(night_scene, monkeypatch):
+    import rainbench.gen.render as render_module
+
+    # the wet road alone: the rain's glow around the lights brightens the frame (tested below)
+    monkeypatch.setattr(render_module, "light_glow", lambda *args: np.zeros((240, 320, 3), np.float32))
     layout, model = night_scene
     data = _posed(model, layout, 8.0)
     table = geom_instance_table(model)
@@ -428,3 +432,50 @@ def test_a_night_clip_stores_its_clean_image_with_the_cameras_noise(tmp_path):
             again = generate_shard(config, tmp_path / "again", threads=1)
             with h5py.File(again) as handle:
                 assert np.array_equal(handle["rgb"][0, 0], stored)  # seeded: the same bytes
+
+
+def test_lights_send_their_intensity_towards_a_viewer_as_documented():
+    viewer = np.zeros(3)
+    kinds = ["street", "street", "street", "head", "head", "tail", "tail"]
+    lamps = np.array([[0, 0, 6.4], [6.4 * math.tan(math.radians(60)), 0, 6.4], [40, 0, 6.4],
+                      [20, 0, 0.7], [20, 0, 0.7], [20, 0, 0.7], [20, 0, 0.7]], float)
+    forwards = np.array([[1, 0, 0]] * 3 + [[-1, 0, 0], [1, 0, 0], [1, 0, 0], [-1, 0, 0]], float)
+    candela = tod.lamp_intensity_cd(kinds, lamps, forwards, viewer)
+    np.testing.assert_allclose(candela, [tod.STREET_LAMP_NADIR_CD, tod.STREET_LAMP_NADIR_CD * 0.5, 0.0,
+                                         tod.HEADLAMP_ONCOMING_CD, 0.0, tod.TAILLAMP_CD, 0.0])
+    assert tod.STREET_LAMP_NADIR_CD == pytest.approx(30.0 * 7.9**2)  # 30 lux under a head 7.9 m up
+
+
+def test_rain_at_night_glows_around_the_lights_and_not_by_day(night_scene, monkeypatch):
+    """The glow (rain.weather.light_glow) lifts a rainy night's image, only where lights are
+    seen and only under rain after dark."""
+    import rainbench.gen.render as render_module
+
+    layout, model = night_scene
+    data = _posed(model, layout, 8.0)
+    table = geom_instance_table(model)
+    rainy_night = wx.weather_at(SKY, 50.0, time_of_day="night")
+    with FrameRenderer(model, 320, 240, table,
+                       base_weather=wx.weather_at(SKY, 0.0, time_of_day="night")) as renderer:
+        renderer.update(data)
+        _, _, depth = renderer.render_instances_depth()
+        centres, candela, colours = renderer._rig.lamp_lights(data, camera_pose(model, data, "ego")[:3, 3])
+        glowing = renderer.render_weather(data, rainy_night, depth)
+        monkeypatch.setattr(render_module, "light_glow", lambda *args: np.zeros((240, 320, 3), np.float32))
+        plain = renderer.render_weather(data, rainy_night, depth)
+    assert len(centres) == len(candela) == len(colours) == len(renderer._rig.lamp_kinds) > 0
+    assert (candela > 0).any() and (candela == 0).any()  # cut-off lamps far along the street send none
+    lift = glowing.astype(int) - plain
+    assert lift.min() >= 0 and lift.mean() > 0.5
+
+
+def test_a_rainy_day_has_no_glow(monkeypatch):
+    import rainbench.gen.render as render_module
+
+    calls = []
+    monkeypatch.setattr(render_module, "light_glow", lambda *args: calls.append(args))
+    renderer = render_module.FrameRenderer.__new__(render_module.FrameRenderer)
+    image = np.zeros((2, 2, 3), np.uint8)
+    for weather in (wx.weather_at(SKY, 50.0), wx.weather_at(SKY, 0.0, time_of_day="night")):
+        assert renderer._glow(image, None, weather, np.ones((2, 2), np.float32)) is image
+    assert not calls

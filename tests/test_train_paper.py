@@ -383,14 +383,15 @@ def test_batched_backend_agrees_with_ultralytics_predict_on_the_guard_scene(tmp_
 # Per shipped rain-trained twin of the nano model (issue 19): the rain models its curriculum
 # draws rainy images from, its card's `random_rain`, and whether it must beat the clean model under
 # `physical` rain on the guard scene at 60 mm/h by RAIN_GUARD_MARGIN for car and person. There
-# the rain-trained one (v2) scores car 0.928 and person 0.489 (+0.148 / +0.118), the RandomRain
-# one 0.810 and 0.418 (+0.030 / +0.047), the clean nano model 0.780 and 0.371: the margin lies
-# between what RandomRain and the rain curriculum gain on this 10-frame scene.
+# (lens water counted on the cover glass, 2026-11-26) the rain-trained one (v2) scores car 0.936
+# and person 0.667 (+0.073 / +0.081), the RandomRain one 0.887 and 0.592 (+0.024 / +0.006), the
+# clean nano model 0.863 and 0.586: the margin lies between what RandomRain and the rain
+# curriculum gain on this 10-frame scene.
 RAIN_TRAINED_GUARD = {
     "rainbench-yolo11n-rain": ({"physical", "jeon2022"}, None, True),
     "rainbench-yolo11n-randomrain": (set(), {"p": 0.76, "rain_type": "heavy"}, False),
 }
-RAIN_GUARD_MARGIN = 0.08
+RAIN_GUARD_MARGIN = 0.05
 
 
 @pytest.mark.parametrize("name", sorted(RAIN_TRAINED_GUARD))

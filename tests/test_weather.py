@@ -594,3 +594,54 @@ def test_format_v1_shards_are_still_read(tmp_path, clear_physical):
     fresh_image, fresh_target = ShardDataset(shard.parent)[len(dataset) - 1]
     assert np.array_equal(np.asarray(image), np.asarray(fresh_image))
     assert np.array_equal(np.asarray(target["boxes"]), np.asarray(fresh_target["boxes"]))
+
+
+# --------------------------------------------------------------------------------------------
+# the glow rain lays around lights (dusk and night)
+
+
+def test_light_passing_once_through_a_drop_spreads_as_geometric_optics_says():
+    deviation, density = wx.refraction_phase()
+    solid_angle = 2.0 * np.pi * (np.cos(deviation - np.radians(0.25)) - np.cos(deviation + np.radians(0.25)))
+    assert float((density * solid_angle).sum()) == pytest.approx(1.0, abs=1e-9)
+    normal_reflectance = ((1.333 - 1.0) / (1.333 + 1.0)) ** 2
+    forward = 4.0 / np.pi * (1.0 - normal_reflectance) ** 2 / 0.8814  # deviation ~ 2 b (1 - 1/n)
+    assert density[:4].mean() == pytest.approx(forward, rel=0.01)  # flat near the forward direction
+    cumulative = np.cumsum(density * solid_angle)
+    assert np.degrees(deviation[np.searchsorted(cumulative, 0.5)]) == pytest.approx(24.3, abs=0.5)
+    assert (density[deviation > np.radians(83.0)] == 0).all()
+
+
+def test_a_lamp_glows_in_rain_as_its_scattered_light_says():
+    K = np.array([[400.0, 0.0, 400.0], [0.0, 400.0, 300.0], [0.0, 0.0, 1.0]])  # 90 degrees, 800x600
+    pose = np.eye(4)  # the camera at the origin looking down +z (OpenCV axes)
+    depth = np.full((600, 800), np.inf, np.float32)
+    night = wx.weather_at("overcast", 100.0, time_of_day="night")
+    lamp, candela = np.array([[0.0, 0.0, 20.0]]), np.array([400.0])
+    glow = wx.light_glow(K, pose, lamp, candela, [[1.0, 1.0, 1.0]], depth, night)
+    beta = rain.physical.extinction_coefficient(100.0) / 1000.0
+    scattered = 400.0 / 20.0**2 * wx.GLOW_SHARE * (1.0 - np.exp(-beta * 20.0))
+    forward = 4.0 / np.pi * (1.0 - (0.333 / 2.333) ** 2) ** 2 / 0.8814  # per sr (test above)
+    expected = scattered * forward * np.pi / night.illuminance_lux * night.light_level**2.2
+    assert glow[300, 400, 0] == pytest.approx(expected, rel=0.01)  # the lamp's own direction
+    assert glow[300, 799, 0] < glow[300, 600, 0] < glow[300, 400, 0]  # falls off with the angle
+    assert glow.shape == (600, 800, 3) and glow.dtype == np.float32
+    red = wx.light_glow(K, pose, lamp, candela, [[1.0, 0.1, 0.0]], depth, night)
+    np.testing.assert_allclose(red[..., 1], 0.1 * red[..., 0], rtol=1e-5)  # the lamp's colour
+    assert not wx.light_glow(K, pose, lamp, candela, [[1.0] * 3], depth, wx.weather_at("overcast", 0.0, time_of_day="night")).any()
+    assert not wx.light_glow(K, pose, lamp, [0.0], [[1.0] * 3], depth, night).any()  # turned away
+    behind = wx.light_glow(K, pose, -lamp, candela, [[1.0] * 3], depth, night)
+    assert not behind.any()
+    wall = np.full((600, 800), 10.0, np.float32)  # a wall 10 m away hides the lamp at 20 m
+    assert not wx.light_glow(K, pose, lamp, candela, [[1.0] * 3], wall, night).any()
+    lighter = wx.light_glow(K, pose, lamp, candela, [[1.0] * 3], depth, dataclasses.replace(night, rain_mm_h=20.0))
+    assert 0 < lighter[300, 400, 0] < glow[300, 400, 0]
+
+
+def test_glow_adds_in_linear_light():
+    rgb = np.array([[[0, 100, 255]]], np.uint8)
+    assert np.array_equal(wx.add_glow(rgb, np.zeros((1, 1, 3), np.float32)), rgb)
+    lifted = wx.add_glow(rgb, np.full((1, 1, 3), 0.25, np.float32))
+    expected = np.clip(np.rint(255.0 * ((rgb / 255.0) ** 2.2 + 0.25) ** (1 / 2.2)), 0, 255)
+    np.testing.assert_allclose(lifted, expected, atol=1)
+    assert lifted[0, 0, 0] == pytest.approx(255 * 0.25 ** (1 / 2.2), abs=1) and lifted[0, 0, 2] == 255
