@@ -16,6 +16,8 @@ WIDTH ?= 800
 HEIGHT ?= 600
 RATES ?= 0:100:10
 RAIN_MODEL ?= jeon2022
+# rain model parameters, NAME=VALUE separated by spaces (docs/rain.md): RAIN_OPTIONS="lens_drops=false"
+RAIN_OPTIONS ?=
 STORE ?=
 SCENES ?= 1
 WORKERS ?=
@@ -54,6 +56,7 @@ dataset: $(STAMP)
 	$(BIN)/rainbench generate --out '$(OUT)' $(SCENE_FLAGS) --scenes $(SCENES) \
 		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
 		--rain-model $(RAIN_MODEL) $(if $(STORE),--store $(STORE),) \
+		$(foreach option,$(RAIN_OPTIONS),--rain-option '$(option)') \
 		$(if $(filter on,$(WEATHER)),--weather-follows-rate,) \
 		$(if $(filter off,$(WEATHER)),--no-weather-follows-rate,) \
 		$(if $(WORKERS),--workers $(WORKERS),) $(if $(THREADS),--threads $(THREADS),) \

@@ -13,7 +13,7 @@ from rainbench import gl
 from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
 from rainbench.gen.config import (HFOV_DEG, MAX_FPS, MAX_FRAME_OFFSET, MAX_FRAMES, MAX_SCENES,
                                   MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig)
-from rainbench.rain.config import RAIN_MODELS
+from rainbench.rain.config import RAIN_MODELS, RAIN_OPTIONS, RainConfig
 from rainbench.rain.weather import SKIES, TIMES_OF_DAY
 
 EXIT_USAGE = 2
@@ -41,6 +41,41 @@ def _positive_int(name: str, high: int | None = None, low: int = 1):
             raise argparse.ArgumentTypeError(f"{name}: expected <= {high}, got {_shown(value)}")
         return value
     return parse
+
+
+_TRUE, _FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+
+
+def _rain_option(text: str) -> tuple[str, object]:
+    """``NAME=VALUE``: one :class:`~rainbench.rain.RainConfig` field and its value, typed by the
+    field's default (bool: true/false; int; float; ``airlight_rgb``: ``R,G,B`` or ``none``).
+    The value's range is checked by RainConfig when the dataset config is built."""
+    name, equals, value = text.partition("=")
+    name, value = name.strip(), value.strip()
+    if not equals or not name:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {_shown(text)}")
+    if name not in RAIN_OPTIONS:
+        raise argparse.ArgumentTypeError(f"unknown option {_shown(name)}; expected "
+                                         f"one of {', '.join(RAIN_OPTIONS)} (docs/rain.md)")
+    default = getattr(RainConfig(), name)
+    try:
+        if name == "airlight_rgb":
+            if value.lower() == "none":
+                return name, None
+            colour = tuple(float(part) for part in value.split(","))
+            if len(colour) != 3:
+                raise ValueError
+            return name, colour
+        if isinstance(default, bool):
+            if value.lower() not in _TRUE + _FALSE:
+                raise ValueError
+            return name, value.lower() in _TRUE
+        return name, type(default)(value)
+    except ValueError:
+        kind = ("R,G,B or none" if name == "airlight_rgb" else "true or false"
+                if isinstance(default, bool) else f"{'an integer' if isinstance(default, int) else 'a number'}")
+        raise argparse.ArgumentTypeError(f"{name}: expected {kind}, got "
+                                         f"{_shown(value)}") from None
 
 
 def _number(name: str, low: float, high: float, low_open: bool = False):
@@ -120,6 +155,15 @@ def _writable_dir(path: Path, what: str) -> Path:
     return path
 
 
+def _rain_options(pairs: list[tuple[str, object]]) -> dict:
+    options: dict = {}
+    for name, value in pairs:
+        if name in options and options[name] != value:
+            raise CliError(f"--rain-option {name}: given twice ({options[name]!r} and {value!r})")
+        options[name] = value
+    return options
+
+
 def cmd_generate(args: argparse.Namespace) -> int:
     from rainbench.store.rates import parse_rates
 
@@ -130,7 +174,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
                            frames_per_shard=args.frames_per_shard, first_frame=args.first_frame,
                            clip_frames=args.clip_frames, rates=parse_rates(args.rates),
                            rain_model=args.rain_model, rain_seed=args.rain_seed, store=args.store,
-                           weather_follows_rate=args.weather_follows_rate)
+                           weather_follows_rate=args.weather_follows_rate,
+                           rain_options=_rain_options(args.rain_option))
     out = _writable_dir(Path(args.out), "OUT")
     _choose_gl(args.gl)
     from tqdm import tqdm
@@ -465,6 +510,10 @@ def build_parser() -> argparse.ArgumentParser:
     generate.add_argument("--rain-model", default=DatasetConfig.rain_model,
                           help=f"rain model: {', '.join(RAIN_MODELS)} (default {DatasetConfig.rain_model})")
     generate.add_argument("--rain-seed", type=_seed, default=DatasetConfig.rain_seed)
+    generate.add_argument("--rain-option", type=_rain_option, action="append", default=[],
+                          metavar="NAME=VALUE",
+                          help="a rain model parameter (repeatable; rainbench.rain.RainConfig, "
+                               "docs/rain.md), e.g. lens_drops=false or exposure_s=0.002")
     generate.add_argument("--weather-follows-rate", action=argparse.BooleanOptionalAction,
                           default=None,
                           help="sky, light, wet road, spray and camera follow the rain rate "

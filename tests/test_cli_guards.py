@@ -317,3 +317,41 @@ def test_clip_frames_and_first_frame_flags(tmp_path, capsys):
     _one_line_error(capsys, _cli(GENERATE + ["--first-frame", "-2", "--out", tmp_path / "neg"]),
                     re.escape("argument --first-frame: FIRST_FRAME: expected >= 0, got -2"))
     assert not (tmp_path / "short").exists() and not (tmp_path / "neg").exists()
+
+
+# -- --rain-option -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("option, message", [
+    ("lens_drops", r"argument --rain-option: expected NAME=VALUE, got 'lens_drops'"),
+    ("lens_drop=1", r"argument --rain-option: unknown option 'lens_drop'; expected one of exposure_s, .*"),
+    ("model=physical", r"argument --rain-option: unknown option 'model'; expected one of .*"),
+    ("exposure_s=fast", r"argument --rain-option: exposure_s: expected a number, got 'fast'"),
+    ("max_streak_candidates=1.5", r"argument --rain-option: max_streak_candidates: expected an integer, got '1\.5'"),
+    ("lens_drops=maybe", r"argument --rain-option: lens_drops: expected true or false, got 'maybe'"),
+    ("airlight_rgb=1,2", r"argument --rain-option: airlight_rgb: expected R,G,B or none, got '1,2'"),
+    ("exposure_s=-1", r"rain_options: RainConfig\.exposure_s must be a finite number > 0, got -1\.0"),
+])
+def test_a_bad_rain_option_is_one_line_and_nothing_is_written(tmp_path, capsys, option, message):
+    code = _cli([*GENERATE, "--out", tmp_path / "out", "--rain-option", option])
+    _one_line_error(capsys, code, message)
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_rain_options_reach_the_rain_and_the_manifest(tmp_path):
+    out = tmp_path / "out"
+    argv = [*GENERATE, "--out", out, "--rain-model", "physical", "--rates", "0,50", "--quiet",
+            "--rain-option", "lens_drops=false", "--rain-option", "airlight_rgb=120,125,130",
+            "--rain-option", "exposure_s = 0.002"]
+    assert _cli(argv) == 0
+    config = json.loads((out / "manifest.json").read_text())["config"]
+    assert config["rain_options"] == {"lens_drops": False, "airlight_rgb": [120.0, 125.0, 130.0],
+                                      "exposure_s": 0.002}
+    rain_config = DatasetConfig(rain_model="physical", rain_options=config["rain_options"]).rain_config()
+    assert rain_config.lens_drops is False and rain_config.exposure_s == 0.002
+    twice = _cli([*GENERATE, "--out", tmp_path / "b", "--rain-option", "lens_drops=false",
+                  "--rain-option", "lens_drops=true"])
+    assert twice == 2
+    made = subprocess.run(["make", "-n", "-C", REPO, "dataset", "RAIN_OPTIONS=lens_drops=false exposure_s=0.002"],
+                          capture_output=True, text=True, timeout=60)
+    assert made.returncode == 0, made.stderr
+    assert "--rain-option 'lens_drops=false' --rain-option 'exposure_s=0.002'" in made.stdout
