@@ -72,10 +72,13 @@ def _rain_option(text: str) -> tuple[str, object]:
             return name, value.lower() in _TRUE
         return name, type(default)(value)
     except ValueError:
-        kind = ("R,G,B or none" if name == "airlight_rgb" else "true or false"
-                if isinstance(default, bool) else f"{'an integer' if isinstance(default, int) else 'a number'}")
-        raise argparse.ArgumentTypeError(f"{name}: expected {kind}, got "
-                                         f"{_shown(value)}") from None
+        if name == "airlight_rgb":
+            kind = "R,G,B or none"
+        elif isinstance(default, bool):
+            kind = "true or false"
+        else:
+            kind = "an integer" if isinstance(default, int) else "a number"
+        raise argparse.ArgumentTypeError(f"{name}: expected {kind}, got {_shown(value)}") from None
 
 
 def _number(name: str, low: float, high: float, low_open: bool = False):

@@ -900,7 +900,6 @@ def composite_spray(rgb: np.ndarray, opacity: np.ndarray, colour_rgb: np.ndarray
 
 
 # -- lights seen through rain -----------------------------------------------------------------
-WATER_REFRACTIVE_INDEX = 1.333
 GLOW_SHARE = 0.5 * 0.88
 """Share of the light a lamp loses to rain (extinction, 1 - exp(-beta d)) that reaches the camera
 as a glow around it: half the extinction of drops this large is diffraction, within a fraction
@@ -928,11 +927,9 @@ def refraction_phase() -> tuple[np.ndarray, np.ndarray]:
     """
     impact = (np.arange(200_000, dtype=np.float64) + 0.5) / 200_000.0
     incidence = np.arcsin(impact)
-    refracted = np.arcsin(impact / WATER_REFRACTIVE_INDEX)
-    cos_i, cos_r, n = np.cos(incidence), np.cos(refracted), WATER_REFRACTIVE_INDEX
-    r_s = ((cos_i - n * cos_r) / (cos_i + n * cos_r)) ** 2
-    r_p = ((n * cos_i - cos_r) / (n * cos_i + cos_r)) ** 2
-    weight = 2.0 * impact * (1.0 - 0.5 * (r_s + r_p)) ** 2
+    refracted = np.arcsin(impact / WATER_INDEX)
+    # leaving, the ray meets the surface at r inside, which reflects as much as i outside
+    weight = 2.0 * impact * (1.0 - water_fresnel(np.cos(incidence))) ** 2
     deviation = 2.0 * (incidence - refracted)
     edges = np.linspace(0.0, math.radians(90.0), 181)
     energy, _ = np.histogram(deviation, bins=edges, weights=weight)

@@ -604,8 +604,12 @@ def test_light_passing_once_through_a_drop_spreads_as_geometric_optics_says():
     deviation, density = wx.refraction_phase()
     solid_angle = 2.0 * np.pi * (np.cos(deviation - np.radians(0.25)) - np.cos(deviation + np.radians(0.25)))
     assert float((density * solid_angle).sum()) == pytest.approx(1.0, abs=1e-9)
+    # the share of the disc's light that passes once, by its own sum over impact parameters
+    impact = np.linspace(0.0, 1.0, 100_001)[:-1] + 0.5e-5
+    passing = float(np.sum(2.0 * impact * (1.0 - wx.water_fresnel(np.cos(np.arcsin(impact)))) ** 2) * 1e-5)
+    assert passing == pytest.approx(0.8814, abs=5e-4) and wx.GLOW_SHARE == pytest.approx(0.5 * passing, abs=2e-3)
     normal_reflectance = ((1.333 - 1.0) / (1.333 + 1.0)) ** 2
-    forward = 4.0 / np.pi * (1.0 - normal_reflectance) ** 2 / 0.8814  # deviation ~ 2 b (1 - 1/n)
+    forward = 4.0 / np.pi * (1.0 - normal_reflectance) ** 2 / passing  # deviation ~ 2 b (1 - 1/n)
     assert density[:4].mean() == pytest.approx(forward, rel=0.01)  # flat near the forward direction
     cumulative = np.cumsum(density * solid_angle)
     assert np.degrees(deviation[np.searchsorted(cumulative, 0.5)]) == pytest.approx(24.3, abs=0.5)
