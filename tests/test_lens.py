@@ -272,6 +272,17 @@ def test_physical_lens_count_is_the_flux_onto_the_glass_over_a_drop_life():
         RainConfig(model="physical", lens_sweep_speed_m_s=0.0)
 
 
+def test_physical_lens_water_leaves_the_downpour_seen_through_the_lens():
+    """At 100 mm/h the glass's drops cover (opacity > 0.5) under 15 % of an 800x600 frame (6.6 %
+    here); eq. 5's count, which the physical model took before, covers over 40 % (54 %)."""
+    rgb, depth, K = street_frame(np.random.default_rng(21), 600, 800)
+    covered = {}
+    for model in ("physical", "jeon2022"):
+        frame = render_rain(rgb, depth, 100.0, config=RainConfig(model=model), K=K, seed_sequence=CLIP, lens_clock=_clock(80))
+        covered[model] = float((frame.coverage > 0.5).mean())
+    assert 0.02 < covered["physical"] < 0.15 < 0.40 < covered["jeon2022"], covered
+
+
 # --------------------------------------------------------------------------------------------
 # calibration on the paper's clip (docs/rain.md, "Calibration")
 
