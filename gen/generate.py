@@ -115,7 +115,8 @@ def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup
         key = render_key(weather)
         if key not in rendered:  # weathers that differ only in light level share a render
             rendered[key] = renderer.render_weather(data, weather, depth_map)
-        others[weather] = rendered[key]
+        # the glow follows the rate, so weathers that share a render each get their own
+        others[weather] = renderer.with_glow(rendered[key], data, weather, depth_map)
     return FrameResult(rgb, depth_map if depth else None, visible, labels,
                        camera_pose(setup.model, data, "ego"),
                        others, float(data.time))

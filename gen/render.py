@@ -220,7 +220,7 @@ class FrameRenderer:
         self._set_segmentation(False)
         surface = self._render_rgb(data, option)
         if not wet:
-            return self._glow(surface, data, weather, depth)
+            return surface
         # MuJoCo's mirror is angle independent: render the road as a full mirror and blend it
         # over the plain render with water's Fresnel weight per pixel (rain/weather.py), on the
         # pixels that show the mirrored road only
@@ -263,13 +263,16 @@ class FrameRenderer:
                 small = streak_reflection(small, road_small, sigma, gain, lights)
             mirror = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR)
             self._lay_puddles(blended, surface, mirror, pose, depth)
-        return self._glow(np.clip(np.rint(blended), 0, 255).astype(np.uint8), data, weather, depth)
+        return np.clip(np.rint(blended), 0, 255).astype(np.uint8)
 
-    def _glow(self, image: np.ndarray, data: mujoco.MjData, weather: Weather,
-              depth: np.ndarray | None) -> np.ndarray:
-        """``image`` with the glow rain lays around the lights when they are on (dusk, night)
-        and it rains (:func:`~rainbench.rain.weather.light_glow`); else ``image`` itself."""
-        if weather.time_of_day == "day" or weather.rain_mm_h <= 0 or depth is None:
+    def with_glow(self, image: np.ndarray, data: mujoco.MjData, weather: Weather,
+                  depth: np.ndarray | None) -> np.ndarray:
+        """``image`` ((H, W, 3) uint8, a render of the state in ``data``) with the glow rain lays
+        around the lights when they are on (dusk, night) and it rains
+        (:func:`~rainbench.rain.weather.light_glow`, which depends on the rate: weathers that
+        share a render do not share their glow); else ``image`` itself."""
+        if (weather.time_of_day == "day" or weather.rain_mm_h <= 0 or depth is None
+                or self._rig is None):
             return image
         pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
         centres, intensity, colours = self._rig.lamp_lights(data, pose[:3, 3])

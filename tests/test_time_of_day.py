@@ -386,11 +386,7 @@ def test_the_weather_rig_knows_the_lamps_whose_reflections_streak(night_scene):
     assert spheres.shape == (len(names), 4) and (spheres[:, 3] > 0).all()
 
 
-def test_wet_night_road_mirrors_the_strip_the_camera_sees(night_scene, monkeypatch):
-    import rainbench.gen.render as render_module
-
-    # the wet road alone: the rain's glow around the lights brightens the frame (tested below)
-    monkeypatch.setattr(render_module, "light_glow", lambda *args: np.zeros((240, 320, 3), np.float32))
+def test_wet_night_road_mirrors_the_strip_the_camera_sees(night_scene):
     layout, model = night_scene
     data = _posed(model, layout, 8.0)
     table = geom_instance_table(model)
@@ -446,27 +442,33 @@ def test_lights_send_their_intensity_towards_a_viewer_as_documented():
     assert tod.STREET_LAMP_NADIR_CD == pytest.approx(30.0 * 7.9**2)  # 30 lux under a head 7.9 m up
 
 
-def test_rain_at_night_glows_around_the_lights_and_not_by_day(night_scene, monkeypatch):
-    """The glow (rain.weather.light_glow) lifts a rainy night's image, only where lights are
-    seen and only under rain after dark."""
-    import rainbench.gen.render as render_module
+def test_rain_at_night_glows_around_the_lights_each_rate_its_own(night_scene):
+    """The glow (rain.weather.light_glow) lifts a rainy night's image where lights are seen, and
+    follows the rate even where two rates share one render (render_frame adds it per weather)."""
+    from rainbench.gen.generate import SceneSetup, render_frame
+    from rainbench.gen.labels import LabelFilter
+    from rainbench.gen.weather import render_key
 
     layout, model = night_scene
     data = _posed(model, layout, 8.0)
     table = geom_instance_table(model)
-    rainy_night = wx.weather_at(SKY, 50.0, time_of_day="night")
+    moderate, heavy = (wx.weather_at(SKY, rate, time_of_day="night") for rate in (50.0, 100.0))
+    assert render_key(moderate) == render_key(heavy)  # one render serves both rates
     with FrameRenderer(model, 320, 240, table,
                        base_weather=wx.weather_at(SKY, 0.0, time_of_day="night")) as renderer:
         renderer.update(data)
         _, _, depth = renderer.render_instances_depth()
         centres, candela, colours = renderer._rig.lamp_lights(data, camera_pose(model, data, "ego")[:3, 3])
-        glowing = renderer.render_weather(data, rainy_night, depth)
-        monkeypatch.setattr(render_module, "light_glow", lambda *args: np.zeros((240, 320, 3), np.float32))
-        plain = renderer.render_weather(data, rainy_night, depth)
+        plain = renderer.render_weather(data, moderate, depth)
+        classes = np.array([actor.class_id for actor in layout.actors], dtype=np.int32)
+        setup = SceneSetup(layout, model, table, classes)
+        frame = render_frame(renderer, data, setup, LabelFilter(), weathers=(moderate, heavy))
     assert len(centres) == len(candela) == len(colours) == len(renderer._rig.lamp_kinds) > 0
     assert (candela > 0).any() and (candela == 0).any()  # cut-off lamps far along the street send none
-    lift = glowing.astype(int) - plain
+    lift = frame.rgb_by_weather[moderate].astype(int) - plain
     assert lift.min() >= 0 and lift.mean() > 0.5
+    more = frame.rgb_by_weather[heavy].astype(int) - frame.rgb_by_weather[moderate]
+    assert more.min() >= 0 and more.mean() > 0.1  # denser rain scatters more of the lamps' light
 
 
 def test_a_rainy_day_has_no_glow(monkeypatch):
@@ -477,5 +479,5 @@ def test_a_rainy_day_has_no_glow(monkeypatch):
     renderer = render_module.FrameRenderer.__new__(render_module.FrameRenderer)
     image = np.zeros((2, 2, 3), np.uint8)
     for weather in (wx.weather_at(SKY, 50.0), wx.weather_at(SKY, 0.0, time_of_day="night")):
-        assert renderer._glow(image, None, weather, np.ones((2, 2), np.float32)) is image
+        assert renderer.with_glow(image, None, weather, np.ones((2, 2), np.float32)) is image
     assert not calls
