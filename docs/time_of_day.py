@@ -4,8 +4,9 @@
 
 Seed 0's street, cloudy, 8 s into the 200-frame clip at 800x600: day, dusk and night at 0 mm/h
 (top row) and at 50 mm/h with the weather only (bottom row: the wet road, its mirror and streaks,
-the light, the glow around lights after dark and the camera's response; no drops). Each image goes through the camera's response
-of its weather, the night's sensor noise included (one noise field, seed 0).
+the light, the glow around lights after dark and the camera's response; no drops). Each image
+goes through the camera's response of its weather, the night's sensor noise included (one noise
+field, seed 0).
 """
 
 from __future__ import annotations

@@ -994,7 +994,8 @@ def light_glow(K: np.ndarray, pose_world_cam: np.ndarray, lamps: np.ndarray, int
         scattered = candela / dist**2 * GLOW_SHARE * -math.expm1(-beta_per_m * dist)
         angle = np.arccos(np.clip(rays @ (point / dist), -1.0, 1.0))
         radiance += (scattered * np.interp(angle, deviation, density, right=0.0))[..., None] * colour
-    level = radiance * (math.pi / weather.illuminance_lux) * weather.light_level ** DISPLAY_LIGHT_GAMMA
+    # a luminance L shows like a white surface lit by pi L lux: display_light, in linear units
+    level = radiance * (math.pi * display_light(weather, 1.0) ** DISPLAY_LIGHT_GAMMA)
     return cv2.resize(level.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
 
 
