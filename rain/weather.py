@@ -123,7 +123,10 @@ DUSK_DAYLIGHT_LUX = {"clear": 700.0, "cloudy": 300.0, "overcast": 150.0}
 """Daylight (sun + sky) on the road at dusk, the sun a few degrees above the horizon: 400 lux at
 sunset under a clear sky (Wikipedia, "Lux"), more while the sun is still up, less under cloud
 (the low sun's direct share is small, so cloud takes less away than at noon). Under rain the
-daytime rain law scales it: dusk light = this x (daytime light at the rate / daytime base)."""
+deck is closed whatever the base sky, so the rain takes the overcast dusk's share of the rainy
+day's light: dusk light = min(this, daytime light at the rate x 150 / 2 000) (0.075, the
+overcast dusk over the overcast noon), the same for every base sky once it rains hard enough
+(as the daytime rain law): 30 lux at 25 mm/h, 7.5 lux at 100 mm/h."""
 DUSK_SUN_ELEVATION_DEG = 4.0
 """The dusk sun is near the horizon: 4 degrees up (long shadows; light through 14 air masses is
 orange)."""
@@ -155,7 +158,8 @@ def _light_sources(sky: str, time_of_day: str, daytime_lux: float) -> tuple[floa
     if time_of_day == "day":
         return daytime_lux, 0.0
     if time_of_day == "dusk":
-        return daytime_lux * DUSK_DAYLIGHT_LUX[sky] / BASE_ILLUMINANCE_LUX[sky], STREET_LIGHT_LUX
+        under_deck = daytime_lux * DUSK_DAYLIGHT_LUX["overcast"] / BASE_ILLUMINANCE_LUX["overcast"]
+        return min(DUSK_DAYLIGHT_LUX[sky], under_deck), STREET_LIGHT_LUX
     return NIGHT_SKY_LUX[sky], STREET_LIGHT_LUX
 
 
@@ -357,7 +361,7 @@ def daylight_level(weather: Weather) -> float:
     curve, ``((D / E) / (D0 / E0))^(1 / 2.2)``.
 
     1 by day (daylight is all the light), ``light_level`` at night (rain changes neither part);
-    at dusk under rain below ``light_level``: 0.56 x at 25 mm/h under a clear sky, where 5.6 lux
+    at dusk under rain below ``light_level``: 0.84 x at 25 mm/h under a clear sky, where 30 lux
     of daylight is left beside 15 lux of street light.
     """
     base_daylight, base_street = _metered_lux(weather.sky, weather.time_of_day, 0.0)

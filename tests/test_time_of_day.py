@@ -136,6 +136,22 @@ def test_at_dusk_under_rain_the_lamps_gain_on_the_fading_daylight(sky):
     assert {wx.display_light(w, 30.0) for w in night} == {wx.display_light(night[0], 30.0)}
 
 
+def test_a_rainy_dusk_is_as_light_under_every_base_sky():
+    """Under rain the deck is closed whatever the base sky: the dusk daylight is the overcast
+    dusk's share (150 / 2 000) of the rainy day's light, capped by the base sky's own dusk light,
+    so from 5 mm/h every base sky has the same dusk daylight (30 lux at 25 mm/h)."""
+    share = wx.DUSK_DAYLIGHT_LUX["overcast"] / wx.BASE_ILLUMINANCE_LUX["overcast"]
+    for rate in (5.0, 10.0, 25.0, 50.0, 100.0):
+        lux = {sky: wx.weather_at(sky, rate, time_of_day="dusk").daylight_lux for sky in wx.SKIES}
+        day = wx.weather_at("overcast", rate).illuminance_lux
+        assert lux == pytest.approx({sky: min(wx.DUSK_DAYLIGHT_LUX[sky], day * share)
+                                     for sky in wx.SKIES})
+        assert len(set(lux.values())) == 1, rate
+    assert wx.weather_at("clear", 25.0, time_of_day="dusk").daylight_lux == pytest.approx(30.0)
+    for sky in wx.SKIES:  # rate 0 keeps the base sky's own dusk light
+        assert wx.weather_at(sky, 0.0, time_of_day="dusk").daylight_lux == wx.DUSK_DAYLIGHT_LUX[sky]
+
+
 def test_rain_at_night_keeps_the_street_lights_and_rain_at_dusk_darkens():
     night = [wx.weather_at("cloudy", rate, time_of_day="night") for rate in (0.0, 10.0, 100.0)]
     assert [w.illuminance_lux for w in night] == [night[0].illuminance_lux] * 3
