@@ -16,11 +16,11 @@ from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
-from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, PUDDLE_UNDERLAY,
-                                     Weather, add_glow, film_streak_sigma_px, light_glow,
+from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, Weather, add_glow, film_streak_sigma_px, light_glow,
                                      mirrored_light_pixels,
                                      plane_pixels,
                                      puddle_coverage_at, puddle_pixels, puddle_ripple_slope,
+                                     puddle_water,
                                      road_mirror_weight, streak_reflection)
 
 from rainbench.gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
@@ -330,21 +330,20 @@ class FrameRenderer:
     def _lay_puddles(self, blended: np.ndarray, surface: np.ndarray, mirror: np.ndarray,
                      pose: np.ndarray, depth: np.ndarray) -> None:
         """Blend the puddles into ``blended`` (H, W, 3) float32, in place: under each puddle
-        the plain ``surface`` dimmed by :data:`~rainbench.rain.weather.PUDDLE_UNDERLAY` and the
-        ``mirror`` with a puddle's stronger Fresnel weight."""
+        the ``mirror`` at water's Fresnel reflectance over the plain ``surface`` seen through
+        the water, in linear light (:func:`~rainbench.rain.weather.puddle_water`)."""
         rig = self._rig  # the frame's weathers differ only in the puddles' size
         found = self._per_frame(
             "puddles", depth, pose.tobytes() + rig.puddles.tobytes() + rig.puddle_phases.tobytes(),
             lambda: puddle_pixels(self.K, pose, depth, rig.puddles, rig.puddle_phases))
         coverage = puddle_coverage_at(found, rig.puddle_scale)
-        rows = np.flatnonzero(coverage.any(axis=1))
+        rows, cols = np.nonzero(coverage)  # the water is mixed where puddles lie only
         if not rows.size:
             return
-        band = slice(int(rows[0]), int(rows[-1]) + 1)  # only the rows puddles reach
-        weight = self._mirror_weight(pose[:3, :3], PUDDLE_MIRROR_REFLECTANCE)[band, :, None]
-        under = surface[band].astype(np.float32) * np.float32(PUDDLE_UNDERLAY)
-        water = under + weight * (mirror[band].astype(np.float32) - under)
-        blended[band] += coverage[band, :, None] * (water - blended[band])
+        fresnel = self._mirror_weight(pose[:3, :3], PUDDLE_MIRROR_REFLECTANCE)[rows, cols]
+        water = puddle_water(surface[rows, cols][None], mirror[rows, cols][None],
+                             fresnel[None, :, None])[0]
+        blended[rows, cols] += coverage[rows, cols, None] * (water - blended[rows, cols])
 
     def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption,
                     mirror_geom: int = -1, scale: float = 1.0,

@@ -660,14 +660,16 @@ def plane_pixels(K: np.ndarray, pose_world_cam: np.ndarray, depth: np.ndarray,
 
 
 # -- puddles ----------------------------------------------------------------------------------
-PUDDLE_MIRROR_REFLECTANCE = 1.0
-"""A puddle's mirror strength at the 80 degree reference angle (the road's is 0.30 x wetness +
-0.12 x puddles): standing water is a smooth surface, so it mirrors the world with water's whole
-Fresnel reflectance relative to 80 degrees, clipped to 1 (0.17 at 60 degrees, 0.38 at 70, a full
-mirror from 80 on), where a wet film on rough asphalt mirrors less."""
+PUDDLE_MIRROR_REFLECTANCE = float(water_fresnel(math.cos(math.radians(FRESNEL_REFERENCE_DEG))))
+"""A puddle's mirror strength at the 80 degree reference angle: water's own Fresnel reflectance
+there (0.35), so that :func:`road_mirror_weight` gives a puddle water's reflectance F(theta) at
+every angle (0.06 at 60 degrees, 0.13 at 70, 0.35 at 80, 0.58 at 85), which
+:func:`puddle_water` blends in linear light: standing water is a smooth mirror, neither more
+nor less."""
 PUDDLE_UNDERLAY = 0.8
-"""What a puddle transmits of the wet road beneath it: the road under standing water, seen
-through it, is a little darker than the wet film around it (light lost at the two surfaces)."""
+"""What a puddle transmits of the wet road beneath it, as a factor on its display value (0.61 of
+its light): the road under standing water, seen through it, is a little darker than the wet
+film around it (light lost at the two surfaces)."""
 PUDDLE_OUTLINE = ((2, 0.14), (3, 0.09), (5, 0.05))
 """(harmonic, amplitude) of each puddle's outline: its radius, relative to the ellipse, is
 ``1 + sum(a_k sin(k phi + phase_k))`` with phases drawn per puddle, so no two are the same blob
@@ -1005,6 +1007,28 @@ def light_glow(K: np.ndarray, pose_world_cam: np.ndarray, lamps: np.ndarray, int
 
 _LINEAR_OF_DISPLAY = np.power(np.arange(256, dtype=np.float32) / np.float32(255.0),
                               np.float32(DISPLAY_LIGHT_GAMMA))
+
+
+def puddle_water(surface: np.ndarray, mirror: np.ndarray, fresnel: np.ndarray) -> np.ndarray:
+    """(N, W, 3) float32 display values of standing water: in linear light, water's Fresnel
+    reflectance ``F`` of the mirror image plus the rest of the road seen through the water,
+    ``F M + (1 - F) u S`` with ``u = PUDDLE_UNDERLAY^2.2``, back through the 1/2.2 tone curve.
+
+    Args:
+        surface: (N, W, 3) uint8 or float display values (0..255) of the plain render.
+        mirror: (N, W, 3) float display values of the mirror render; above 255 where the
+            lamps' mirror images are boosted (:data:`CLIPPED_GAIN`), so the result may be too.
+        fresnel: (N, W, 1) float32 in [0, 1], F(theta) per pixel (:func:`road_mirror_weight`
+            with :data:`PUDDLE_MIRROR_REFLECTANCE`).
+    """
+    inverse = np.float32(1.0 / 255.0)
+    plain = cv2.pow(np.asarray(surface, np.float32) * inverse, DISPLAY_LIGHT_GAMMA)
+    mirrored = cv2.pow(np.maximum(np.asarray(mirror, np.float32), 0.0) * inverse,
+                       DISPLAY_LIGHT_GAMMA)
+    weight = np.asarray(fresnel, np.float32)
+    linear = weight * mirrored + (np.float32(1.0) - weight) * (
+        np.float32(PUDDLE_UNDERLAY ** DISPLAY_LIGHT_GAMMA) * plain)
+    return cv2.pow(linear, 1.0 / DISPLAY_LIGHT_GAMMA) * np.float32(255.0)
 
 
 def add_glow(rgb: np.ndarray, glow: np.ndarray) -> np.ndarray:

@@ -138,3 +138,31 @@ def test_a_rendered_street_lays_its_puddles_where_the_road_shows_and_is_determin
     assert not changed[coverage == 0].any()
     assert changed[coverage == 1].mean() > 0.9  # water differs from the wet film it covers
     assert not (coverage[ids >= 0] > 0).any() and not (coverage[np.isinf(depth)] > 0).any()
+
+
+def test_puddle_water_mixes_the_mirror_at_water_fresnel_in_linear_light():
+    """Standing water shows water's Fresnel reflectance F of the mirror plus (1 - F) of the road
+    seen through it (0.8 of its display value), added in linear light: F = 0 is the dimmed road,
+    F = 1 the mirror, F = 0.25 of a white mirror over black 255 x 0.25^(1/2.2); the weight the
+    renderer uses is F itself (0.35 at 80 degrees, 0.58 at 85), not more."""
+    surface = np.full((1, 3, 3), 100, np.uint8)
+    mirror = np.full((1, 3, 3), 255.0, np.float32)
+    fresnel = np.array([0.0, 1.0, 0.25], np.float32).reshape(1, 3, 1)
+    water = wx.puddle_water(surface, mirror, fresnel)
+    assert water.dtype == np.float32 and water.shape == (1, 3, 3)
+    assert water[0, 0] == pytest.approx([80.0] * 3, rel=1e-5)
+    assert water[0, 1] == pytest.approx([255.0] * 3, rel=1e-5)
+    black = wx.puddle_water(np.zeros((1, 1, 3), np.uint8), mirror[:, :1], fresnel[:, 2:])
+    assert black[0, 0] == pytest.approx([255.0 * 0.25 ** (1 / 2.2)] * 3, rel=1e-5)
+    # a boosted lamp's mirror (above 255) stays above 255 until the renderer clips it
+    assert wx.puddle_water(surface[:, :1], mirror[:, :1] * 8, fresnel[:, 1:2])[0, 0, 0] > 255
+    # the renderer's weight: road_mirror_weight with PUDDLE_MIRROR_REFLECTANCE is F(theta)
+    K = np.array([[100.0, 0, 100.5], [0, 100.0, 100.5], [0, 0, 1]])  # pixel 100's centre on axis
+    down = math.radians(5.0)  # looking 5 degrees down: the central ray meets the road at 85
+    right, below = [1.0, 0, 0], [0, -math.sin(down), -math.cos(down)]
+    forward = [0, math.cos(down), -math.sin(down)]
+    rotation = np.array([right, below, forward]).T  # columns: the camera's axes in the world
+    weight = wx.road_mirror_weight(K, rotation, 200, 200, wx.PUDDLE_MIRROR_REFLECTANCE)
+    assert weight[100, 100] == pytest.approx(
+        float(wx.water_fresnel(math.cos(math.radians(85.0)))), rel=1e-3)
+    assert weight[100, 100] == pytest.approx(0.58, abs=0.01)
