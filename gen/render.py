@@ -16,8 +16,8 @@ from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
-from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, Weather, add_glow, film_streak_sigma_px, light_glow,
-                                     mirrored_light_pixels,
+from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, Weather, add_glow,
+                                     film_streak_sigma_px, light_glow, mirrored_light_pixels,
                                      plane_pixels,
                                      puddle_coverage_at, puddle_pixels, puddle_ripple_slope,
                                      puddle_water,
