@@ -341,8 +341,7 @@ class FrameRenderer:
         if not rows.size:
             return
         fresnel = self._mirror_weight(pose[:3, :3], PUDDLE_MIRROR_REFLECTANCE)[rows, cols]
-        water = puddle_water(surface[rows, cols][None], mirror[rows, cols][None],
-                             fresnel[None, :, None])[0]
+        water = puddle_water(surface[rows, cols], mirror[rows, cols], fresnel[:, None])
         blended[rows, cols] += coverage[rows, cols, None] * (water - blended[rows, cols])
 
     def _render_rgb(self, data: mujoco.MjData, option: mujoco.MjvOption,

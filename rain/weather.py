@@ -1010,15 +1010,17 @@ _LINEAR_OF_DISPLAY = np.power(np.arange(256, dtype=np.float32) / np.float32(255.
 
 
 def puddle_water(surface: np.ndarray, mirror: np.ndarray, fresnel: np.ndarray) -> np.ndarray:
-    """(N, W, 3) float32 display values of standing water: in linear light, water's Fresnel
-    reflectance ``F`` of the mirror image plus the rest of the road seen through the water,
-    ``F M + (1 - F) u S`` with ``u = PUDDLE_UNDERLAY^2.2``, back through the 1/2.2 tone curve.
+    """(..., 3) float32 display values of standing water, pixel by pixel: in linear light,
+    water's Fresnel reflectance ``F`` of the mirror image plus the rest of the road seen through
+    the water, ``F M + (1 - F) u S`` with ``u = PUDDLE_UNDERLAY^2.2``, back through the 1/2.2
+    tone curve.
 
     Args:
-        surface: (N, W, 3) uint8 or float display values (0..255) of the plain render.
-        mirror: (N, W, 3) float display values of the mirror render; above 255 where the
-            lamps' mirror images are boosted (:data:`CLIPPED_GAIN`), so the result may be too.
-        fresnel: (N, W, 1) float32 in [0, 1], F(theta) per pixel (:func:`road_mirror_weight`
+        surface: (..., 3) uint8 or float display values (0..255) of the plain render.
+        mirror: (..., 3) float display values of the mirror render, the same shape; above 255
+            where the lamps' mirror images are boosted (:data:`CLIPPED_GAIN`), so the result may
+            be too.
+        fresnel: (..., 1) float32 in [0, 1], F(theta) per pixel (:func:`road_mirror_weight`
             with :data:`PUDDLE_MIRROR_REFLECTANCE`).
     """
     inverse = np.float32(1.0 / 255.0)
