@@ -175,7 +175,8 @@ def test_a_failure_while_joining_pieces_leaves_no_shard_and_no_pieces(tmp_path, 
     assert list(tmp_path.iterdir()) == []
 
 
-def test_ray_executor_on_a_local_cluster(dataset_dir, tmp_path):
+@pytest.mark.slow  # Ray's local start, 18-23 s; make test runs the Ray executor against a cluster
+def test_ray_executor_on_a_local_cluster(dataset_dir, tmp_path):  # by address (test_hardening.py)
     import ray  # the ray extra, installed by the Makefile
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:

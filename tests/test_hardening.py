@@ -41,9 +41,9 @@ _offline_ultralytics()
 import torch._dynamo  # noqa: E402,F401
 
 SMALL = dict(scenes=1, frames=4, frames_per_shard=2, width=96, height=72, rates=(0.0, 50.0))
-# The interrupted run (three shards, two workers), with shards long enough (~3 s each)
+# The interrupted run (three shards, two workers), with shards long enough (~1.5 s each)
 # to be interrupted in the middle.
-GEN = ["generate", "--frames", "96", "--frames-per-shard", "32", "--width", "160", "--height", "120",
+GEN = ["generate", "--frames", "48", "--frames-per-shard", "16", "--width", "160", "--height", "120",
        "--rates", "0,50,100", "--quiet"]
 SLOW = ["--workers", "2", "--threads", "1", "--render-threads", "1"]
 

@@ -188,6 +188,10 @@ def _load_onnx(path: Path, class_map: str | None, device: str | None,
         providers.insert(0, "CUDAExecutionProvider")
     options = onnxruntime.SessionOptions()
     options.log_severity_level = 3
+    # No busy-waiting between operators: beside the run's decoding threads (or another process)
+    # spinning workers took 1.6x longer an image (bench/RESULTS.md), and alone they gain nothing.
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options.add_session_config_entry("session.inter_op.allow_spinning", "0")
     try:
         session = onnxruntime.InferenceSession(str(path), options, providers=providers)
     except Exception as error:  # onnxruntime raises its own exception types (Fail, InvalidGraph, ...)
