@@ -238,7 +238,7 @@ class FrameRenderer:
         pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
         rotation = pose[:3, :3]
         blended = surface.astype(np.float32)
-        gain = CLIPPED_GAIN if weather.time_of_day != "day" else 1.0  # lights are on
+        gain = CLIPPED_GAIN if self._rig.vehicle_lamps else 1.0  # lights are on
         lights = None
         if slabs is not None:
             road, road_small = self._road_pixel_mask(slabs, pose, depth, small.shape[:2])

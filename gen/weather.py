@@ -133,6 +133,14 @@ class WeatherRig:
         """(L,) each lamp geom's kind: ``"head"``, ``"tail"`` or ``"street"``."""
         self._lamp_colours = np.array([tod.lamp_colour(kind) for kind in self.lamp_kinds],
                                       np.float64).reshape(-1, 3)
+        # by day the vehicle lamps are built dark (tod.add_dark_vehicle_lamps), lit in dark rain
+        headlamp, taillamp, _ = lamp_materials
+        self._day_lamp_materials = (headlamp, taillamp) if min(headlamp, taillamp) >= 0 else None
+        self._tail_geoms = (np.flatnonzero(model.geom_matid == taillamp)
+                            if self._day_lamp_materials else np.zeros(0, np.int64))
+        self._tail_rgba = model.geom_rgba[self._tail_geoms].copy()
+        self.vehicle_lamps = self.time_of_day != "day"
+        """Whether the vehicles' lamps glow in the applied weather (set by :meth:`apply`)."""
         asphalt = self._materials.get("asphalt", -2)
         self._mirror_candidates = np.flatnonzero(model.geom_matid == asphalt)
         # road geoms of the world body never move: their tops are measured once
@@ -297,6 +305,13 @@ class WeatherRig:
             used = (int(bool(model.vis.headlight.active)) + int(lighting.sun_active)
                     + int(lighting.skylight_active) + len(self._ego_beams))
             self.light_budget = max(tod.GL_MAX_LIGHTS - used, 0)
+        elif self._day_lamp_materials is not None:
+            lit = lighting.vehicle_lamps
+            headlamp, taillamp = self._day_lamp_materials
+            model.mat_emission[headlamp] = tod.HEADLAMP_EMISSION if lit else 0.0
+            model.mat_emission[taillamp] = tod.TAILLAMP_EMISSION if lit else 0.0
+            model.geom_rgba[self._tail_geoms] = tod.TAILLAMP_RGBA if lit else self._tail_rgba
+        self.vehicle_lamps = lighting.vehicle_lamps and len(self.lamp_geoms) > 0
         materials = self._materials
         for name, factor in (("asphalt", lighting.road_factor),
                              ("concrete", lighting.pavement_factor),

@@ -5,6 +5,8 @@
 ego car's low beams, a beam for each listed vehicle, a spot light under each street lamp head,
 makes lamp geoms emissive, turns the low sun orange and near-horizontal (dusk) or off (night), and
 makes the road and sidewalks fine enough grids for per-vertex lighting to draw light pools.
+By day :func:`add_dark_vehicle_lamps` gives the vehicle lamp geoms dark materials, which the
+weather rig lights when rain takes the daylight below 1 000 lux.
 
 Light levels are not fixed here: ``rainbench.gen.weather.WeatherRig`` writes each weather's
 levels (``rainbench.mjcf.weather.scene_lighting``) times the gains below into the model, and
@@ -205,6 +207,28 @@ def lamp_heads(spec: mujoco.MjSpec) -> list[tuple[float, float, float]]:
 def _emissive(spec: mujoco.MjSpec, material: str, emission: float) -> None:
     spec.add_material(name=material, emission=emission, specular=0.3, shininess=0.5,
                       rgba=[0.5, 0.5, 0.5, 1.0])  # the geom's own rgba wins over this default
+
+
+DARK_LAMP_SPECULAR = DARK_LAMP_SHININESS = 0.5
+"""MuJoCo's look of a geom without a material (mjvGeom: specular 0.5, shininess 0.5): the dark
+lamp materials of a daytime scene render as if the lamps had none."""
+
+
+def add_dark_vehicle_lamps(spec: mujoco.MjSpec) -> None:
+    """Give a daytime road scene's vehicle lamp geoms (``actor*/headlight*``,
+    ``actor*/taillight*``) the materials ``tod_headlamp`` and ``tod_taillamp`` (in place), dark:
+    emission 0 and the look of no material, so the scene renders byte for byte as without them.
+    The weather rig (``rainbench.gen.weather.WeatherRig``) lights them where the daylight falls
+    below :data:`~rainbench.mjcf.weather.VEHICLE_LAMPS_BELOW_LUX` (rain above 10 mm/h)."""
+    headlamp, taillamp, _ = LAMP_MATERIALS
+    for material in (headlamp, taillamp):
+        spec.add_material(name=material, emission=0.0, specular=DARK_LAMP_SPECULAR,
+                          shininess=DARK_LAMP_SHININESS, rgba=[0.5, 0.5, 0.5, 1.0])
+    for geom in spec.geoms:
+        if geom.name.startswith("actor") and "/headlight" in geom.name:
+            geom.material = headlamp
+        elif geom.name.startswith("actor") and "/taillight" in geom.name:
+            geom.material = taillamp
 
 
 def _plane_receivers(spec: mujoco.MjSpec) -> None:

@@ -51,6 +51,11 @@ HEADLAMP_PEAK_LUX = 200.0
 """Low beam on a surface facing the car 10 m ahead on the beam's axis: 20 000 cd / (10 m)^2 (a
 halogen low beam's hot spot just below the cut-off; UN ECE R112 asks at least 12 000 cd at
 point 75R)."""
+VEHICLE_LAMPS_BELOW_LUX = 1000.0
+"""By day the vehicles' head and tail lamps are on where the daylight is below 1 000 lux: the
+level at which UN ECE R48 (6.2.7.6.2) has automatic headlamp switching turn the dipped beams
+(and with them the position lamps) on, in rain above 10 mm/h (docs/rain.md). At dusk and night
+they are always on."""
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,8 @@ class SceneLighting:
     skylight_active: bool = True
     lamp_diffuse: tuple[float, float, float] = (0.0, 0.0, 0.0)  # street light at its peak
     beam_diffuse: tuple[float, float, float] = (0.0, 0.0, 0.0)  # head light at its peak
+    # the vehicles' head and tail lamp geoms glow (dusk, night, and by day in dark rain)
+    vehicle_lamps: bool = False
 
 
 def _scaled(colour, factor: float) -> tuple[float, float, float]:
@@ -130,4 +137,6 @@ def scene_lighting(weather: Weather) -> SceneLighting:
         # emission 1 plus the headlight's ambient light the deck also receives
         cloud_deck_rgba=tuple(float(c) for c in deck / (1.0 + ambient_rgb[0])) + (1.0,),
         sun_active=not night, skylight_active=not night, lamp_diffuse=lamp, beam_diffuse=beam,
+        vehicle_lamps=(weather.time_of_day != "day"
+                       or weather.daylight_lux < VEHICLE_LAMPS_BELOW_LUX),
     )

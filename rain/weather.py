@@ -107,11 +107,11 @@ CLIPPED_LEVEL = 250
 """A mirror pixel with a channel at or above this 8-bit level is clipped: a lamp, a head or tail
 light or a glint, whose true radiance is unknown and far above 255."""
 CLIPPED_GAIN = 8.0
-"""At dusk and night, when the lamps and head and tail lights are on, clipped mirror pixels count
+"""When the lamps and head and tail lights are on (dusk, night, and the vehicle lamps by day in
+dark rain), clipped mirror pixels count
 this many times brighter in the film's smear, so the streak of a light on a wet road stays
 bright where smearing its clipped value would fade it to a glow (the streak is clipped to 255
-again after blending). By day a clipped pixel is as likely a bright sky, which must not be
-boosted: the gain is 1. Only the mirror images of the lamps are boosted
+again after blending). With the lights off the gain is 1. Only the mirror images of the lamps are boosted
 (:func:`mirrored_light_pixels`): a surface lit past the sensor's range (a light car body under
 a street lamp) clips as well, and boosting it would lay a saturated block on the road. Chosen
 for the look."""

@@ -497,3 +497,68 @@ def test_a_rainy_day_has_no_glow(monkeypatch):
     for weather in (wx.weather_at(SKY, 50.0), wx.weather_at(SKY, 0.0, time_of_day="night")):
         assert renderer.with_glow(image, None, weather, np.ones((2, 2), np.float32)) is image
     assert not calls
+
+
+# -- vehicle lamps by day in dark rain --------------------------------------------------------------
+@pytest.mark.parametrize("sky", wx.SKIES)
+def test_vehicle_lamps_are_on_by_day_only_below_1000_lux(sky):
+    """UN ECE R48's automatic headlamp switching: on below 1 000 lux, which the daytime rain law
+    reaches above 10 mm/h under every sky; always on at dusk and night; off where the weather
+    does not follow the rate."""
+    lamps = {rate: scene_lighting(wx.weather_at(sky, rate)).vehicle_lamps
+             for rate in (0.0, 5.0, 10.0, 10.5, 25.0, 100.0)}
+    assert lamps == {0.0: False, 5.0: False, 10.0: False, 10.5: True, 25.0: True, 100.0: True}
+    assert not scene_lighting(wx.weather_at(sky, 100.0, follows_rate=False)).vehicle_lamps
+    for time_of_day in ("dusk", "night"):
+        assert scene_lighting(wx.weather_at(sky, 0.0, time_of_day=time_of_day)).vehicle_lamps
+
+
+def test_tail_lamps_light_up_by_day_in_dark_rain_and_go_dark_again():
+    """A daytime scene builds its vehicle lamps dark (the same render as without their
+    materials); at 25 mm/h the tail lamps of the car ahead glow saturated red, brighter than the
+    car around them; back at 5 mm/h the lamps' model values are exactly the built ones."""
+    width, height = 320, 240
+    layout, spec, model = _scene("day", width, height)
+    tail = model.material("tod_taillamp").id
+    tails = np.flatnonzero(model.geom_matid == tail)
+    assert tails.size >= 2 and model.mat_emission[tail] == 0.0
+    built_rgba = model.geom_rgba[tails].copy()
+    stripped = build_spec(layout, width, height)
+    for geom in stripped.geoms:
+        if geom.material in ("tod_headlamp", "tod_taillamp"):
+            geom.material = ""
+    plain = stripped.compile()
+    table = geom_instance_table(model)
+    with FrameRenderer(model, width, height, table, base_weather=wx.weather_at(SKY, 0.0)) as renderer:
+        best = None  # the frame whose nearest tail lamp facing the camera is nearest
+        for t in np.arange(1.0, 20.0, 1.0):
+            data = _posed(model, layout, t)
+            uv, depth = _project(renderer, data, data.geom_xpos[tails])
+            facing = data.geom_xmat[tails].reshape(-1, 3, 3)[:, :, 0] @ camera_pose(
+                model, data, "ego")[:3, 2] > 0.5  # the camera behind the vehicle
+            inside = ((uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+                      & (depth > 2.0) & facing)
+            if inside.any() and (best is None or depth[inside].min() < best[0]):
+                best = (depth[inside].min(), t)
+        assert best is not None and best[0] < 40.0
+        data = _posed(model, layout, best[1])
+        renderer.update(data)
+        clean = renderer.render_rgb()
+        ids, _, depth = renderer.render_instances_depth()
+        light_rain = renderer.render_weather(data, wx.weather_at(SKY, 5.0), depth)
+        dark_rain = renderer.render_weather(data, wx.weather_at(SKY, 25.0), depth)
+        assert model.mat_emission[tail] == tod.TAILLAMP_EMISSION
+        assert np.array_equal(model.geom_rgba[tails], np.tile(np.float32(tod.TAILLAMP_RGBA), (tails.size, 1)))
+        renderer.render_weather(data, wx.weather_at(SKY, 5.0), depth)
+        assert model.mat_emission[tail] == 0.0 and np.array_equal(model.geom_rgba[tails], built_rgba)
+    with FrameRenderer(plain, width, height, geom_instance_table(plain),
+                       base_weather=wx.weather_at(SKY, 0.0)) as renderer:
+        renderer.update(_posed(plain, layout, best[1]))
+        assert np.array_equal(renderer.render_rgb(), clean)
+    red = dark_rain[..., 0].astype(np.int64) - light_rain[..., 0]
+    lamp = (red > 60) & (dark_rain[..., 0] >= 200) & (dark_rain[..., 1] < 80)
+    assert lamp.sum() >= 4
+    owners = np.unique(ids[lamp])
+    assert owners.size and (owners >= 0).all()  # on vehicles, not on the road
+    body = np.isin(ids, owners) & ~lamp
+    assert dark_rain[lamp, 0].mean() > dark_rain[body, 0].mean() + 60
