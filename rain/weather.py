@@ -108,13 +108,12 @@ CLIPPED_LEVEL = 250
 light or a glint, whose true radiance is unknown and far above 255."""
 CLIPPED_GAIN = 8.0
 """When the lamps and head and tail lights are on (dusk, night, and the vehicle lamps by day in
-dark rain), clipped mirror pixels count
-this many times brighter in the film's smear, so the streak of a light on a wet road stays
-bright where smearing its clipped value would fade it to a glow (the streak is clipped to 255
-again after blending). With the lights off the gain is 1. Only the mirror images of the lamps are boosted
-(:func:`mirrored_light_pixels`): a surface lit past the sensor's range (a light car body under
-a street lamp) clips as well, and boosting it would lay a saturated block on the road. Chosen
-for the look."""
+dark rain), clipped mirror pixels count this many times brighter in the film's smear, so the
+streak of a light on a wet road stays bright where smearing its clipped value would fade it to a
+glow (the streak is clipped to 255 again after blending). With the lights off the gain is 1.
+Only the mirror images of the lamps are boosted (:func:`mirrored_light_pixels`): a surface lit
+past the sensor's range (a light car body under a street lamp) clips as well, and boosting it
+would lay a saturated block on the road. Chosen for the look."""
 WATER_INDEX = 1.333
 FRESNEL_REFERENCE_DEG = 80.0
 
