@@ -387,10 +387,10 @@ def test_batched_backend_agrees_with_ultralytics_predict_on_the_guard_scene(tmp_
 # Per shipped rain-trained twin of the nano model (issue 19): the rain models its curriculum
 # draws rainy images from, its card's `random_rain`, and whether it must beat the clean model under
 # `physical` rain on the guard scene at 60 mm/h by RAIN_GUARD_MARGIN for car and person. There
-# (lens water counted on the cover glass, 2026-11-26) the rain-trained one (v2) scores car 0.936
-# and person 0.667 (+0.073 / +0.081), the RandomRain one 0.887 and 0.592 (+0.024 / +0.006), the
-# clean nano model 0.863 and 0.586: the margin lies between what RandomRain and the rain
-# curriculum gain on this 10-frame scene.
+# (lens water counted on the cover glass, vehicle lamps on in dark rain, 2026-11-26) the
+# rain-trained one (v2) scores car 0.936 and person 0.674 (+0.071 / +0.087), the RandomRain one
+# 0.907 and 0.598 (+0.042 / +0.011), the clean nano model 0.865 and 0.587: the margin lies
+# between what RandomRain and the rain curriculum gain on this 10-frame scene.
 RAIN_TRAINED_GUARD = {
     "rainbench-yolo11n-rain": ({"physical", "jeon2022"}, None, True),
     "rainbench-yolo11n-randomrain": (set(), {"p": 0.76, "rain_type": "heavy"}, False),
