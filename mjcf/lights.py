@@ -214,17 +214,33 @@ DARK_LAMP_SPECULAR = DARK_LAMP_SHININESS = 0.5
 lamp materials of a daytime scene render as if the lamps had none."""
 
 
-def add_dark_vehicle_lamps(spec: mujoco.MjSpec) -> None:
+def _unlit_geoms(spec: mujoco.MjSpec, parked_bodies: Sequence[str]) -> set[str]:
+    """Names of the geoms of ``parked_bodies`` (vehicles standing all clip: their lamps are
+    off)."""
+    names = set()
+    for body_name in parked_bodies:
+        body = spec.body(body_name)
+        if body is None:
+            raise ValueError(f"parked_bodies: expected bodies of the spec, got {body_name!r}")
+        names.update(g.name for g in body.find_all(mujoco.mjtObj.mjOBJ_GEOM))
+    return names
+
+
+def add_dark_vehicle_lamps(spec: mujoco.MjSpec, parked_bodies: Sequence[str] = ()) -> None:
     """Give a daytime road scene's vehicle lamp geoms (``actor*/headlight*``,
     ``actor*/taillight*``) the materials ``tod_headlamp`` and ``tod_taillamp`` (in place), dark:
     emission 0 and the look of no material, so the scene renders byte for byte as without them.
     The weather rig (``rainbench.gen.weather.WeatherRig``) lights them where the daylight falls
-    below :data:`~rainbench.mjcf.weather.VEHICLE_LAMPS_BELOW_LUX` (rain above 10 mm/h)."""
+    below :data:`~rainbench.mjcf.weather.VEHICLE_LAMPS_BELOW_LUX` (rain above 10 mm/h). The lamps
+    of ``parked_bodies`` (vehicles that stand all clip) get none: they stay off."""
     headlamp, taillamp, _ = LAMP_MATERIALS
     for material in (headlamp, taillamp):
         spec.add_material(name=material, emission=0.0, specular=DARK_LAMP_SPECULAR,
                           shininess=DARK_LAMP_SHININESS, rgba=[0.5, 0.5, 0.5, 1.0])
+    unlit = _unlit_geoms(spec, parked_bodies)
     for geom in spec.geoms:
+        if geom.name in unlit:
+            continue
         if geom.name.startswith("actor") and "/headlight" in geom.name:
             geom.material = headlamp
         elif geom.name.startswith("actor") and "/taillight" in geom.name:
@@ -250,7 +266,7 @@ def _plane_receivers(spec: mujoco.MjSpec) -> None:
 def add_time_of_day_lights(spec: mujoco.MjSpec, time_of_day: str, *, ego_body: str = "ego",
                            vehicle_bodies: Sequence[str] = (),
                            street_lamps: Sequence[tuple[float, float, float]] = (),
-                           sky: str = "cloudy") -> None:
+                           sky: str = "cloudy", parked_bodies: Sequence[str] = ()) -> None:
     """Add the lights of ``time_of_day`` to ``spec`` (a built road scene), in place.
 
     Args:
@@ -266,6 +282,8 @@ def add_time_of_day_lights(spec: mujoco.MjSpec, time_of_day: str, *, ego_body: s
             gets a spot light ``tod/lamp{i}`` pointing down.
         sky: the scene's base weather, for the light levels written into the spec (what an
             exported scene.xml shows; the renderer rewrites them for every weather).
+        parked_bodies: vehicles that stand all clip (parked, broken down): their lamps stay off
+            (no beam, no emissive material).
     """
     time_of_day = check_time_of_day(time_of_day)
     if time_of_day == "day":
@@ -341,8 +359,11 @@ def add_time_of_day_lights(spec: mujoco.MjSpec, time_of_day: str, *, ego_body: s
     _emissive(spec, headlamp, HEADLAMP_EMISSION)
     _emissive(spec, taillamp, TAILLAMP_EMISSION)
     _emissive(spec, street_lamp, STREET_LAMP_EMISSION)
+    unlit = _unlit_geoms(spec, parked_bodies)
     for geom in spec.geoms:
         name = geom.name
+        if name in unlit:
+            continue
         if name.startswith("actor") and "/headlight" in name:
             geom.material = headlamp
         elif name.startswith("actor") and "/taillight" in name:

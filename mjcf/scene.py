@@ -196,13 +196,17 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
                                 helmet=unit.colours["helmet"])
             else:
                 raise ValueError(f"actor role: unknown {actor.role!r}")
-    # dusk and night: beams on the ego and the vehicles, spot lights under the street lamps;
-    # by day the vehicle lamps get dark materials, lit in dark rain (rainbench.gen.weather)
+    # dusk and night: beams on the ego and the moving vehicles, spot lights under the street
+    # lamps; by day the moving vehicles' lamps get dark materials, lit in dark rain
+    # (rainbench.gen.weather). Parked vehicles (speed 0) keep their lamps off.
+    vehicles = [unit for unit in layout.units if unit.kind in ("car", "motorcycle")]
+    moving = [unit.name for unit in vehicles if unit.speed > 0]
+    parked = [unit.name for unit in vehicles if unit.speed <= 0]
     if layout.time_of_day == "day":
-        lights.add_dark_vehicle_lamps(spec)
+        lights.add_dark_vehicle_lamps(spec, parked_bodies=parked)
     lights.add_time_of_day_lights(
         spec, layout.time_of_day, sky=layout.sky, street_lamps=lights.lamp_heads(spec),
-        vehicle_bodies=[unit.name for unit in layout.units if unit.kind in ("car", "motorcycle")])
+        vehicle_bodies=moving, parked_bodies=parked)
     return spec
 
 

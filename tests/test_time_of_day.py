@@ -562,3 +562,32 @@ def test_tail_lamps_light_up_by_day_in_dark_rain_and_go_dark_again():
     assert owners.size and (owners >= 0).all()  # on vehicles, not on the road
     body = np.isin(ids, owners) & ~lamp
     assert dark_rain[lamp, 0].mean() > dark_rain[body, 0].mean() + 60
+
+
+@pytest.mark.parametrize("time_of_day", ["day", "night"])
+def test_parked_vehicles_keep_their_lamps_off(time_of_day):
+    """On the residential street the parked cars (speed 0 all clip) get no lamp material and no
+    beam, by day (never lit in rain) or at night; the moving vehicles' lamps get theirs."""
+    config = L.ScenarioConfig(sky=SKY, layout="residential", time_of_day=time_of_day)
+    layout = L.sample_layout(SEED, config, np.random.default_rng(SEED))
+    vehicles = [unit for unit in layout.units if unit.kind in ("car", "motorcycle")]
+    parked = {unit.name for unit in vehicles if unit.speed <= 0}
+    moving = {unit.name for unit in vehicles if unit.speed > 0}
+    assert len(parked) >= 2 and moving
+    model = build_spec(layout, 160, 120).compile()
+    lamp_materials = {model.material(name).id for name in ("tod_headlamp", "tod_taillamp")}
+    lit_bodies = set()
+    for geom in range(model.ngeom):
+        name = model.geom(geom).name
+        if name.startswith("actor") and ("/headlight" in name or "/taillight" in name):
+            body = model.geom_bodyid[geom]
+            while model.body_parentid[body] != 0:  # the vehicle's root body
+                body = model.body_parentid[body]
+            root = model.body(body).name
+            assert root in parked | moving, root
+            assert (model.geom_matid[geom] in lamp_materials) == (root in moving), (root, name)
+            if model.geom_matid[geom] in lamp_materials:
+                lit_bodies.add(root)
+    assert lit_bodies and lit_bodies <= moving
+    beams = {model.light(i).name for i in range(model.nlight) if model.light(i).name.endswith("_beam")}
+    assert not {f"{tod.LIGHT_PREFIX}{name}_beam" for name in parked} & beams
