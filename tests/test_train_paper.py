@@ -324,9 +324,10 @@ def guard_scene(tmp_path_factory):
     return data
 
 
-# The nano model's guard (the recipes' default) runs in `make test`; the other shipped models' (10-20 s each on the
-# 2-core CI machine) in `make test-slow`, which every retrain and every change to the rendered
-# images runs (docs/models.md). Each one's ONNX copy is checked against its checkpoint below.
+# The nano model's guard (the recipes' default) runs in `make test`; the other shipped models'
+# (10-20 s each on a 2-core machine) in `make test-slow`, which every retrain and every change to
+# the rendered images runs (docs/models.md). Each one's ONNX copy is checked against its
+# checkpoint in `make test` (below).
 @pytest.mark.parametrize("name", [name if name == "rainbench-yolo11n" else pytest.param(name, marks=pytest.mark.slow)
                                   for name in sorted(SHIPPED_GUARD)])
 def test_shipped_weights_load_by_name_and_find_cars(tmp_path, guard_scene, name):
@@ -413,7 +414,7 @@ def test_shipped_rain_trained_models_are_fine_tunes_of_the_shipped_nano_model(na
     assert (rain_models, card["random_rain"]) == (expected_rain_models, expected_random_rain)
 
 
-@pytest.mark.slow  # 25 s on the 2-core CI machine: with the shipped models' AP guards above
+@pytest.mark.slow  # 25 s on a 2-core machine: with the shipped models' AP guards above
 @pytest.mark.parametrize("name", sorted(name for name, guard in RAIN_TRAINED_GUARD.items() if guard[2]))
 def test_the_rain_curriculum_model_beats_the_clean_model_in_physical_rain(tmp_path, name):
     """The rain-curriculum model finds more cars and people than the clean model under
