@@ -214,16 +214,25 @@ DARK_LAMP_SPECULAR = DARK_LAMP_SHININESS = 0.5
 lamp materials of a daytime scene render as if the lamps had none."""
 
 
-def _unlit_geoms(spec: mujoco.MjSpec, parked_bodies: Sequence[str]) -> set[str]:
-    """Names of the geoms of ``parked_bodies`` (vehicles standing all clip: their lamps are
-    off)."""
-    names = set()
+def _vehicle_lamp_geoms(spec: mujoco.MjSpec, parked_bodies: Sequence[str]) -> tuple[list, list]:
+    """(head lamp geoms, tail lamp geoms) of ``spec``'s vehicles (``actor*/headlight*``,
+    ``actor*/taillight*``), leaving out those of ``parked_bodies`` (vehicles standing all clip:
+    their lamps are off)."""
+    unlit = set()
     for body_name in parked_bodies:
         body = spec.body(body_name)
         if body is None:
             raise ValueError(f"parked_bodies: expected bodies of the spec, got {body_name!r}")
-        names.update(g.name for g in body.find_all(mujoco.mjtObj.mjOBJ_GEOM))
-    return names
+        unlit.update(g.name for g in body.find_all(mujoco.mjtObj.mjOBJ_GEOM))
+    heads, tails = [], []
+    for geom in spec.geoms:
+        if geom.name in unlit or not geom.name.startswith("actor"):
+            continue
+        if "/headlight" in geom.name:
+            heads.append(geom)
+        elif "/taillight" in geom.name:
+            tails.append(geom)
+    return heads, tails
 
 
 def add_dark_vehicle_lamps(spec: mujoco.MjSpec, parked_bodies: Sequence[str] = ()) -> None:
@@ -237,14 +246,10 @@ def add_dark_vehicle_lamps(spec: mujoco.MjSpec, parked_bodies: Sequence[str] = (
     for material in (headlamp, taillamp):
         spec.add_material(name=material, emission=0.0, specular=DARK_LAMP_SPECULAR,
                           shininess=DARK_LAMP_SHININESS, rgba=[0.5, 0.5, 0.5, 1.0])
-    unlit = _unlit_geoms(spec, parked_bodies)
-    for geom in spec.geoms:
-        if geom.name in unlit:
-            continue
-        if geom.name.startswith("actor") and "/headlight" in geom.name:
-            geom.material = headlamp
-        elif geom.name.startswith("actor") and "/taillight" in geom.name:
-            geom.material = taillamp
+    heads, tails = _vehicle_lamp_geoms(spec, parked_bodies)
+    for geoms, material in ((heads, headlamp), (tails, taillamp)):
+        for geom in geoms:
+            geom.material = material
 
 
 def _plane_receivers(spec: mujoco.MjSpec) -> None:
@@ -359,17 +364,14 @@ def add_time_of_day_lights(spec: mujoco.MjSpec, time_of_day: str, *, ego_body: s
     _emissive(spec, headlamp, HEADLAMP_EMISSION)
     _emissive(spec, taillamp, TAILLAMP_EMISSION)
     _emissive(spec, street_lamp, STREET_LAMP_EMISSION)
-    unlit = _unlit_geoms(spec, parked_bodies)
+    heads, tails = _vehicle_lamp_geoms(spec, parked_bodies)
+    for geom in heads:
+        geom.material = headlamp
+    for geom in tails:
+        geom.material = taillamp
+        geom.rgba = list(TAILLAMP_RGBA)
     for geom in spec.geoms:
-        name = geom.name
-        if name in unlit:
-            continue
-        if name.startswith("actor") and "/headlight" in name:
-            geom.material = headlamp
-        elif name.startswith("actor") and "/taillight" in name:
-            geom.material = taillamp
-            geom.rgba = list(TAILLAMP_RGBA)
-        elif STREET_LAMP_NAME.match(name):
+        if STREET_LAMP_NAME.match(geom.name):
             geom.material = street_lamp
             geom.rgba = list(STREET_LAMP_RGBA)
     _plane_receivers(spec)
