@@ -216,7 +216,7 @@ class FrameRenderer:
                              f"render_instances_depth(), got {got}")
         option = self._weather_option
         option.geomgroup[PUDDLE_GROUP] = 0  # the puddle geoms only mark where puddles are
-        option.geomgroup[CLOUD_DECK_GROUP] = self._rig.cloud_deck
+        option.geomgroup[CLOUD_DECK_GROUP] = 0  # the camera sees the skybox's clouds
         self._set_segmentation(False)
         surface = self._render_rgb(data, option)
         if not wet:
@@ -229,6 +229,8 @@ class FrameRenderer:
         if mirror_geom >= 0:
             cover, slabs, others = self._rig.mirror_plane(data, mirror_geom)
         self._rig.set_mirror(True)
+        # the mirror pass draws no skybox: the deck stands for the sky in the road's mirror
+        option.geomgroup[CLOUD_DECK_GROUP] = self._rig.cloud_deck
         try:
             small = self._render_rgb(data, option, mirror_geom, scale=MIRROR_SCALE,
                                      mirror_cover=cover, covered=others, resize=False)

@@ -22,32 +22,60 @@ from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
 from rainbench.mjcf import lights as tod
+from rainbench.mjcf.scene import CLOUD_TEXTURE
+from rainbench.mjcf.textures import level_ranks
 from rainbench.mjcf.weather import scene_lighting
-from rainbench.rain.weather import (Weather, puddle_outline_phases, puddle_ripple_slope,
-                                     sky_colours, sky_key)
+from rainbench.rain.weather import (CLOUD_BASE_M, CLOUD_TILE_M, Weather, puddle_outline_phases,
+                                     puddle_ripple_slope, sky_colours, sky_key)
 
-_SKY_ELEVATION_CACHE: dict[int, np.ndarray] = {}
 MIRROR_AHEAD_M = 15.0
 """Where the wet road's mirror matters most: Fresnel's weight grows with distance, the road's
 image shrinks; the road geom under this point ahead of the camera is the one mirrored."""
 
 
-def skybox_sin_elevation(size: int) -> np.ndarray:
-    """(6 * size * size,) sine of the elevation of every skybox texel, as MuJoCo lays them out.
+def skybox_directions(size: int) -> np.ndarray:
+    """(6 * size * size, 3) float64: the world direction (unit vector, +z up) of every skybox
+    texel's centre, as MuJoCo lays them out.
 
-    MuJoCo's builtin skybox gradient is linear in (1 + sin e) / 2 (checked on mujoco 4.0.0), so
-    compiling it once from white to black gives every texel's elevation.
+    Faces in order: +x, -x, +z, -z, -y, +y; within a face, columns and rows as measured on
+    mujoco 4.0.0 by rendering texels that encode their direction (tested against a render:
+    within 1 degree). The z component is the sine of the texel's elevation.
     """
-    if size not in _SKY_ELEVATION_CACHE:
-        spec = mujoco.MjSpec()
-        spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
-                         builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT, rgb1=[1, 1, 1],
-                         rgb2=[0, 0, 0], width=size, height=size)
-        spec.worldbody.add_geom(size=[1, 1, 1])
-        model = spec.compile()
-        weight = model.tex_data.reshape(-1, 3)[:, 0].astype(np.float64) / 255.0
-        _SKY_ELEVATION_CACHE[size] = 2.0 * weight - 1.0
-    return _SKY_ELEVATION_CACHE[size]
+    centre = 2.0 * (np.arange(size) + 0.5) / size - 1.0
+    a, b = np.meshgrid(centre, -centre)  # a: along the row (columns); b: up the face (rows)
+    one = np.ones_like(a)
+    faces = [(one, a, b), (-one, -a, b), (a, b, one), (a, -b, -one), (a, -one, b), (-a, one, b)]
+    directions = np.concatenate([np.stack(face, axis=-1).reshape(-1, 3) for face in faces])
+    return directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+
+_CLOUD_MIN_SIN_ELEVATION = 0.01  # texels below it read the field at 150 km (they fade anyway)
+
+
+def skybox_cloud_ranks(model: mujoco.MjModel, directions: np.ndarray) -> np.ndarray | None:
+    """(N,) float64 in 0..1: where each of ``directions`` (N, 3) (unit vectors, +z up; a skybox's
+    texels: :func:`skybox_directions`) meets the scene's cloud layer, the rank of the cloud field
+    there (texture ``clouds`` of
+    :func:`rainbench.mjcf.scene.build_spec`, tiled over ``CLOUD_TILE_M`` at ``CLOUD_BASE_M``;
+    bilinear). Ranks are uniform over the field, so a cloud cover c covers a share c of it.
+    None when the scene has no cloud field.
+    """
+    index = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXTURE, CLOUD_TEXTURE)
+    if index < 0:
+        return None
+    width, height = int(model.tex_width[index]), int(model.tex_height[index])
+    channels, start = int(model.tex_nchannel[index]), int(model.tex_adr[index])
+    ranks = level_ranks(model.tex_data[start:start + width * height * channels].reshape(
+        height, width, channels)[:, :, 0])
+    reach = CLOUD_BASE_M / np.maximum(directions[:, 2], _CLOUD_MIN_SIN_ELEVATION)
+    x = directions[:, 0] * reach / CLOUD_TILE_M * width
+    y = directions[:, 1] * reach / CLOUD_TILE_M * height
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = x - x0, y - y0
+    x0, y0 = x0.astype(np.int64) % width, y0.astype(np.int64) % height
+    x1, y1 = (x0 + 1) % width, (y0 + 1) % height
+    return ((ranks[y0, x0] * (1.0 - fx) + ranks[y0, x1] * fx) * (1.0 - fy)
+            + (ranks[y1, x0] * (1.0 - fx) + ranks[y1, x1] * fx) * fy)
 
 
 def _ids(model: mujoco.MjModel, kind: mujoco.mjtObj, names) -> dict[str, int]:
@@ -107,7 +135,9 @@ class WeatherRig:
         size = int(model.tex_width[self._sky_id])
         self._sky_slice = slice(int(model.tex_adr[self._sky_id]),
                                 int(model.tex_adr[self._sky_id]) + 6 * size * size * 3)
-        self._sky_sin = skybox_sin_elevation(size)
+        directions = skybox_directions(size)
+        self._sky_sin = directions[:, 2]
+        self._sky_cloud_ranks = skybox_cloud_ranks(model, directions)
         self._sky_key: tuple | None = None
         self._sky_texels: dict[tuple, np.ndarray] = {}
         self.cloud_deck = False
@@ -328,7 +358,8 @@ class WeatherRig:
         key = sky_key(weather)
         if key != self._sky_key:
             if key not in self._sky_texels:  # a clip's sweep has a handful of skies
-                self._sky_texels[key] = np.rint(sky_colours(weather, self._sky_sin) * 255.0
+                self._sky_texels[key] = np.rint(sky_colours(weather, self._sky_sin,
+                                                            self._sky_cloud_ranks) * 255.0
                                                 ).astype(np.uint8).reshape(-1)
             model.tex_data[self._sky_slice] = self._sky_texels[key]
             if context is not None:

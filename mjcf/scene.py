@@ -26,9 +26,11 @@ ACTOR_PREFIX = "actor{:03d}/"
 # "actor alone" pass that measures truncation; the framebuffer is sized for it.
 TRUNCATION_MARGIN = 0.25
 PUDDLE_GROUP = 3  # puddle outlines: never drawn; the renderer lays the water over the image
-CLOUD_DECK_GROUP = 4  # the rain-cloud deck: drawn only in renders of a sunless rainy weather
+CLOUD_DECK_GROUP = 4  # the rain-cloud deck: drawn only in the road mirror's pass in sunless rain
 CLOUD_DECK_HEIGHT_M = 60.0  # low enough that the deck is inside zfar (1000 m) down to 3.4 deg
 SKY_TEXTURE_SIZE = 128  # skybox face size: re-uploaded whenever the weather changes the sky
+CLOUD_TEXTURE = "clouds"  # the cloud field the sky is drawn from (rainbench.gen.weather)
+CLOUD_STREAM = 13  # the cloud field draws from default_rng([seed, CLOUD_STREAM])
 PLAIN_GREY = (0.5, 0.5, 0.5, 1.0)  # a prop with neither a material nor a colour
 
 
@@ -128,6 +130,13 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     # Leaves: one 2 m tile of clumps, tinted per crown (the crowns' rgba); drawn last from
     # tex_rng so that the textures above stay as they were.
     _add_texture_material(spec, "foliage", textures.foliage(tex_rng), 0.5, specular=0.05)
+    # The cloud field of the sky: no material draws it; the weather rig reads it to draw the
+    # clouds into the skybox (rainbench.gen.weather). Its own stream, so that the textures above
+    # and every other draw stay as they were.
+    cloud_field = textures.clouds(np.random.default_rng([layout.seed, CLOUD_STREAM]))
+    spec.assets[f"{CLOUD_TEXTURE}.png"] = textures.encode_png(cloud_field)
+    spec.add_texture(name=CLOUD_TEXTURE, type=mujoco.mjtTexture.mjTEXTURE_2D,
+                     file=f"{CLOUD_TEXTURE}.png")
 
     world = spec.worldbody
     x0, y0, x1, y1 = layout.extent
@@ -137,8 +146,8 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
                 material="grass")
     for prop in layout.props:
         _add_prop(world, prop)
-    # The rain-cloud deck: an emissive ceiling that stands for the sky in rainy renders, so that
-    # the wet road mirrors the sky (MuJoCo's mirror pass does not draw the skybox).
+    # The rain-cloud deck: an emissive ceiling that stands for the sky in the wet road's mirror
+    # (MuJoCo's mirror pass does not draw the skybox).
     spec.add_material(name="cloud_deck", rgba=[0.5, 0.5, 0.5, 1.0], emission=1.0, specular=0.0)
     world.add_geom(name="scenery/cloud_deck", type=GEOM.mjGEOM_BOX,
                    size=[x_half + 2000.0, y_half + 2000.0, 1.0],

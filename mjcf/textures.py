@@ -124,6 +124,29 @@ def foliage(rng: np.random.Generator, size: int = 256) -> np.ndarray:
     return _to_uint8(rgb)
 
 
+def clouds(rng: np.random.Generator, size: int = 256, spectral_exponent: float = 2.6) -> np.ndarray:
+    """A tileable cloud field in grey: fractal noise whose power falls as ``k^-spectral_exponent``
+    with the spatial frequency ``k`` (cloud fields: roughly ``k^-5/3`` in one dimension, ``k^-8/3``
+    in two), from 1 cycle a tile down to the pixel; mean 128, 1 % and 99 % percentiles near 20
+    and 235. The sky reads it as ranks, so only its order matters
+    (:func:`rainbench.gen.weather.skybox_cloud_ranks`)."""
+    white = np.fft.fft2(rng.standard_normal((size, size)))
+    frequency = np.fft.fftfreq(size) * size  # cycles a tile
+    k = np.hypot(frequency[:, None], frequency[None, :])
+    amplitude = np.where(k > 0, np.maximum(k, 1.0) ** (-spectral_exponent / 2.0), 0.0)
+    field = np.fft.ifft2(white * amplitude).real
+    field = (field - field.mean()) / field.std()
+    level = 128.0 + 46.0 * field
+    return _to_uint8(np.repeat(level[:, :, None], 3, axis=2))
+
+
+def level_ranks(levels: np.ndarray) -> np.ndarray:
+    """Float64 ranks in 0..1 of the uint8 ``levels`` (any shape), uniform over them: each level's
+    share of the values below it plus half its own (ties share their middle rank)."""
+    counts = np.bincount(levels.ravel(), minlength=256).astype(np.float64)
+    return ((np.cumsum(counts) - counts / 2.0) / levels.size)[levels]
+
+
 def encode_png(image: np.ndarray) -> bytes:
     """PNG bytes of an (H, W, 3) uint8 RGB image."""
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:

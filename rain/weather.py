@@ -69,6 +69,19 @@ NIGHT_GLOW_SIN_ELEVATION = 0.12  # the glow fades over the lowest ~7 degrees
 NIGHT_CLOUD = (0.075, 0.064, 0.056)
 NIGHT_CLOUD_HORIZON_GAIN = 0.6
 NIGHT_CLOUD_GLOW_SIN_ELEVATION = 0.25
+# Clouds drawn from a scene's cloud field (ranks 0..1, uniform over the field): the sky's
+# ``cloud_cover`` is the fraction of it under cloud, the texels of the highest ranks.
+CLOUD_EDGE_RANKS = 0.08  # feathered cloud edges, in ranks
+CLOUD_SHADE = 0.12  # a cloud's thickest parts (rank 1) are 12 % darker, its thinnest lighter
+CLOUD_FADE_SIN_ELEVATION = 0.12  # the clouds' structure fades into the haze below ~7 degrees
+CLOUD_BASE_M = 1500.0
+"""Height of the layer the sky's clouds lie on: cumulus and stratocumulus bases lie at about
+0.5-2 km. The skybox is at infinity, so the clouds show no parallax as the camera moves."""
+CLOUD_TILE_M = 20_000.0
+"""Width of one tile of the scene's cloud field on that layer (78 m a texel of a 256 px tile)."""
+# A cloudy sky hides the sun (BASE_SUN), so its gaps are not open sky: a thin high veil
+# (altostratus translucidus) pales the blue between the clouds by this share of the cloud's colour.
+GAP_VEIL = {"clear": 0.0, "cloudy": 0.6, "overcast": 0.0}
 
 # -- laws of the rate -------------------------------------------------------------------------
 RAIN_LUX_AT_1_MM_H = 10_000.0
@@ -371,7 +384,35 @@ def daylight_level(weather: Weather) -> float:
     return weather.light_level * (share / base_share) ** (1.0 / DISPLAY_LIGHT_GAMMA)
 
 
-def sky_colours(weather: Weather, sin_elevation: np.ndarray) -> np.ndarray:
+def cloud_cover_and_shade(cover: float, cloud_ranks: np.ndarray | None,
+                          sin_elevation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the clouds are: (N, 1) float64 each ``(share under cloud 0..1, brightness factor of
+    that cloud)`` for directions of elevation sine ``sin_elevation`` (N,) whose cloud field
+    reads ``cloud_ranks`` (N,) in 0..1.
+
+    A fraction ``cover`` of the field is under cloud, the highest ranks, with edges feathered
+    over ``CLOUD_EDGE_RANKS``: cover 0 leaves no cloud, cover 1 no gap. Within the cloud the
+    thickest parts are darker, the thinnest lighter (``1 +- CLOUD_SHADE``: the grey bases of a
+    closed deck). Low down, where the layer's cells shrink below what the sky texture resolves,
+    both fade into their means (``cover`` and 1) with the haze, over ``CLOUD_FADE_SIN_ELEVATION``.
+    ``cloud_ranks`` None: the mean sky, ``(cover, 1)`` everywhere.
+    """
+    s = np.clip(np.asarray(sin_elevation, dtype=np.float64), 0.0, 1.0)[..., None]
+    if cloud_ranks is None:
+        return np.full_like(s, cover), np.ones_like(s)
+    ranks = np.asarray(cloud_ranks, dtype=np.float64)[..., None]
+    if ranks.shape != s.shape:
+        raise ValueError(f"cloud_ranks: expected shape {s.shape[:-1]}, got {ranks.shape[:-1]}")
+    fade = np.clip(s / CLOUD_FADE_SIN_ELEVATION, 0.0, 1.0)
+    lower = (1.0 - cover) * (1.0 + CLOUD_EDGE_RANKS) - CLOUD_EDGE_RANKS
+    under = np.clip((ranks - lower) / CLOUD_EDGE_RANKS, 0.0, 1.0)
+    share = cover + (under - cover) * fade
+    shade = 1.0 + CLOUD_SHADE * (1.0 - 2.0 * ranks) * fade
+    return share, shade
+
+
+def sky_colours(weather: Weather, sin_elevation: np.ndarray,
+                cloud_ranks: np.ndarray | None = None) -> np.ndarray:
     """Sky colour (N, 3) float64 in 0..1 for directions with elevation sine ``sin_elevation``.
 
     Day: clear, a blue gradient, zenith to horizon; cloud, the CIE standard overcast sky (sky type
@@ -380,15 +421,20 @@ def sky_colours(weather: Weather, sin_elevation: np.ndarray) -> np.ndarray:
     blue zenith over a warm horizon band (clear) and a dimmer blue-grey CIE sky warming towards the
     horizon (cloud). Night: near black, with the city's brown-grey glow at the horizon (clear) or
     over the whole cloud deck, brightest low. Below the horizon the horizon colour is kept.
+
+    ``cloud_ranks`` (N,) in 0..1: each direction's rank in the scene's cloud field; the clear and
+    the cloud sky are then mixed texel by texel (:func:`cloud_cover_and_shade`: clouds and gaps)
+    rather than blended by ``cloud_cover`` everywhere. None: the mean sky of that blend.
     """
     sky, cover, closing, time_of_day, dimming = sky_key(weather)
     s = np.clip(np.asarray(sin_elevation, dtype=np.float64), 0.0, 1.0)[..., None]
+    share, shade = cloud_cover_and_shade(cover, cloud_ranks, sin_elevation)
     if time_of_day == "night":
         clear = (np.asarray(NIGHT_CLEAR_ZENITH)
                  + np.asarray(NIGHT_GLOW_HORIZON) * np.exp(-s / NIGHT_GLOW_SIN_ELEVATION))
         cloud = np.asarray(NIGHT_CLOUD) * (1.0 + NIGHT_CLOUD_HORIZON_GAIN
                                            * np.exp(-s / NIGHT_CLOUD_GLOW_SIN_ELEVATION))
-        return np.clip(clear * (1.0 - cover) + cloud * cover, 0.0, 1.0)
+        return _mix_sky(clear, cloud, share, shade, GAP_VEIL[sky])
     white = CLOUD_SKY_WHITE[sky] + (CLOUD_SKY_WHITE["overcast"] - CLOUD_SKY_WHITE[sky]) * closing
     cie = ((1.0 + 2.0 * s) / 3.0) ** (1.0 / DISPLAY_GAMMA)
     if time_of_day == "dusk":
@@ -398,14 +444,21 @@ def sky_colours(weather: Weather, sin_elevation: np.ndarray) -> np.ndarray:
         tint = (np.asarray(DUSK_CLOUD_HORIZON_TINT)
                 + (np.asarray(DUSK_CLOUD_ZENITH_TINT) - np.asarray(DUSK_CLOUD_HORIZON_TINT)) * band)
         cloud = DUSK_CLOUD_LEVEL * white * cie * tint
-        return np.clip((clear * (1.0 - cover) + cloud * cover) * dimming, 0.0, 1.0)
+        return _mix_sky(clear, cloud, share, shade, GAP_VEIL[sky], dimming)
     zenith, horizon = np.asarray(CLEAR_SKY_ZENITH), np.asarray(CLEAR_SKY_HORIZON)
     # the clear gradient is linear in (1 + sin e) / 2 (what MuJoCo's builtin gradient does)
     weight = (1.0 + s) / 2.0
     clear = horizon + (zenith - horizon) * (2.0 * weight - 1.0)
     # under rain the deck closes into the darker grey of an overcast sky
     cloud = white * cie * np.asarray(CLOUD_TINT)
-    return np.clip(clear * (1.0 - cover) + cloud * cover, 0.0, 1.0)
+    return _mix_sky(clear, cloud, share, shade, GAP_VEIL[sky])
+
+
+def _mix_sky(clear, cloud, share, shade, veil: float, dimming: float = 1.0) -> np.ndarray:
+    """The clear sky (veiled by ``veil`` of the cloud's colour) where there is no cloud, the
+    cloud shaded by ``shade`` over a share ``share``; clipped to 0..1."""
+    gaps = clear + (cloud - clear) * veil if veil else clear
+    return np.clip((gaps * (1.0 - share) + cloud * shade * share) * dimming, 0.0, 1.0)
 
 
 def sky_key(weather: Weather) -> tuple[str, float, float, str, float]:
