@@ -388,9 +388,9 @@ def test_batched_backend_agrees_with_ultralytics_predict_on_the_guard_scene(tmp_
 # Per shipped rain-trained twin of the nano model (issue 19): the rain models its curriculum
 # draws rainy images from, its card's `random_rain`, and whether it must beat the clean model under
 # `physical` rain on the guard scene at 60 mm/h by RAIN_GUARD_MARGIN for car and person. There
-# (lens water counted on the cover glass, vehicle lamps on in dark rain, 2026-11-26) the
-# rain-trained one (v2) scores car 0.936 and person 0.674 (+0.071 / +0.087), the RandomRain one
-# 0.907 and 0.598 (+0.042 / +0.011), the clean nano model 0.865 and 0.587: the margin lies
+# (lens water counted on the cover glass, vehicle lamps on in dark rain, clouds, 2026-11-26) the
+# rain-trained one (v2) scores car 0.936 and person 0.674 (+0.071 / +0.085), the RandomRain one
+# 0.907 and 0.598 (+0.042 / +0.009), the clean nano model 0.865 and 0.589: the margin lies
 # between what RandomRain and the rain curriculum gain on this 10-frame scene.
 RAIN_TRAINED_GUARD = {
     "rainbench-yolo11n-rain": ({"physical", "jeon2022"}, None, True),
