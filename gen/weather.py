@@ -55,10 +55,10 @@ _CLOUD_MIN_SIN_ELEVATION = 0.01  # texels below it read the field at 150 km (the
 def skybox_cloud_ranks(model: mujoco.MjModel, directions: np.ndarray) -> np.ndarray | None:
     """(N,) float64 in 0..1: where each of ``directions`` (N, 3) (unit vectors, +z up; a skybox's
     texels: :func:`skybox_directions`) meets the scene's cloud layer, the rank of the cloud field
-    there (texture ``clouds`` of
-    :func:`rainbench.mjcf.scene.build_spec`, tiled over ``CLOUD_TILE_M`` at ``CLOUD_BASE_M``;
-    bilinear). Ranks are uniform over the field, so a cloud cover c covers a share c of it.
-    None when the scene has no cloud field.
+    there, bilinear. The field is the scene's texture ``clouds``
+    (:func:`rainbench.mjcf.scene.build_spec`), tiled over ``CLOUD_TILE_M`` on a layer
+    ``CLOUD_BASE_M`` above the camera. Ranks are uniform over the field, so a cloud cover c
+    covers a share c of it. None when the scene has no cloud field.
     """
     index = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXTURE, CLOUD_TEXTURE)
     if index < 0:

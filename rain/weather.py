@@ -446,7 +446,7 @@ def sky_colours(weather: Weather, sin_elevation: np.ndarray,
         cloud = DUSK_CLOUD_LEVEL * white * cie * tint
         return _mix_sky(clear, cloud, share, shade, GAP_VEIL[sky], dimming)
     zenith, horizon = np.asarray(CLEAR_SKY_ZENITH), np.asarray(CLEAR_SKY_HORIZON)
-    # the clear gradient is linear in (1 + sin e) / 2 (what MuJoCo's builtin gradient does)
+    # the clear gradient is linear in sin e
     weight = (1.0 + s) / 2.0
     clear = horizon + (zenith - horizon) * (2.0 * weight - 1.0)
     # under rain the deck closes into the darker grey of an overcast sky
