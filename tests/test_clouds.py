@@ -16,9 +16,9 @@ from rainbench.mjcf.scene import CLOUD_TEXTURE, build_spec, geom_instance_table
 from rainbench.rain import weather as wx
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def street():
-    """The street by day at 96x96 (any scene with the skybox would do)."""
+    """The street by day at 96x96 (any scene with the skybox would do); a test may change it."""
     return build_scene(GenerateConfig(seed=0, frames=1, width=96, height=96, layout="street",
                                       time_of_day="day"))
 
