@@ -31,7 +31,7 @@ from rainbench.store.shard import ShardWriter, shard_name
 from . import labels as lb
 from . import sim
 from .config import GenerateConfig
-from .render import FrameRenderer, camera_pose
+from .render import FrameRenderer, PendingImage, camera_pose
 from .weather import render_key
 
 
@@ -88,16 +88,29 @@ class FrameResult:
     instance: np.ndarray  # (H, W) int32
     labels: lb.FrameLabels
     T_world_cam: np.ndarray  # (4, 4)
-    # (H, W, 3) uint8 re-render of the same state under each other weather asked for
-    rgb_by_weather: dict[Weather, np.ndarray] = field(default_factory=dict)
+    # the re-render of the same state under each other weather asked for, its GL passes done
+    # and its array work left to whichever thread asks first (PendingImage.result)
+    pending_by_weather: dict[Weather, PendingImage] = field(default_factory=dict)
     time_s: float = 0.0  # clip time of the frame
+
+    def weather_rgb(self, weather: Weather) -> np.ndarray:
+        """(H, W, 3) uint8: the frame under ``weather`` (``rgb`` for the base weather)."""
+        pending = self.pending_by_weather.get(weather)
+        return self.rgb if pending is None else pending.result()
+
+    @property
+    def rgb_by_weather(self) -> dict[Weather, np.ndarray]:
+        """(H, W, 3) uint8 re-render of the same state under each other weather asked for."""
+        return {weather: pending.result() for weather, pending in self.pending_by_weather.items()}
 
 
 def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup,
                  label_filter: lb.LabelFilter, weathers=(), depth: bool = True) -> FrameResult:
     """Every pass of one frame at the state in ``data``: RGB, segmentation (+ depth when
     ``depth``, else ``FrameResult.depth`` is None), labels, then one RGB re-render per weather
-    in ``weathers`` other than the base weather."""
+    in ``weathers`` other than the base weather. The re-renders' GL passes run here; their array
+    work (wet road, puddles, glow) is left to :meth:`FrameResult.weather_rgb`, so a pool
+    thread can do it while this thread renders the next frame."""
     renderer.update(data)
     rgb = renderer.render_rgb()
     rerender = any(weather != renderer.base_weather for weather in weathers)
@@ -107,16 +120,16 @@ def render_frame(renderer: FrameRenderer, data: mujoco.MjData, setup: SceneSetup
         visible, _ = renderer.render_instances()
         depth_map = None
     labels = frame_labels(renderer, data, visible, setup.class_of_instance, label_filter)
-    rendered: dict[tuple, np.ndarray] = {render_key(renderer.base_weather): rgb}
+    rendered: dict[tuple, PendingImage] = {render_key(renderer.base_weather): PendingImage.done(rgb)}
     others = {}
     for weather in weathers:
         if weather == renderer.base_weather:
             continue
         key = render_key(weather)
         if key not in rendered:  # weathers that differ only in light level share a render
-            rendered[key] = renderer.render_weather(data, weather, depth_map)
+            rendered[key] = renderer.start_weather(data, weather, depth_map)
         # the glow follows the rate, so weathers that share a render each get their own
-        others[weather] = renderer.with_glow(rendered[key], data, weather, depth_map)
+        others[weather] = renderer.start_glow(rendered[key], data, weather, depth_map)
     return FrameResult(rgb, depth_map if depth else None, visible, labels,
                        camera_pose(setup.model, data, "ego"),
                        others, float(data.time))
@@ -219,6 +232,9 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
                                         lens_clock=clock)
         coverages = [rainy.coverage for rainy in frames]
     else:
+        # the weather re-renders' array work (wet road, puddles, glow), over the pool's threads
+        list((pool.map if pool is not None else map)(PendingImage.result,
+                                                      frame.pending_by_weather.values()))
         frames, coverages = _weather_rain(config, frame, K, seeds, clock, rain_config,
                                           [weathers[r] for r in rainy_rows],
                                           [rates[r] for r in rainy_rows], layout, noise)
@@ -267,7 +283,7 @@ def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
         spray_points = (world - pose[:3, 3]) @ pose[:3, :3]
     scenes, sprays, groups = [], [], {}
     for index, weather in enumerate(weathers):
-        scene = frame.rgb_by_weather.get(weather, frame.rgb)
+        scene = frame.weather_rgb(weather)
         spray = np.zeros((height, width), np.float32)
         if spray_points is not None and weather.spray > 0:
             spray = wx.spray_opacity(frame.depth, K, spray_points,

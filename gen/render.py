@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 import os
+import threading
+from collections.abc import Callable
 
 import cv2
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
@@ -35,6 +37,54 @@ a quarter of the pixels."""
 COVERED_DROP_M = 1.0
 """How far the road's other slabs are lowered in the mirror render, under the one stretched
 mirror geom (level with it they would draw over its reflection)."""
+
+
+class PendingImage:
+    """An image whose GL passes are done and whose array work is not: :meth:`result` does that
+    work once, in whichever thread calls it first, and returns the (H, W, 3) uint8 image.
+
+    :meth:`FrameRenderer.start_weather` and :meth:`FrameRenderer.start_glow` make them, so the
+    thread that holds the GL context can simulate and render the next frame while pool threads
+    finish this one's weather images (the wet road's mirror blend, puddles, lamp glow). The work
+    reads only what was captured when the passes ran, so the image is the same whichever thread
+    finishes it, and whenever."""
+
+    def __init__(self, finish: Callable[[], np.ndarray]) -> None:
+        self._finish: Callable[[], np.ndarray] | None = finish
+        self._image: np.ndarray | None = None
+        self._lock = threading.Lock()
+
+    @classmethod
+    def done(cls, image: np.ndarray) -> "PendingImage":
+        """An image with no work left."""
+        pending = cls(lambda: image)
+        pending._image, pending._finish = image, None
+        return pending
+
+    def result(self) -> np.ndarray:
+        """The finished (H, W, 3) uint8 image (computed on the first call)."""
+        with self._lock:
+            if self._image is None:
+                self._image = self._finish()
+                self._finish = None
+            return self._image
+
+
+class _FrameCache:
+    """What one frame's weathers share (it depends only on the frame's geometry: the road's
+    pixels, the lamps' mirror images, the puddles' pixels), built once; thread-safe."""
+
+    def __init__(self) -> None:
+        self._entries: dict[str, tuple[bytes, object]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, name: str, key: bytes, build: Callable[[], object]):
+        """``build()``, kept while ``key`` stays the same for ``name``."""
+        with self._lock:
+            entry = self._entries.get(name)
+            if entry is None or entry[0] != key:
+                entry = self._entries[name] = (key, build())
+            return entry[1]
 
 
 def camera_intrinsics(model: mujoco.MjModel, camera: str, width: int, height: int) -> np.ndarray:
@@ -137,7 +187,8 @@ class FrameRenderer:
         self._rig = WeatherRig(model) if base_weather is not None else None
         self._weather_option = mujoco.MjvOption()
         self._mirror_weights: dict[tuple, np.ndarray] = {}
-        self._frame_cache: dict[str, tuple[np.ndarray, bytes, object]] = {}
+        self._mirror_weights_lock = threading.Lock()
+        self._frame_cache: tuple[np.ndarray | None, _FrameCache] = (None, _FrameCache())
         self._weather: Weather | None = None
         self._set_weather(base_weather)
 
@@ -201,14 +252,25 @@ class FrameRenderer:
         blended only over the pixels that show the road
         (:func:`rainbench.rain.weather.plane_pixels`), and puddles are laid over the image where
         the road is seen (:func:`rainbench.rain.weather.puddle_coverage`), not drawn by
-        MuJoCo."""
+        MuJoCo. The same as ``start_weather(data, weather, depth).result()``."""
+        return self.start_weather(data, weather, depth).result()
+
+    def start_weather(self, data: mujoco.MjData, weather: Weather,
+                      depth: np.ndarray | None = None) -> PendingImage:
+        """:meth:`render_weather` in two halves: its GL passes now, in this thread (the one
+        holding the GL context), and its array work (the wet road's mirror blend and the
+        puddles) in the returned image's :meth:`PendingImage.result`, which any thread may call
+        later: it reads nothing of ``data`` or of this renderer's weather. ``depth`` must not
+        change until then."""
         self._require_open()
         if self._rig is None:
             raise RuntimeError("render_weather: this renderer has no base_weather (the scene "
                                "has no 'sun' and 'skylight' lights)")
         self._set_weather(weather)
-        puddles = self._rig.puddle_scale > 0
-        wet = self._rig.road_reflectance > 0 or puddles
+        puddle_scale = self._rig.puddle_scale
+        reflectance = self._rig.road_reflectance
+        puddles = puddle_scale > 0
+        wet = reflectance > 0 or puddles
         if wet and (depth is None or np.shape(depth) != (self.height, self.width)):
             got = "None" if depth is None else str(np.shape(depth))
             raise ValueError(f"render_weather: this weather wets the road, so depth is needed: "
@@ -220,7 +282,7 @@ class FrameRenderer:
         self._set_segmentation(False)
         surface = self._render_rgb(data, option)
         if not wet:
-            return surface
+            return PendingImage.done(surface)
         # MuJoCo's mirror is angle independent: render the road as a full mirror and blend it
         # over the plain render with water's Fresnel weight per pixel (rain/weather.py), on the
         # pixels that show the mirrored road only
@@ -236,36 +298,46 @@ class FrameRenderer:
                                      mirror_cover=cover, covered=others, resize=False)
         finally:
             self._rig.set_mirror(False)
-        size = (self.width, self.height)
         pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
-        rotation = pose[:3, :3]
-        blended = surface.astype(np.float32)
         gain = CLIPPED_GAIN if self._rig.vehicle_lamps else 1.0  # lights are on
-        lights = None
-        if slabs is not None:
-            road, road_small = self._road_pixel_mask(slabs, pose, depth, small.shape[:2])
-            if gain != 1.0:  # the lamps' mirror images: only they streak brightly
-                lights = self._mirrored_lights(data, pose, float(slabs[0, 2]), depth,
-                                               small.shape[:2])
-        if slabs is not None and self._rig.road_reflectance > 0:
-            rows = np.flatnonzero(road.any(axis=1))
-            if rows.size:
-                # the wet film smears its reflection along the vertical (puddles: their ripples)
-                sigma = film_streak_sigma_px(self.K[1, 1]) * small.shape[0] / self.height
-                film = cv2.resize(streak_reflection(small, road_small, sigma, gain, lights), size,
-                                  interpolation=cv2.INTER_LINEAR)
-                band = slice(int(rows[0]), int(rows[-1]) + 1)  # only the rows the road reaches
-                weight = self._mirror_weight(rotation, self._rig.road_reflectance)[band]
-                weight = np.where(road[band], weight, np.float32(0.0))[..., None]
-                blended[band] += weight * (film[band] - blended[band])
-        if puddles:
-            if slabs is not None:  # rain ripples the puddles: their mirror smears as well
-                sigma = (2.0 * puddle_ripple_slope(weather.rain_mm_h) * self.K[1, 1]
-                         * small.shape[0] / self.height)
-                small = streak_reflection(small, road_small, sigma, gain, lights)
-            mirror = cv2.resize(small, size, interpolation=cv2.INTER_LINEAR)
-            self._lay_puddles(blended, surface, mirror, pose, depth)
-        return np.clip(np.rint(blended), 0, 255).astype(np.uint8)
+        # what the array work needs of the state and the weather, taken now
+        spheres = self._rig.lamp_spheres(data) if slabs is not None and gain != 1.0 else None
+        puddle_shapes = (self._rig.puddles, self._rig.puddle_phases)
+        cache = self._frame_cache_of(depth)
+        ripple_slope = puddle_ripple_slope(weather.rain_mm_h)
+
+        def finish() -> np.ndarray:
+            size = (self.width, self.height)
+            rotation = pose[:3, :3]
+            blended = surface.astype(np.float32)
+            mirrored = small
+            lights = road = road_small = None
+            if slabs is not None:
+                road, road_small = self._road_pixel_mask(cache, slabs, pose, depth, small.shape[:2])
+                if spheres is not None:  # the lamps' mirror images: only they streak brightly
+                    lights = self._mirrored_lights(cache, spheres, pose, float(slabs[0, 2]),
+                                                   small.shape[:2])
+            if slabs is not None and reflectance > 0:
+                rows = np.flatnonzero(road.any(axis=1))
+                if rows.size:
+                    # the wet film smears its reflection along the vertical (puddles: their ripples)
+                    sigma = film_streak_sigma_px(self.K[1, 1]) * small.shape[0] / self.height
+                    film = cv2.resize(streak_reflection(small, road_small, sigma, gain, lights), size,
+                                      interpolation=cv2.INTER_LINEAR)
+                    band = slice(int(rows[0]), int(rows[-1]) + 1)  # only the rows the road reaches
+                    weight = self._mirror_weight(rotation, reflectance)[band]
+                    weight = np.where(road[band], weight, np.float32(0.0))[..., None]
+                    blended[band] += weight * (film[band] - blended[band])
+            if puddles:
+                if slabs is not None:  # rain ripples the puddles: their mirror smears as well
+                    sigma = 2.0 * ripple_slope * self.K[1, 1] * small.shape[0] / self.height
+                    mirrored = streak_reflection(small, road_small, sigma, gain, lights)
+                mirror = cv2.resize(mirrored, size, interpolation=cv2.INTER_LINEAR)
+                self._lay_puddles(cache, blended, surface, mirror, pose, depth, puddle_shapes,
+                                  puddle_scale)
+            return np.clip(np.rint(blended), 0, 255).astype(np.uint8)
+
+        return PendingImage(finish)
 
     def with_glow(self, image: np.ndarray, data: mujoco.MjData, weather: Weather,
                   depth: np.ndarray | None) -> np.ndarray:
@@ -273,35 +345,47 @@ class FrameRenderer:
         around the lights when they are on (dusk, night) and it rains
         (:func:`~rainbench.rain.weather.light_glow`, which depends on the rate: weathers that
         share a render do not share their glow); else ``image`` itself."""
+        return self.start_glow(PendingImage.done(image), data, weather, depth).result()
+
+    def start_glow(self, pending: PendingImage, data: mujoco.MjData, weather: Weather,
+                   depth: np.ndarray | None) -> PendingImage:
+        """:meth:`with_glow` of a :class:`PendingImage`: the lamps' state is read now, the glow
+        drawn in the returned image's :meth:`~PendingImage.result`; ``pending`` itself when
+        there is no glow."""
         if (weather.time_of_day == "day" or weather.rain_mm_h <= 0 or depth is None
                 or self._rig is None):
-            return image
+            return pending
         pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
         centres, intensity, colours = self._rig.lamp_lights(data, pose[:3, 3])
-        glow = light_glow(self.K, pose, centres, intensity, colours, depth, weather)
-        return add_glow(image, glow)
+        return PendingImage(lambda: add_glow(pending.result(), light_glow(
+            self.K, pose, centres, intensity, colours, depth, weather)))
 
-    def _road_pixel_mask(self, slabs: np.ndarray, pose: np.ndarray, depth: np.ndarray,
-                         small: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    def _frame_cache_of(self, depth: np.ndarray) -> _FrameCache:
+        """The cache of the frame whose depth map is ``depth`` (the frame's weathers share it;
+        a new depth array starts a new frame's cache, and frames still being finished keep
+        theirs)."""
+        if self._frame_cache[0] is not depth:
+            self._frame_cache = (depth, _FrameCache())
+        return self._frame_cache[1]
+
+    def _road_pixel_mask(self, cache: _FrameCache, slabs: np.ndarray, pose: np.ndarray,
+                         depth: np.ndarray, small: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """(H, W) bool :func:`~rainbench.rain.weather.plane_pixels` of the road ``slabs``
         ((K, 6) top rectangles) and its area average (float32) at the mirror render's ``small``
-        (h, w), cached for the frame (its weathers share the depth map, the pose and the
-        slabs)."""
+        (h, w), kept in the frame's ``cache`` (its weathers share the depth map, the pose and
+        the slabs)."""
         def build() -> tuple[np.ndarray, np.ndarray]:
             road = plane_pixels(self.K, pose, depth, slabs)
             return road, cv2.resize(road.astype(np.float32), (small[1], small[0]),
                                     interpolation=cv2.INTER_AREA)
 
-        return self._per_frame("road", depth,
-                               pose.tobytes() + slabs.tobytes() + bytes(str(small), "ascii"), build)
+        return cache.get("road", pose.tobytes() + slabs.tobytes() + bytes(str(small), "ascii"), build)
 
-    def _mirrored_lights(self, data: mujoco.MjData, pose: np.ndarray, plane_z: float,
-                         depth: np.ndarray, small: tuple[int, int]) -> np.ndarray:
-        """(h, w) bool :func:`~rainbench.rain.weather.mirrored_light_pixels` of the scene's lamp
-        geoms in the road plane at ``plane_z``, at the mirror render's ``small`` (h, w), cached
-        for the frame."""
-        spheres = self._rig.lamp_spheres(data)
-
+    def _mirrored_lights(self, cache: _FrameCache, spheres: np.ndarray, pose: np.ndarray,
+                         plane_z: float, small: tuple[int, int]) -> np.ndarray:
+        """(h, w) bool :func:`~rainbench.rain.weather.mirrored_light_pixels` of the lamp geoms'
+        ``spheres`` ((L, 4), :meth:`WeatherRig.lamp_spheres`) in the road plane at ``plane_z``,
+        at the mirror render's ``small`` (h, w), kept in the frame's ``cache``."""
         def build() -> np.ndarray:
             # drawn on the full image, then any pixel a disc touches counts at half size
             lights = mirrored_light_pixels(self.K, pose, spheres, plane_z, self.height,
@@ -309,36 +393,30 @@ class FrameRenderer:
             return cv2.resize(lights.astype(np.uint8), (small[1], small[0]),
                               interpolation=cv2.INTER_AREA) > 0
 
-        return self._per_frame("lights", depth, pose.tobytes() + spheres.tobytes()
-                               + np.float64(plane_z).tobytes() + bytes(str(small), "ascii"), build)
-
-    def _per_frame(self, name: str, depth: np.ndarray, key: bytes, build):
-        """``build()``, kept while the frame's ``depth`` array and ``key`` stay the same: the
-        weathers of one frame share what depends only on its geometry."""
-        cached = self._frame_cache.get(name)
-        if cached is None or cached[0] is not depth or cached[1] != key:
-            cached = self._frame_cache[name] = (depth, key, build())
-        return cached[2]
+        return cache.get("lights", pose.tobytes() + spheres.tobytes()
+                         + np.float64(plane_z).tobytes() + bytes(str(small), "ascii"), build)
 
     def _mirror_weight(self, rotation: np.ndarray, reflectance: float) -> np.ndarray:
         """(H, W) float32 :func:`road_mirror_weight`, cached (it depends on the camera's pitch and
-        roll only, the rotation's last row: one per clip on a level road)."""
+        roll only, the rotation's last row: one per clip on a level road); thread-safe."""
         key = (np.round(rotation[2], 9).tobytes(), reflectance)
-        if key not in self._mirror_weights:
-            self._mirror_weights[key] = road_mirror_weight(self.K, rotation, self.height,
-                                                           self.width, reflectance)
-        return self._mirror_weights[key]
+        with self._mirror_weights_lock:
+            if key not in self._mirror_weights:
+                self._mirror_weights[key] = road_mirror_weight(self.K, rotation, self.height,
+                                                               self.width, reflectance)
+            return self._mirror_weights[key]
 
-    def _lay_puddles(self, blended: np.ndarray, surface: np.ndarray, mirror: np.ndarray,
-                     pose: np.ndarray, depth: np.ndarray) -> None:
-        """Blend the puddles into ``blended`` (H, W, 3) float32, in place: under each puddle
-        the ``mirror`` at water's Fresnel reflectance over the plain ``surface`` seen through
-        the water, in linear light (:func:`~rainbench.rain.weather.puddle_water`)."""
-        rig = self._rig  # the frame's weathers differ only in the puddles' size
-        found = self._per_frame(
-            "puddles", depth, pose.tobytes() + rig.puddles.tobytes() + rig.puddle_phases.tobytes(),
-            lambda: puddle_pixels(self.K, pose, depth, rig.puddles, rig.puddle_phases))
-        coverage = puddle_coverage_at(found, rig.puddle_scale)
+    def _lay_puddles(self, cache: _FrameCache, blended: np.ndarray, surface: np.ndarray,
+                     mirror: np.ndarray, pose: np.ndarray, depth: np.ndarray,
+                     puddle_shapes: tuple[np.ndarray, np.ndarray], puddle_scale: float) -> None:
+        """Blend the puddles (``puddle_shapes``: the rig's ``puddles`` and ``puddle_phases``), at
+        ``puddle_scale``, into ``blended`` (H, W, 3) float32, in place: under each puddle the
+        ``mirror`` at water's Fresnel reflectance over the plain ``surface`` seen through the
+        water, in linear light (:func:`~rainbench.rain.weather.puddle_water`)."""
+        puddles, phases = puddle_shapes  # the frame's weathers differ only in the puddles' size
+        found = cache.get("puddles", pose.tobytes() + puddles.tobytes() + phases.tobytes(),
+                          lambda: puddle_pixels(self.K, pose, depth, puddles, phases))
+        coverage = puddle_coverage_at(found, puddle_scale)
         rows, cols = np.nonzero(coverage)  # the water is mixed where puddles lie only
         if not rows.size:
             return

@@ -317,6 +317,43 @@ def test_frames_in_flight_keep_the_bytes_the_order_and_the_bound(tmp_path, monke
     assert list((tmp_path / "failed").iterdir()) == []
 
 
+def test_weather_images_finished_off_the_render_thread_keep_the_bytes(tmp_path, monkeypatch):
+    """``physical`` with the weather following the rate at night (wet road, puddles, the lamps'
+    mirror images and glow): each re-render's array work is left to the pool's threads
+    (PendingImage) while the next frames render, and the shard's bytes are the serial run's, also
+    when a frame's images are finished only after later frames have changed the renderer's
+    weather and the scene's state."""
+    from rainbench.gen import generate as gen_module
+    from rainbench.gen import render as render_module
+
+    config = GenerateConfig(seed=5, frame_offset=60, frames=4, width=96, height=72,
+                            rates=(0.0, 25.0, 100.0), rain_model="physical", sky="overcast",
+                            time_of_day="night")
+    assert config.follows_rate
+    result, finished_in = render_module.PendingImage.result, []
+
+    def watched_result(self):
+        if self._image is None:  # work left: record the thread that does it
+            finished_in.append(threading.current_thread().name)
+        return result(self)
+
+    monkeypatch.setattr(render_module.PendingImage, "result", watched_result)
+    serial = hashlib.sha256(generate_shard(config, tmp_path / "serial", threads=1).read_bytes())
+    assert finished_in and set(finished_in) == {threading.main_thread().name}
+    finished_in.clear()
+    rain_for_frame = gen_module._rain_for_frame
+
+    def late_rain(config, frame, K, global_frame, *args):
+        # frame 60's images are finished after frames 61 and 62 have rendered (0.15 s each here)
+        time.sleep(0.8 if global_frame == 60 else 0.0)
+        return rain_for_frame(config, frame, K, global_frame, *args)
+
+    monkeypatch.setattr(gen_module, "_rain_for_frame", late_rain)
+    pipelined = generate_shard(config, tmp_path / "pipelined", threads=4, frames_in_flight=3)
+    assert hashlib.sha256(pipelined.read_bytes()).hexdigest() == serial.hexdigest()
+    assert finished_in and all(name.startswith("rainbench-rate") for name in finished_in)
+
+
 def test_frames_in_flight_default_and_bad_values(tmp_path):
     from rainbench.gen.generate import default_frames_in_flight
 
