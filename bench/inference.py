@@ -28,8 +28,13 @@ models have a 960 px card) when present, else a yolo11n from its yaml.
 The model runs on ``--device`` (default: CUDA when present, else the CPU); ONNX and Darknet run
 on the CPU.
 
+Each figure is printed as soon as it is measured (a run cut short still shows what it got);
+``--skip`` leaves measurements out by name (``baseline``, ``ultralytics``, ``batched``,
+``forward``, ``shards``, ``onnx``, ``darknet``; without the baseline no ratios). A Darknet network
+this OpenCV cannot read (OpenCV 5 has no Darknet importer) is reported as unavailable.
+
 Usage: ``python bench/inference.py [--weights rainbench-yolo11n] [--json OUT] [--imgsz 640]
-[--images 32] [--batch 32] [--repeats 2] [--device cpu]``
+[--images 32] [--batch 32] [--repeats 2] [--device cpu] [--skip onnx,darknet]``
 """
 
 from __future__ import annotations
@@ -155,6 +160,10 @@ def shard_rate(detector, count: int, imgsz: int, batch: int, repeats: int, folde
     return best_rate(run, [None] * images, images, repeats)
 
 
+MEASUREMENTS = ("baseline", "ultralytics", "batched", "forward", "shards", "onnx", "darknet")
+"""The measurements in the order they run (``--skip`` takes their names)."""
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--weights", default="rainbench-yolo11n", help="shipped model name")
@@ -164,14 +173,34 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--device", default=None, help="torch device (default: CUDA when present, else cpu)")
+    parser.add_argument("--skip", default="", help="comma-separated measurements to leave out, of "
+                        + ", ".join(MEASUREMENTS) + " (e.g. onnx,darknet on a GPU machine: both run on the CPU)")
     args = parser.parse_args(argv)
+    skip = {name for name in args.skip.split(",") if name}
+    if skip - set(MEASUREMENTS):
+        parser.error(f"--skip: expected names among {', '.join(MEASUREMENTS)}, got {', '.join(sorted(skip - set(MEASUREMENTS)))}")
     device = args.device or ("0" if torch.cuda.is_available() else "cpu")
     threads = torch.get_num_threads()
+    started = time.perf_counter()
 
     from ultralytics import YOLO
 
     images = frames(args.images)
     settings = dict(imgsz=args.imgsz, conf=0.001, iou=0.7, max_det=300)
+    rates: dict[str, float] = {}
+    unavailable: dict[str, str] = {}
+
+    def measure(name: str, label: str, rate) -> None:
+        """Run the measurement ``name`` (``rate()`` gives images/s) unless skipped, and print its
+        figure at once, so a run cut short still shows what it measured."""
+        if name in skip:
+            return
+        start = time.perf_counter()
+        rates[label] = rate()
+        print(f"{label}: {rates[label]:.1f} images/s (measured in {time.perf_counter() - start:.0f} s, "
+              f"{time.perf_counter() - started:.0f} s since the start)", flush=True)
+
+    agreed = None
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         if args.weights in registry.shipped_models():
@@ -184,38 +213,49 @@ def main(argv: list[str] | None = None) -> int:
             model.model = DetectionModel("yolo11n.yaml", nc=4, verbose=False)
             model.model.names = {0: "person", 1: "bicycle", 2: "car", 3: "motorcycle"}
             model.save(weights)
+        print(f"{len(images)} frames rendered, {time.perf_counter() - started:.0f} s since the start", flush=True)
         direct = YOLO(weights)
         bgr = [np.ascontiguousarray(image[..., ::-1]) for image in images]
-        rates = {"baseline ultralytics predict": best_rate(
+        measure("baseline", "baseline ultralytics predict", lambda: best_rate(
             lambda chunk: direct.predict(chunk, verbose=False, device=device, **settings), bgr, args.batch,
-            args.repeats)}
+            args.repeats))
         torch.set_num_threads(threads)  # ultralytics' predict set it to cores - 1 on the CPU
         detector = backends.load_detector(weights, device=device, pt_backend="ultralytics")
-        rates["ultralytics backend"] = best_rate(lambda chunk: detector.predict(chunk, **settings), images,
-                                                 args.batch, args.repeats)
+        measure("ultralytics", "ultralytics backend", lambda: best_rate(
+            lambda chunk: detector.predict(chunk, **settings), images, args.batch, args.repeats))
         batched = backends.load_detector(weights, device=device)  # a .pt path: the batched backend
-        rates["batched backend"] = best_rate(lambda chunk: batched.predict(chunk, **settings), images,
-                                             args.batch, args.repeats)
-        agreed = agreement(detector.predict(images, **settings), batched.predict(images, **settings))
-        rates["forward pass alone (batched backend's network)"] = forward_rate(
-            batched, images, args.imgsz, args.batch, args.repeats)
-        rates["eval from shards, 11 rates (batched backend)"] = shard_rate(
-            batched, args.images, args.imgsz, args.batch, args.repeats, folder)
-        onnx_detector = backends.load_detector(registry.export_onnx(weights, folder / "model.onnx"))
-        rates["onnx backend"] = best_rate(lambda chunk: onnx_detector.predict(chunk, **settings), images,
-                                          args.batch, args.repeats)
-        darknet = backends.load_detector(darknet_files(folder))
-        rates["darknet backend (yolov4-tiny-sized, 416)"] = best_rate(
-            lambda chunk: darknet.predict(chunk, **settings), images, args.batch, args.repeats)
-    baseline = rates["baseline ultralytics predict"]
+        measure("batched", "batched backend", lambda: best_rate(
+            lambda chunk: batched.predict(chunk, **settings), images, args.batch, args.repeats))
+        if not {"ultralytics", "batched"} & skip:
+            agreed = agreement(detector.predict(images, **settings), batched.predict(images, **settings))
+            print(f"batched backend's agreement with the ultralytics backend: {agreed:.4f}", flush=True)
+        measure("forward", "forward pass alone (batched backend's network)", lambda: forward_rate(
+            batched, images, args.imgsz, args.batch, args.repeats))
+        measure("shards", "eval from shards, 11 rates (batched backend)", lambda: shard_rate(
+            batched, args.images, args.imgsz, args.batch, args.repeats, folder))
+        if "onnx" not in skip:
+            onnx_detector = backends.load_detector(registry.export_onnx(weights, folder / "model.onnx"))
+            measure("onnx", "onnx backend", lambda: best_rate(
+                lambda chunk: onnx_detector.predict(chunk, **settings), images, args.batch, args.repeats))
+        if "darknet" not in skip:
+            try:
+                darknet = backends.load_detector(darknet_files(folder))
+            except backends.BackendError as error:  # OpenCV 5 has no Darknet importer
+                unavailable["darknet"] = str(error)
+                print(f"darknet backend: not measured: {error}", flush=True)
+            else:
+                measure("darknet", "darknet backend (yolov4-tiny-sized, 416)", lambda: best_rate(
+                    lambda chunk: darknet.predict(chunk, **settings), images, args.batch, args.repeats))
+    baseline = rates.get("baseline ultralytics predict")
     result = {
         "benchmark": "inference", "model": label, "images": len(images), "batch": args.batch,
         "imgsz": args.imgsz, "machine": platform.machine(), "cpus": os.cpu_count(),
         "torch_threads": threads, "cuda": torch.cuda.is_available(), "device": device,
         "batched_precision": "fp16" if batched.half else "fp32",
-        "batched_agreement_with_baseline": round(agreed, 4),
+        "batched_agreement_with_baseline": None if agreed is None else round(agreed, 4),
         "images_per_s": {k: round(v, 2) for k, v in rates.items()},
-        "ratio_vs_baseline": {k: round(v / baseline, 3) for k, v in rates.items()},
+        "ratio_vs_baseline": {k: round(v / baseline, 3) for k, v in rates.items()} if baseline else {},
+        "skipped": sorted(skip), "unavailable": unavailable,
     }
     text = json.dumps(result, indent=1)
     print(text)
