@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import platform
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -256,7 +257,9 @@ def share_clean_predictions(first_results: Path, results: Path, models: Sequence
 def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *, workers: int = 1,
               force: bool = False, progress: bool = True) -> Path:
     """Generate, evaluate and report; returns ``OUT/report.md``. Datasets go to
-    ``data_root/<rain model>/`` and are reused (resumed) by later runs with the same config."""
+    ``data_root/<rain model>/`` and are reused (resumed) by later runs with the same config.
+    With ``progress``, progress bars and, as each phase ends, its wall time
+    (``paper: generate jeon2022: 14.2 s``) go to stderr."""
     from rainbench.eval.backends import check_model_classes, load_detector
     from rainbench.eval.backends.ultralytics import preload_torch
     from rainbench.eval.weights import model_imgsz, resolve_weights
@@ -289,6 +292,8 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
         start = time.perf_counter()
         run_dataset(replace(data, rain_model=rain_model, weather_follows_rate=follows), data_dir, workers=workers)
         timings[f"generate {name}"] = time.perf_counter() - start
+        if progress:  # each phase's time as it ends: a run cut short still shows where it went
+            print(f"paper: generate {name}: {timings[f'generate {name}']:.1f} s", file=sys.stderr, flush=True)
         written = Dataset(data_dir)
         for shard in range(len(written.shards)):
             with written.open(shard) as handle:
@@ -304,6 +309,8 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
                            progress=progress, classes=config.classes, references=references,
                            metrics=config.metrics)
         timings[f"evaluate {name}"] = time.perf_counter() - start
+        if progress:
+            print(f"paper: evaluate {name}: {timings[f'evaluate {name}']:.1f} s", file=sys.stderr, flush=True)
         records_by_rain[name] = outputs.records
         robustness[name] = outputs.robustness
     models = list(dict.fromkeys(record["model"] for record in records_by_rain[config.rain_models[0]]))

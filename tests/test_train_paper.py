@@ -454,8 +454,12 @@ def test_shipped_onnx_copy_matches_the_shipped_checkpoint(tmp_path, name):
 def test_paper_reduced_end_to_end(tmp_path, capsys):
     code, stdout, err = _run(capsys, "paper", "--frames", 4, "--width", 192, "--height", 144, "--rates", "0,50,100",
                              "--data", tmp_path / "data", "--out", tmp_path / "out", "--n-boot", 5,
-                             "--imgsz", 192, "--quiet")
+                             "--imgsz", 192)
     assert code == 0, err
+    # without --quiet each phase's wall time is printed as it ends, in the order it ran
+    phases = re.findall(r"^paper: (generate|evaluate) ([\w-]+): \d+\.\d s$", err, re.MULTILINE)
+    assert phases == [(step, rain) for rain in ("jeon2022", "physical", "physical-fixed-weather")
+                      for step in ("generate", "evaluate")]
     report = (tmp_path / "out" / "report.md").read_text()
     for heading in ("Table I.", "Table III. AP@0.5, Normal vs 100mm/h: jeon2022",
                     "Table IV. F1, Normal vs 100mm/h: physical", "falls to half its clean value",
