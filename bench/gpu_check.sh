@@ -7,18 +7,26 @@
 # Steps, in this order (GPU_CHECK_STEPS picks some; each is cut at its own cap, and a step is
 # skipped once fewer than 30 s are left before GPU_CHECK_SECONDS, default 540, have passed):
 #   env        the GPU, torch, the GL renderer that MuJoCo's EGL context gets, core count
-#   inference  bench/inference.py: rainbench-yolo11s at 960 px, batch 64 (eval images/s, the
-#              fp16 forward pass, ultralytics' predict; target >= 800 images/s from shards)
+#   profile    bench/generate_profile.py: where one process's generation time goes, stage by
+#              stage (the paper clip with jeon2022; 40 frames of it with physical)
+#   inference  bench/inference.py: rainbench-yolo11s at 960 px, batch 64, 128 frames (eval
+#              images/s, the fp16 forward pass, ultralytics' predict; target >= 800 images/s
+#              from shards); ONNX and Darknet, CPU paths, left out; each figure printed as it
+#              is measured
 #   dataset    bench/dataset.py end to end: the paper clip, jeon2022 (target <= 3.0x the bare
 #              loop) and physical with the weather following the rate (<= 4.0x), one worker
 #   pieces     the same with 16 workers: the clip in 16 pieces, each its own GL context
-#   paper      `rainbench paper --workers 14` with both shipped models and both rain models,
-#              timed (target <= 60 s); its report comes back
-#   agreement  bench/backend_agreement.py on the paper's jeon2022 data: batched backend against
-#              ultralytics' predict, AP@0.5 within 0.002 per class
 #   scaling    bench/dataset.py scaling: 16 workers on 16 scenes against 1 worker, 50 frames,
 #              11 rates (target >= 10x)
-# Everything it prints goes to $OUT/check.log too; JSON and the report go to $OUT (8 files).
+#   agreement  bench/backend_agreement.py on the paper's jeon2022 data: batched backend against
+#              ultralytics' predict, AP@0.5 within 0.002 per class
+#   paper      `rainbench paper --workers 14` with both shipped models and both rain models,
+#              timed (target <= 60 s), each phase's time printed as it ends; its report comes
+#              back when it finishes
+# On the first GPU run (2026-11-27) the paper step did not finish in its 252 s and the
+# inference step printed nothing in its 120 s, so both now print as they go and come last or
+# smaller; the agreement step generates its paper clip (jeon2022) itself.
+# Everything it prints goes to $OUT/check.log too; JSON and the report go to $OUT (at most 8 files).
 # Locally (no install, the project's venv): GPU_CHECK_PYTHON=.venv/bin/python GPU_CHECK_INSTALL=0
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -28,7 +36,7 @@ mkdir -p "$OUT"
 exec > >(tee -a "$OUT/check.log") 2>&1
 start=$(date +%s)
 deadline=$((start + ${GPU_CHECK_SECONDS:-540}))
-steps=${GPU_CHECK_STEPS:-"env inference dataset pieces paper agreement scaling"}
+steps=${GPU_CHECK_STEPS:-"env profile inference dataset pieces scaling agreement paper"}
 source bench/gpu_env.sh
 echo "== installed in $(($(date +%s) - start)) s"
 
@@ -68,18 +76,22 @@ if [[ " $steps " == *" env "* ]]; then
           || echo "no nvidia-smi"
       step env 60 "$python" /tmp/gpu_check_env.py; } | tee "$OUT/env.txt"
 fi
-step inference 120 "$python" bench/inference.py --weights rainbench-yolo11s --imgsz 960 \
-    --images 256 --batch 64 --json "$OUT/inference.json"
+# the profiles' tables are in check.log ($OUT returns at most 8 files)
+step profile 60 "$python" bench/generate_profile.py --rain-model jeon2022
+step profile 60 "$python" bench/generate_profile.py --rain-model physical --frames 40
+step inference 150 "$python" bench/inference.py --weights rainbench-yolo11s --imgsz 960 \
+    --images 128 --batch 64 --repeats 1 --skip onnx,darknet --json "$OUT/inference.json"
 step dataset 150 "$python" bench/dataset.py --skip scaling,reader --json "$OUT/dataset.json"
 step pieces 120 "$python" bench/dataset.py --skip scaling,reader --workers 16 --json "$OUT/dataset_pieces.json"
+step scaling 200 "$python" bench/dataset.py --skip e2e,weather,reader --scaling-workers 16 \
+    --scaling-frames 50 --scaling-rates 0:100:10 --json "$OUT/scaling.json"
+step agreement 60 "$python" -m rainbench.cli generate --out data/agreement --rates 0:100:10 \
+    --workers 14 --quiet
+step agreement 120 "$python" bench/backend_agreement.py --weights rainbench-yolo11s \
+    --data data/agreement --json "$OUT/agreement.json"
 # the paper step's time is the figure of the target (<= 60 s)
-step paper 300 "$python" -m rainbench.cli paper --workers 14 --data data/paper --out results/paper \
-    --quiet
+step paper 300 "$python" -m rainbench.cli paper --workers 14 --data data/paper --out results/paper
 if [[ " $steps " == *" paper "* && -f results/paper/report.md ]]; then
     cp results/paper/report.md "$OUT/paper_report.md"
 fi
-step agreement 120 "$python" bench/backend_agreement.py --weights rainbench-yolo11s \
-    --data data/paper/jeon2022 --json "$OUT/agreement.json"
-step scaling 200 "$python" bench/dataset.py --skip e2e,weather,reader --scaling-workers 16 \
-    --scaling-frames 50 --scaling-rates 0:100:10 --json "$OUT/scaling.json"
 echo "== done in $(($(date +%s) - start)) s"
