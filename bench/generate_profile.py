@@ -30,7 +30,9 @@ driver's threads, such as Mesa's llvmpipe, is not in it) are summed over the thr
 it, so stages run in parallel add up to more than the wall time; wall seconds well above CPU
 seconds in a pool stage mean its threads waited for a core or for the GIL. ``main thread waiting`` is what the main thread spent neither in setup
 nor in its own stages: waiting for frames in flight (back-pressure) and handing frames over.
-``cores busy`` is the process's CPU time over the wall time.
+``cores busy`` is the process's CPU time over the wall time; the time from the process's start
+to the generation (interpreter and imports, what every worker process pays) is printed too.
+``--threads 1 --frames 13`` is one of 16 pieces of the paper clip, as a worker renders it.
 
     python bench/generate_profile.py [--rain-model jeon2022] [--frames 200] [--threads N]
         [--frames-in-flight K] [--json OUT]
@@ -53,6 +55,17 @@ from rainbench.gen.config import DatasetConfig
 from rainbench.gen.render import FrameRenderer, PendingImage
 from rainbench.rain import weather as wx
 from rainbench.store import shard
+
+
+def process_age_s() -> float | None:
+    """Seconds since this process started (the interpreter's start and the imports so far, when
+    called first thing), from Linux's /proc; None elsewhere."""
+    try:
+        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
 
 
 class StageTimers:
@@ -116,7 +129,8 @@ def install(timers: StageTimers) -> None:
     timers.wrap(shard.ShardWriter, "commit", "commit")
 
 
-def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight: int | None) -> dict:
+def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight: int | None,
+            started_s: float | None = None) -> dict:
     config = DatasetConfig(frames=frames, clip_frames=max(frames, 200), rain_model=rain_model,
                            rates=tuple(float(rate) for rate in range(0, 101, 10))).tasks()[0]
     timers = StageTimers()
@@ -135,7 +149,8 @@ def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight:
         "rates": len(config.rates), "weather_follows_rate": config.follows_rate,
         "width": config.width, "height": config.height, "threads": threads,
         "frames_in_flight": in_flight, "cpu_count": os.cpu_count(),
-        "gl_backend": os.environ.get("MUJOCO_GL", ""), "wall_s": wall, "cpu_s": cpu,
+        "gl_backend": os.environ.get("MUJOCO_GL", ""), "process_start_to_generate_s": started_s,
+        "wall_s": wall, "cpu_s": cpu,
         "cores_busy": cpu / wall, "main_thread_waiting_s": max(0.0, wall - main_stages),
         "stages": {stage: {"seconds": seconds, "cpu_seconds": timers.cpu_seconds[stage],
                            "calls": timers.calls[stage],
@@ -150,7 +165,9 @@ def table(result: dict) -> str:
              f"{result['width']}x{result['height']}, {result['threads']} threads, "
              f"{result['frames_in_flight']} frames in flight, {result['gl_backend'] or 'default'} GL: "
              f"wall {result['wall_s']:.1f} s, CPU {result['cpu_s']:.1f} s "
-             f"({result['cores_busy']:.1f} cores busy)",
+             f"({result['cores_busy']:.1f} cores busy); process start and imports before it: "
+             + (f"{result['process_start_to_generate_s']:.1f} s"
+                if result["process_start_to_generate_s"] is not None else "unknown"),
              f"{'stage':<52} {'thread':>6} {'calls':>6} {'seconds':>8} {'CPU s':>7} {'ms/frame':>9}"]
     for stage, row in sorted(result["stages"].items(), key=lambda item: -item[1]["seconds"]):
         lines.append(f"{stage:<52} {row['thread']:>6} {row['calls']:>6} {row['seconds']:>8.2f} "
@@ -172,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.frames < 1:
         parser.error(f"--frames: expected an integer >= 1, got {args.frames}")
-    result = profile(args.rain_model, args.frames, args.threads, args.frames_in_flight)
+    result = profile(args.rain_model, args.frames, args.threads, args.frames_in_flight,
+                     started_s=process_age_s())
     print(table(result), flush=True)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

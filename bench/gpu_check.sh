@@ -8,7 +8,8 @@
 # skipped once fewer than 30 s are left before GPU_CHECK_SECONDS, default 540, have passed):
 #   env        the GPU, torch, the GL renderer that MuJoCo's EGL context gets, core count
 #   profile    bench/generate_profile.py: where one process's generation time goes, stage by
-#              stage (the paper clip with jeon2022; 40 frames of it with physical)
+#              stage, wall and CPU (the paper clip with jeon2022; 40 frames of it with
+#              physical; 13 frames on one thread, as one of 16 pieces)
 #   inference  bench/inference.py: rainbench-yolo11s at 960 px, batch 64, 128 frames (eval
 #              images/s, the fp16 forward pass, ultralytics' predict; target >= 800 images/s
 #              from shards); ONNX and Darknet, CPU paths, left out; each figure printed as it
@@ -79,6 +80,7 @@ fi
 # the profiles' tables are in check.log ($OUT returns at most 8 files)
 step profile 60 "$python" bench/generate_profile.py --rain-model jeon2022
 step profile 60 "$python" bench/generate_profile.py --rain-model physical --frames 40
+step profile 30 "$python" bench/generate_profile.py --frames 13 --threads 1  # one of 16 pieces
 step inference 150 "$python" bench/inference.py --weights rainbench-yolo11s --imgsz 960 \
     --images 128 --batch 64 --repeats 1 --skip onnx,darknet --json "$OUT/inference.json"
 step dataset 150 "$python" bench/dataset.py --skip scaling,reader --json "$OUT/dataset.json"

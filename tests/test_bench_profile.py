@@ -1,0 +1,61 @@
+"""bench/generate_profile.py, the stage profile the GPU check runs first (bench/gpu_check.sh):
+its timers must reach every stage of a real generation, or a GPU session's one try reports
+nothing for the stages whose functions were renamed or moved. Run in a subprocess: the
+profile wraps module functions for the rest of its process."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "bench" / "generate_profile.py"
+
+
+def _profile(tmp_path, *args):
+    out = tmp_path / "profile.json"
+    run = subprocess.run([sys.executable, str(SCRIPT), *args, "--json", str(out)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300,
+                         env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    assert run.returncode == 0, run.stderr[-2000:]
+    return json.loads(out.read_text()), run.stdout
+
+
+@pytest.mark.parametrize("rain_model, stages", [
+    ("jeon2022", ("scene build", "GL renderer start", "simulate", "render: RGB",
+                  "render: segmentation", "labels (total, incl. actor passes)", "rain sweep",
+                  "statistics: clean references (SSIM)", "statistics: clean references (boxes)",
+                  "statistics: SSIM / PSNR per rate", "statistics: box rain labels per rate",
+                  "compress", "write (writer thread, incl. compress)", "commit")),
+    ("physical", ("render: weather re-renders", "weather images' array work",
+                  "weather rain (spray, sweeps, camera response)", "camera response",
+                  "rain sweep", "compress")),
+])
+def test_the_profile_times_every_stage_of_a_real_generation(tmp_path, rain_model, stages):
+    frames = 2 if rain_model == "jeon2022" else 1
+    result, table = _profile(tmp_path, "--rain-model", rain_model, "--frames", str(frames),
+                             "--threads", "2")
+    assert result["frames"] == frames and result["rates"] == 11 and result["threads"] == 2
+    assert result["weather_follows_rate"] == (rain_model == "physical")
+    for stage in stages:
+        row = result["stages"].get(stage)
+        assert row is not None, f"{stage}: never timed (its function was renamed or moved?)"
+        assert row["calls"] >= 1 and row["seconds"] > 0 and row["cpu_seconds"] >= 0
+        assert stage in table
+    once = ("scene build", "GL renderer start", "commit")
+    assert all(result["stages"][stage]["calls"] == 1 for stage in once if stage in stages)
+    if rain_model == "jeon2022":
+        assert result["stages"]["compress"]["calls"] == 11 * frames  # every image of every rate
+        assert result["stages"]["statistics: SSIM / PSNR per rate"]["calls"] == 10 * frames
+    assert 0 < result["cpu_s"] and 0 < result["wall_s"]
+    assert result["process_start_to_generate_s"] > 0
+    assert "main thread waiting" in table
+
+
+def test_the_profile_refuses_no_frames(tmp_path):
+    run = subprocess.run([sys.executable, str(SCRIPT), "--frames", "0"], capture_output=True,
+                         text=True, cwd=ROOT, timeout=120)
+    assert run.returncode == 2 and "--frames: expected an integer >= 1, got 0" in run.stderr
