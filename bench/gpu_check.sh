@@ -6,7 +6,8 @@
 #
 # Steps, in this order (GPU_CHECK_STEPS picks some; each is cut at its own cap, and a step is
 # skipped once fewer than 30 s are left before GPU_CHECK_SECONDS, default 540, have passed):
-#   env        the GPU, torch, the GL renderer that MuJoCo's EGL context gets, core count
+#   env        the GPU, torch, the GL renderer that MuJoCo's EGL context gets, core count, and
+#              the disk's write speed (1 GiB with fsync in data/ and /tmp)
 #   profile    bench/generate_profile.py: where one process's generation time goes, stage by
 #              stage, wall and CPU (the paper clip with jeon2022; 40 frames of it with
 #              physical; 13 frames on one thread, as one of 16 pieces)
@@ -75,7 +76,15 @@ EOF
 if [[ " $steps " == *" env "* ]]; then
     { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null \
           || echo "no nvidia-smi"
-      step env 60 "$python" /tmp/gpu_check_env.py; } | tee "$OUT/env.txt"
+      step env 60 "$python" /tmp/gpu_check_env.py
+      # the paper clip's shard is about 1.2 GB (2 200 deflated images): what writing it costs
+      for folder in data /tmp; do
+          mkdir -p "$folder"
+          echo "disk write, 1 GiB with fsync, in $folder: $(dd if=/dev/zero of="$folder/gpu_check_dd" \
+              bs=1M count=1024 conv=fsync 2>&1 | tail -1)"
+          rm -f "$folder/gpu_check_dd"
+      done
+      df -h data /tmp | tail -n +2; } | tee "$OUT/env.txt"
 fi
 # the profiles' tables are in check.log ($OUT returns at most 8 files)
 step profile 60 "$python" bench/generate_profile.py --rain-model jeon2022
