@@ -32,10 +32,12 @@ seconds in a pool stage mean its threads waited for a core or for the GIL. ``mai
 nor in its own stages: waiting for frames in flight (back-pressure) and handing frames over.
 ``cores busy`` is the process's CPU time over the wall time; the time from the process's start
 to the generation (interpreter and imports, what every worker process pays) is printed too.
-``--threads 1 --frames 13`` is one of 16 pieces of the paper clip, as a worker renders it.
+``--threads 1 --frames 13`` is one of 16 pieces of the paper clip, as a worker renders it;
+``--workers 16`` makes the clip in 16 pieces and shows the parent's side: when the pieces were
+joined and what copying them into the shard cost.
 
     python bench/generate_profile.py [--rain-model jeon2022] [--frames 200] [--threads N]
-        [--frames-in-flight K] [--json OUT]
+        [--frames-in-flight K] [--workers N] [--json OUT]
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ from pathlib import Path
 from rainbench import rain
 from rainbench.gen import generate, sim
 from rainbench.gen.config import DatasetConfig
+from rainbench.gen.dataset import run_dataset
 from rainbench.gen.render import FrameRenderer, PendingImage
 from rainbench.rain import weather as wx
 from rainbench.store import shard
@@ -160,6 +163,52 @@ def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight:
     }
 
 
+def profile_pieces(rain_model: str, frames: int, workers: int) -> dict:
+    """The clip made by ``workers`` processes in pieces (``run_dataset``, as ``rainbench
+    generate --workers N``), seen from the parent: when each piece's shard was joined into the
+    clip's shard, and what copying the pieces and committing cost (the workers' own stages are
+    in their processes: profile one piece with ``--threads 1 --frames <its length>``)."""
+    config = DatasetConfig(frames=frames, clip_frames=max(frames, 200), rain_model=rain_model,
+                           rates=tuple(float(rate) for rate in range(0, 101, 10)))
+    timers = StageTimers()
+    timers.wrap(generate.ShardAssembler, "add", "join: copy a piece's chunks (parent)")
+    timers.wrap(generate.ShardAssembler, "commit", "join: commit the shard (parent)")
+    joined: list[float] = []
+    add = generate.ShardAssembler.add
+
+    def noted_add(self, piece):
+        add(self, piece)
+        joined.append(time.perf_counter() - wall_start)
+
+    generate.ShardAssembler.add = noted_add
+    with tempfile.TemporaryDirectory() as tmp:
+        wall_start = time.perf_counter()
+        run_dataset(config, Path(tmp) / "clip", workers=workers)
+        wall = time.perf_counter() - wall_start
+        size = sum(path.stat().st_size for path in (Path(tmp) / "clip").glob("*.h5"))
+    return {
+        "benchmark": "generate_profile", "mode": "pieces", "rain_model": rain_model,
+        "frames": frames, "rates": len(config.rates), "workers": workers,
+        "pieces": len(generate.piece_configs(config.tasks()[0], workers)),
+        "cpu_count": os.cpu_count(), "gl_backend": os.environ.get("MUJOCO_GL", ""),
+        "wall_s": wall, "shard_bytes": size, "joined_at_s": joined,
+        "stages": {stage: {"seconds": seconds, "cpu_seconds": timers.cpu_seconds[stage],
+                           "calls": timers.calls[stage]}
+                   for stage, seconds in timers.seconds.items()},
+    }
+
+
+def pieces_table(result: dict) -> str:
+    joined = result["joined_at_s"]
+    lines = [f"{result['rain_model']}, {result['frames']} frames x {result['rates']} rates in "
+             f"{result['pieces']} pieces by {result['workers']} workers: wall {result['wall_s']:.1f} s, "
+             f"shard {result['shard_bytes'] / 1e9:.2f} GB; pieces joined from {joined[0]:.1f} s to "
+             f"{joined[-1]:.1f} s" if joined else "no piece was joined (one piece: the shard itself)"]
+    for stage, row in result["stages"].items():
+        lines.append(f"{stage:<52} {row['calls']:>6} {row['seconds']:>8.2f} s {row['cpu_seconds']:>7.2f} CPU s")
+    return "\n".join(lines)
+
+
 def table(result: dict) -> str:
     lines = [f"{result['rain_model']}, {result['frames']} frames x {result['rates']} rates, "
              f"{result['width']}x{result['height']}, {result['threads']} threads, "
@@ -185,13 +234,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=None, help="default: one per core")
     parser.add_argument("--frames-in-flight", type=int, default=None,
                         help="default: generate_shard's own (one per 4 threads, 2 to 8)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="profile the clip made in pieces by this many worker processes "
+                             "(the parent's view: when the pieces were joined, what joining cost)")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
     if args.frames < 1:
         parser.error(f"--frames: expected an integer >= 1, got {args.frames}")
-    result = profile(args.rain_model, args.frames, args.threads, args.frames_in_flight,
-                     started_s=process_age_s())
-    print(table(result), flush=True)
+    if args.workers is not None and args.workers < 2:
+        parser.error(f"--workers: expected an integer >= 2 (pieces), got {args.workers}")
+    if args.workers is not None:
+        result = profile_pieces(args.rain_model, args.frames, args.workers)
+        print(pieces_table(result), flush=True)
+    else:
+        result = profile(args.rain_model, args.frames, args.threads, args.frames_in_flight,
+                         started_s=process_age_s())
+        print(table(result), flush=True)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(result, indent=1) + "\n")

@@ -10,7 +10,8 @@
 #              the disk's write speed (1 GiB with fsync in data/ and /tmp)
 #   profile    bench/generate_profile.py: where one process's generation time goes, stage by
 #              stage, wall and CPU (the paper clip with jeon2022; 40 frames of it with
-#              physical; 13 frames on one thread, as one of 16 pieces)
+#              physical; 13 frames on one thread, as one of 16 pieces), and the clip in 16
+#              pieces from the parent's side (when they were joined, what joining cost)
 #   inference  bench/inference.py: rainbench-yolo11s at 960 px, batch 64, 128 frames (eval
 #              images/s, the fp16 forward pass, ultralytics' predict; target >= 800 images/s
 #              from shards); ONNX and Darknet, CPU paths, left out; each figure printed as it
@@ -77,7 +78,7 @@ if [[ " $steps " == *" env "* ]]; then
     { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null \
           || echo "no nvidia-smi"
       step env 60 "$python" /tmp/gpu_check_env.py
-      # the paper clip's shard is about 1.2 GB (2 200 deflated images): what writing it costs
+      # the paper clip's shard is about 1.5 GB (2 200 deflated images): what writing it costs
       for folder in data /tmp; do
           mkdir -p "$folder"
           echo "disk write, 1 GiB with fsync, in $folder: $(dd if=/dev/zero of="$folder/gpu_check_dd" \
@@ -90,6 +91,7 @@ fi
 step profile 60 "$python" bench/generate_profile.py --rain-model jeon2022
 step profile 60 "$python" bench/generate_profile.py --rain-model physical --frames 40
 step profile 30 "$python" bench/generate_profile.py --frames 13 --threads 1  # one of 16 pieces
+step profile 60 "$python" bench/generate_profile.py --workers 16  # the 16 pieces, joined
 step inference 150 "$python" bench/inference.py --weights rainbench-yolo11s --imgsz 960 \
     --images 128 --batch 64 --repeats 1 --skip onnx,darknet --json "$OUT/inference.json"
 step dataset 150 "$python" bench/dataset.py --skip scaling,reader --json "$OUT/dataset.json"

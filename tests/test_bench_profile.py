@@ -55,7 +55,20 @@ def test_the_profile_times_every_stage_of_a_real_generation(tmp_path, rain_model
     assert "main thread waiting" in table
 
 
-def test_the_profile_refuses_no_frames(tmp_path):
-    run = subprocess.run([sys.executable, str(SCRIPT), "--frames", "0"], capture_output=True,
-                         text=True, cwd=ROOT, timeout=120)
-    assert run.returncode == 2 and "--frames: expected an integer >= 1, got 0" in run.stderr
+def test_the_profile_refuses_no_frames_and_one_worker(tmp_path):
+    for flags, message in ((["--frames", "0"], "--frames: expected an integer >= 1, got 0"),
+                           (["--workers", "1"], r"--workers: expected an integer >= 2 (pieces), got 1")):
+        run = subprocess.run([sys.executable, str(SCRIPT), *flags], capture_output=True,
+                             text=True, cwd=ROOT, timeout=120)
+        assert run.returncode == 2 and message in run.stderr, run.stderr
+
+
+def test_the_pieces_profile_sees_every_piece_joined(tmp_path):
+    result, table = _profile(tmp_path, "--frames", "16", "--workers", "2")
+    assert result["mode"] == "pieces" and result["pieces"] == 2 and result["workers"] == 2
+    assert len(result["joined_at_s"]) == 2 and result["joined_at_s"] == sorted(result["joined_at_s"])
+    assert 0 < result["joined_at_s"][-1] <= result["wall_s"]
+    assert result["stages"]["join: copy a piece's chunks (parent)"]["calls"] == 2
+    assert result["stages"]["join: commit the shard (parent)"]["calls"] == 1
+    assert result["shard_bytes"] > 16 * 11 * 100_000  # 176 deflated 800x600 images
+    assert "pieces joined from" in table
