@@ -109,27 +109,31 @@ the labels' total holds its actor passes, so only the total counts towards the m
 
 def install(timers: StageTimers) -> None:
     """Wrap every stage's function where ``generate_shard`` looks it up."""
-    timers.wrap(generate, "build_scene", "scene build")
-    timers.wrap(FrameRenderer, "__init__", "GL renderer start")
-    timers.wrap(sim, "advance", "simulate")
-    timers.wrap(FrameRenderer, "render_rgb", "render: RGB")
-    timers.wrap(FrameRenderer, "_segmentation_pass", "render: segmentation")
-    timers.wrap(FrameRenderer, "start_weather", "render: weather re-renders")
-    timers.wrap(FrameRenderer, "start_glow", "render: lamp glow")
-    timers.wrap(PendingImage, "result", "weather images' array work")
-    timers.wrap(FrameRenderer, "render_alone", "render: labels' actor passes")
-    timers.wrap(generate, "frame_labels", "labels (total, incl. actor passes)")
-    timers.wrap(generate, "_weather_rain", "weather rain (spray, sweeps, camera response)")
-    timers.wrap(rain, "render_rain_sweep", "rain sweep")
-    timers.wrap(wx, "camera_response", "camera response")
-    timers.wrap(rain.SsimReference, "quality", "statistics: SSIM / PSNR per rate")
-    timers.wrap(rain.BoxRainReference, "labels", "statistics: box rain labels per rate")
-    # the constructors last: the classes' names then point to timed functions
-    timers.wrap(rain, "SsimReference", "statistics: clean references (SSIM)")
-    timers.wrap(rain, "BoxRainReference", "statistics: clean references (boxes)")
-    timers.wrap(shard, "_deflate", "compress")
-    timers.wrap(shard.ShardWriter, "write_frame", "write (writer thread, incl. compress)")
-    timers.wrap(shard.ShardWriter, "commit", "commit")
+    stages = (
+        (generate, "build_scene", "scene build"),
+        (FrameRenderer, "__init__", "GL renderer start"),
+        (sim, "advance", "simulate"),
+        (FrameRenderer, "render_rgb", "render: RGB"),
+        (FrameRenderer, "_segmentation_pass", "render: segmentation"),
+        (FrameRenderer, "start_weather", "render: weather re-renders"),
+        (FrameRenderer, "start_glow", "render: lamp glow"),
+        (PendingImage, "result", "weather images' array work"),
+        (FrameRenderer, "render_alone", "render: labels' actor passes"),
+        (generate, "frame_labels", "labels (total, incl. actor passes)"),
+        (generate, "_weather_rain", "weather rain (spray, sweeps, camera response)"),
+        (rain, "render_rain_sweep", "rain sweep"),
+        (wx, "camera_response", "camera response"),
+        (rain.SsimReference, "quality", "statistics: SSIM / PSNR per rate"),
+        (rain.BoxRainReference, "labels", "statistics: box rain labels per rate"),
+        # the constructors after their methods: the classes' names then point to timed functions
+        (rain, "SsimReference", "statistics: clean references (SSIM)"),
+        (rain, "BoxRainReference", "statistics: clean references (boxes)"),
+        (shard, "_deflate", "compress"),
+        (shard.ShardWriter, "write_frame", "write (writer thread, incl. compress)"),
+        (shard.ShardWriter, "commit", "commit"),
+    )
+    for owner, attribute, stage in stages:
+        timers.wrap(owner, attribute, stage)
 
 
 def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight: int | None,
