@@ -28,8 +28,9 @@ timers wrapped around:
 A stage's seconds (wall) and CPU seconds (the calling thread's own CPU time: GL work done in the
 driver's threads, such as Mesa's llvmpipe, is not in it) are summed over the threads that ran
 it, so stages run in parallel add up to more than the wall time; wall seconds well above CPU
-seconds in a pool stage mean its threads waited for a core or for the GIL. ``main thread waiting`` is what the main thread spent neither in setup
-nor in its own stages: waiting for frames in flight (back-pressure) and handing frames over.
+seconds in a pool stage mean its threads waited for a core or for the GIL. ``main thread
+waiting`` is what the main thread spent neither in setup nor in its own stages: waiting for
+frames in flight (back-pressure) and handing frames over.
 ``cores busy`` is the process's CPU time over the wall time; the time from the process's start
 to the generation (interpreter and imports, what every worker process pays) is printed too.
 ``--threads 1 --frames 13`` is one of 16 pieces of the paper clip, as a worker renders it;
