@@ -12,7 +12,7 @@ from pathlib import Path
 from rainbench import gl
 from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
 from rainbench.gen.config import (HFOV_DEG, MAX_FPS, MAX_FRAME_OFFSET, MAX_FRAMES, MAX_SCENES,
-                                  MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig)
+                                  MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig, stats_device_for)
 from rainbench.rain.config import RAIN_MODELS, RAIN_OPTIONS, RainConfig
 from rainbench.rain.weather import SKIES, TIMES_OF_DAY
 
@@ -178,7 +178,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
                            clip_frames=args.clip_frames, rates=parse_rates(args.rates),
                            rain_model=args.rain_model, rain_seed=args.rain_seed, store=args.store,
                            weather_follows_rate=args.weather_follows_rate,
-                           rain_options=_rain_options(args.rain_option))
+                           rain_options=_rain_options(args.rain_option),
+                           stats_device=_stats_device(args.device))
     out = _writable_dir(Path(args.out), "OUT")
     _choose_gl(args.gl)
     from tqdm import tqdm
@@ -198,6 +199,20 @@ def cmd_generate(args: argparse.Namespace) -> int:
                                overwrite=args.overwrite, progress=bar.update)
     print(manifest)
     return 0
+
+
+def _stats_device(device: str | None) -> str:
+    """The dataset's ``stats_device`` of ``--device`` (:func:`stats_device_for`); a CUDA device
+    asked for by name on a machine where torch sees none is refused here, before anything
+    renders."""
+    resolved = stats_device_for(device)
+    if resolved != "cpu" and device not in (None, "auto"):
+        import torch  # noqa: PLC0415 -- only when a GPU is asked for
+
+        if not torch.cuda.is_available():
+            raise CliError(f"--device {device}: CUDA is not available on this machine "
+                           "(torch.cuda.is_available() is False); use --device cpu")
+    return resolved
 
 
 def _printable(text: str) -> str:
@@ -379,7 +394,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_paper(args: argparse.Namespace) -> int:
     from rainbench.store.rates import parse_rates
 
-    dataset = DatasetConfig(**_scene_fields(args), scenes=args.scenes, rates=parse_rates(args.rates))
+    dataset = DatasetConfig(**_scene_fields(args), scenes=args.scenes, rates=parse_rates(args.rates),
+                            stats_device=_stats_device(args.device))
     out = _writable_dir(Path(args.out), "--out")
     _choose_gl(None)
     import torch
@@ -546,6 +562,11 @@ def build_parser() -> argparse.ArgumentParser:
     generate.add_argument("--threads", type=_positive_int("THREADS", 1024), default=None,
                           help="rain, statistics and compression threads per worker (default: "
                                "cores / workers; 1 = each worker on one core)")
+    generate.add_argument("--device", default="auto",
+                          help="where each rate's statistics (SSIM, PSNR, per-box rain labels) are "
+                               "computed: auto (a CUDA GPU if torch sees one, else cpu), cpu, cuda "
+                               "or cuda:N; the figures agree to float32 rounding, and the manifest "
+                               "records the device")
     generate.add_argument("--executor", choices=("local", "ray"), default="local")
     generate.add_argument("--ray-address", default=None,
                           help="address of an existing Ray cluster (default: start a local one)")
@@ -683,7 +704,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="letterbox size (default: each model's own, as rainbench eval)")
     paper.add_argument("--batch", type=_positive_int("BATCH", 4096), default=32)
     paper.add_argument("--n-boot", type=_positive_int("N_BOOT", 1_000_000), default=1000)
-    paper.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
+    paper.add_argument("--device", default=None,
+                       help="torch device for evaluation and for the datasets' statistics, e.g. "
+                            "cpu or 0 (default: CUDA 0 if present, else cpu)")
     paper.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=1,
                        help="generation processes (the clip is rendered in up to that many pieces, "
                             "docs/datasets.md)")

@@ -20,7 +20,9 @@ timers wrapped around:
   ``physical`` with weather, ``weather rain`` (spray, rain in each weather's light, camera
   response; holds the sweep);
 - ``statistics: ...``: the clean image's SSIM and per-box references, then each rate's SSIM /
-  PSNR and per-box rain labels (statistics threads);
+  PSNR and per-box rain labels (statistics threads); with ``--device cuda`` (the default where
+  torch sees a GPU) ``statistics: torch, all rates of a frame`` instead (frame threads: the
+  images' copy to the device, the batched filters and the figures' copy back);
 - ``compress``: libdeflate of every image (the writer's threads); ``write``: the writer
   thread's whole :meth:`~rainbench.store.shard.ShardWriter.write_frame` (it waits for the
   compression); ``commit``: the tables and the rename (once).
@@ -38,7 +40,7 @@ to the generation (interpreter and imports, what every worker process pays) is p
 joined and what copying them into the shard cost.
 
     python bench/generate_profile.py [--rain-model jeon2022] [--frames 200] [--threads N]
-        [--frames-in-flight K] [--workers N] [--json OUT]
+        [--frames-in-flight K] [--workers N] [--device auto] [--json OUT]
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ from pathlib import Path
 
 from rainbench import rain
 from rainbench.gen import generate, sim
-from rainbench.gen.config import DatasetConfig
+from rainbench.gen.config import DatasetConfig, stats_device_for
 from rainbench.gen.dataset import run_dataset
 from rainbench.gen.render import FrameRenderer, PendingImage
 from rainbench.rain import weather as wx
@@ -108,8 +110,9 @@ MAIN_THREAD_STAGES = ("scene build", "GL renderer start", "simulate", "render: R
 the labels' total holds its actor passes, so only the total counts towards the main thread."""
 
 
-def install(timers: StageTimers) -> None:
-    """Wrap every stage's function where ``generate_shard`` looks it up."""
+def install(timers: StageTimers, stats_device: str = "cpu") -> None:
+    """Wrap every stage's function where ``generate_shard`` looks it up (the torch statistics'
+    too when ``stats_device`` is not ``"cpu"``)."""
     stages = (
         (generate, "build_scene", "scene build"),
         (FrameRenderer, "__init__", "GL renderer start"),
@@ -133,16 +136,21 @@ def install(timers: StageTimers) -> None:
         (shard.ShardWriter, "write_frame", "write (writer thread, incl. compress)"),
         (shard.ShardWriter, "commit", "commit"),
     )
+    if stats_device != "cpu":
+        from rainbench.rain.metrics_torch import TorchRateStatistics  # noqa: PLC0415 -- torch
+
+        stages += ((TorchRateStatistics, "frame", "statistics: torch, all rates of a frame"),)
     for owner, attribute, stage in stages:
         timers.wrap(owner, attribute, stage)
 
 
 def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight: int | None,
-            started_s: float | None = None) -> dict:
+            started_s: float | None = None, stats_device: str = "cpu") -> dict:
     config = DatasetConfig(frames=frames, clip_frames=max(frames, 200), rain_model=rain_model,
-                           rates=tuple(float(rate) for rate in range(0, 101, 10))).tasks()[0]
+                           rates=tuple(float(rate) for rate in range(0, 101, 10)),
+                           stats_device=stats_device).tasks()[0]
     timers = StageTimers()
-    install(timers)
+    install(timers, stats_device)
     threads = threads or os.cpu_count() or 1
     in_flight = frames_in_flight or generate.default_frames_in_flight(threads)
     with tempfile.TemporaryDirectory() as tmp:
@@ -156,7 +164,7 @@ def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight:
         "benchmark": "generate_profile", "rain_model": rain_model, "frames": frames,
         "rates": len(config.rates), "weather_follows_rate": config.follows_rate,
         "width": config.width, "height": config.height, "threads": threads,
-        "frames_in_flight": in_flight, "cpu_count": os.cpu_count(),
+        "frames_in_flight": in_flight, "stats_device": stats_device, "cpu_count": os.cpu_count(),
         "gl_backend": os.environ.get("MUJOCO_GL", ""), "process_start_to_generate_s": started_s,
         "wall_s": wall, "cpu_s": cpu,
         "cores_busy": cpu / wall, "main_thread_waiting_s": max(0.0, wall - main_stages),
@@ -168,13 +176,14 @@ def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight:
     }
 
 
-def profile_pieces(rain_model: str, frames: int, workers: int) -> dict:
+def profile_pieces(rain_model: str, frames: int, workers: int, stats_device: str = "cpu") -> dict:
     """The clip made by ``workers`` processes in pieces (``run_dataset``, as ``rainbench
     generate --workers N``), seen from the parent: when each piece's shard was joined into the
     clip's shard, and what copying the pieces and committing cost (the workers' own stages are
     in their processes: profile one piece with ``--threads 1 --frames <its length>``)."""
     config = DatasetConfig(frames=frames, clip_frames=max(frames, 200), rain_model=rain_model,
-                           rates=tuple(float(rate) for rate in range(0, 101, 10)))
+                           rates=tuple(float(rate) for rate in range(0, 101, 10)),
+                           stats_device=stats_device)
     timers = StageTimers()
     timers.wrap(generate.ShardAssembler, "add", "join: copy a piece's chunks (parent)")
     timers.wrap(generate.ShardAssembler, "commit", "join: commit the shard (parent)")
@@ -194,6 +203,7 @@ def profile_pieces(rain_model: str, frames: int, workers: int) -> dict:
     return {
         "benchmark": "generate_profile", "mode": "pieces", "rain_model": rain_model,
         "frames": frames, "rates": len(config.rates), "workers": workers,
+        "stats_device": stats_device,
         "pieces": len(generate.piece_configs(config.tasks()[0], workers)),
         "cpu_count": os.cpu_count(), "gl_backend": os.environ.get("MUJOCO_GL", ""),
         "wall_s": wall, "shard_bytes": size, "joined_at_s": joined,
@@ -217,7 +227,8 @@ def pieces_table(result: dict) -> str:
 def table(result: dict) -> str:
     lines = [f"{result['rain_model']}, {result['frames']} frames x {result['rates']} rates, "
              f"{result['width']}x{result['height']}, {result['threads']} threads, "
-             f"{result['frames_in_flight']} frames in flight, {result['gl_backend'] or 'default'} GL: "
+             f"{result['frames_in_flight']} frames in flight, statistics on {result['stats_device']}, "
+             f"{result['gl_backend'] or 'default'} GL: "
              f"wall {result['wall_s']:.1f} s, CPU {result['cpu_s']:.1f} s "
              f"({result['cores_busy']:.1f} cores busy); process start and imports before it: "
              + (f"{result['process_start_to_generate_s']:.1f} s"
@@ -242,18 +253,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=None,
                         help="profile the clip made in pieces by this many worker processes "
                              "(the parent's view: when the pieces were joined, what joining cost)")
+    parser.add_argument("--device", default="auto",
+                        help="the statistics' device, as rainbench generate --device (default: "
+                             "auto, a CUDA GPU where torch sees one)")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
+    stats_device = stats_device_for(args.device)
     if args.frames < 1:
         parser.error(f"--frames: expected an integer >= 1, got {args.frames}")
     if args.workers is not None and args.workers < 2:
         parser.error(f"--workers: expected an integer >= 2 (pieces), got {args.workers}")
     if args.workers is not None:
-        result = profile_pieces(args.rain_model, args.frames, args.workers)
+        result = profile_pieces(args.rain_model, args.frames, args.workers, stats_device)
         print(pieces_table(result), flush=True)
     else:
         result = profile(args.rain_model, args.frames, args.threads, args.frames_in_flight,
-                         started_s=process_age_s())
+                         started_s=process_age_s(), stats_device=stats_device)
         print(table(result), flush=True)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

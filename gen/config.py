@@ -17,7 +17,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -50,6 +52,8 @@ MAX_FPS = 1000.0
 """Largest frame rate in frames per second (``--fps``: (0, 1000])."""
 HFOV_DEG = (10.0, 170.0)
 """Range of the camera's horizontal field of view in degrees (``--hfov``)."""
+STATS_DEVICE = re.compile(r"cpu|cuda(:[0-9]+)?")
+"""The devices the per-rate statistics run on (``--device``, :attr:`ClipConfig.stats_device`)."""
 PAPER_CLIP = {"seed": 0, "sky": "cloudy", "layout": "street", "time_of_day": "day"}
 """The seed paper's clip (its CARLA clip was a straight drive under cloud, by day): what the CLI
 renders when none of --seed, --sky, --layout, --time is given, and ``make paper``'s scene."""
@@ -88,6 +92,10 @@ class ClipConfig:
     # Whether sky, light, wet road, spray and camera follow the rain rate; None: the rain
     # model's default (on for physical, off for jeon2022: the seed paper's method).
     weather_follows_rate: bool | None = None
+    # Where each rate's statistics (SSIM, PSNR, per-box rain labels) are computed: "cpu"
+    # (NumPy/OpenCV) or a CUDA device ("cuda", "cuda:N") through torch, all of a frame's rates
+    # in one batch. The figures agree to float32 rounding, not byte for byte.
+    stats_device: str = "cpu"
 
     def __post_init__(self) -> None:
         """Check every shared field (one-line errors naming it); ``rates`` and ``store`` become
@@ -134,6 +142,9 @@ class ClipConfig:
         if self.weather_follows_rate not in (None, True, False):
             raise DatasetError(f"weather_follows_rate: expected True, False or None, got "
                                f"{self.weather_follows_rate!r}")
+        if not (isinstance(self.stats_device, str) and STATS_DEVICE.fullmatch(self.stats_device)):
+            raise DatasetError(f"stats_device: expected cpu, cuda or cuda:N, got "
+                               f"{self.stats_device!r}")
 
     def _check_rain(self) -> None:
         """``rain_model`` and ``rain_options``: the rain of every rate > 0, built once here so
@@ -228,9 +239,10 @@ class DatasetConfig(ClipConfig):
 
     def to_dict(self) -> dict:
         """The config as the manifest's ``config`` object (rates as floats; ``first_frame`` and
-        ``clip_frames`` only where they are not their defaults, so that datasets written before
-        they existed still match their config)."""
-        config = dataclasses.asdict(self)
+        ``clip_frames`` only where they are not their defaults, and ``stats_device`` only where
+        it is not ``"cpu"``, so that datasets written before they existed still match their
+        config)."""
+        config = _without_cpu_device(dataclasses.asdict(self))
         config["rates"] = [float(rate) for rate in self.rates]
         config["store"] = list(self.store)
         if self.first_frame == 0:
@@ -292,8 +304,10 @@ class GenerateConfig(ClipConfig):
         return dataclasses.replace(scenario, **chosen) if chosen else scenario
 
     def to_dict(self) -> dict:
-        """The config with the scenario resolved (:meth:`scenario_config`)."""
-        config = dataclasses.asdict(self)
+        """The config with the scenario resolved (:meth:`scenario_config`); ``stats_device``
+        only where it is not ``"cpu"`` (a CPU shard's bytes are those of shards written before
+        the field existed)."""
+        config = _without_cpu_device(dataclasses.asdict(self))
         config["scenario"] = dataclasses.asdict(self.scenario_config())
         return config
 
@@ -301,6 +315,37 @@ class GenerateConfig(ClipConfig):
         """The shard's ``config`` attribute: :meth:`to_dict` as JSON with sorted keys (an
         infinite float as ``"inf"``, numpy scalars as numbers)."""
         return json.dumps(self.to_dict(), sort_keys=True, default=_json_default)
+
+
+def stats_device_for(device: str | None) -> str:
+    """The :attr:`ClipConfig.stats_device` of a ``--device`` value.
+
+    ``None`` or ``"auto"``: ``"cuda"`` when torch sees a CUDA GPU, else ``"cpu"`` (torch is
+    imported only on a machine with an NVIDIA device node, ``/dev/nvidiactl``, so a CPU machine
+    does not pay its import); ``"cpu"``; a CUDA index as torch's ``--device`` takes it (``"0"``,
+    ``"0,1"``: the first) -> ``"cuda:0"``; ``"cuda"`` and ``"cuda:N"`` as given. Anything else
+    raises :class:`DatasetError` naming it.
+    """
+    text = "auto" if device is None else str(device).strip().lower()
+    if text == "auto":
+        if not Path("/dev/nvidiactl").exists():
+            return "cpu"
+        import torch  # noqa: PLC0415 -- only where a GPU may be
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    first = text.split(",")[0]
+    if first.isdigit():
+        text = f"cuda:{first}"
+    if not STATS_DEVICE.fullmatch(text):
+        raise DatasetError(f"--device: expected auto, cpu, cuda, cuda:N or a CUDA index, got {device!r}")
+    return text
+
+
+def _without_cpu_device(config: dict) -> dict:
+    """``config`` without its ``stats_device`` where that is the default ``"cpu"``."""
+    if config.get("stats_device") == "cpu":
+        del config["stats_device"]
+    return config
 
 
 def _json_default(value):

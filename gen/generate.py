@@ -180,7 +180,7 @@ def shard_attrs(config: GenerateConfig, layout: L.Layout) -> dict:
 
 def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int,
                     pool: ThreadPoolExecutor | None, weathers: list[Weather],
-                    layout: L.Layout, base_weather: Weather):
+                    layout: L.Layout, base_weather: Weather, statistics=None):
     """The R images of one frame (a list of (H, W, 3) uint8, in the order of the rates; rows at
     rate 0 are the clean image itself) and its per-rate statistics.
 
@@ -190,7 +190,9 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     With it, each rate starts from its own weather's render, gets tyre spray, rain drawn in its
     light (exposure time, airlight) and the camera's response (exposure level, sensor noise).
     The per-rate statistics run in ``pool`` threads (OpenCV and numpy release the GIL), or in
-    this thread when ``pool`` is None.
+    this thread when ``pool`` is None; with ``statistics`` (a
+    :class:`~rainbench.rain.metrics_torch.TorchRateStatistics`, the config's ``stats_device``)
+    they run there instead, all rates of the frame in one batch.
     """
     from rainbench.rain import weather as wx  # noqa: PLC0415
     from rainbench.rain._seeding import STREAM_NOISE, child_generator  # noqa: PLC0415
@@ -220,7 +222,7 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     from rainbench import rain  # noqa: PLC0415 -- only needed when it rains
 
     # the clean image's half of the statistics, in a pool thread while the rain is drawn here
-    references = (pool.submit if pool is not None else _call_now)(
+    references = None if statistics is not None else (pool.submit if pool is not None else _call_now)(
         lambda: (rain.SsimReference(frame.rgb), rain.BoxRainReference(frame.rgb, frame.labels.bbox)))
     rain_config = config.rain_config()
     # lens water persists over the clip: seeded by the clip, placed by the frame's time
@@ -238,17 +240,35 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
         frames, coverages = _weather_rain(config, frame, K, seeds, clock, rain_config,
                                           [weathers[r] for r in rainy_rows],
                                           [rates[r] for r in rainy_rows], layout, noise)
-    ssim_reference, box_reference = references.result()
-
-    def statistics(row_frame_coverage):
-        row, rainy, rain_coverage = row_frame_coverage
+    for row, rainy in zip(rainy_rows, frames):
         images[row] = rainy.rgb
         drop_count[row] = rainy.drop_count
+    if statistics is not None:
+        ssim[rainy_rows], psnr[rainy_rows], coverage[rainy_rows], contrast[rainy_rows] = \
+            statistics.frame(frame.rgb, [rainy.rgb for rainy in frames], coverages,
+                             frame.labels.bbox)
+        return images, drop_count, ssim, psnr, coverage, contrast
+    ssim_reference, box_reference = references.result()
+
+    def row_statistics(row_frame_coverage):
+        row, rainy, rain_coverage = row_frame_coverage
         ssim[row], psnr[row] = ssim_reference.quality(rainy.rgb)
         coverage[row], contrast[row] = box_reference.labels(rainy.rgb, rain_coverage)
 
-    list((pool.map if pool is not None else map)(statistics, zip(rainy_rows, frames, coverages)))
+    list((pool.map if pool is not None else map)(row_statistics, zip(rainy_rows, frames, coverages)))
     return images, drop_count, ssim, psnr, coverage, contrast
+
+
+def rate_statistics(config: GenerateConfig):
+    """Where a shard's per-rate statistics run: None for ``stats_device`` ``"cpu"`` (NumPy and
+    OpenCV over the statistics threads), else a
+    :class:`~rainbench.rain.metrics_torch.TorchRateStatistics` on that device. A CUDA device
+    without CUDA raises ValueError naming ``stats_device``."""
+    if config.stats_device == "cpu":
+        return None
+    from rainbench.rain.metrics_torch import TorchRateStatistics  # noqa: PLC0415 -- imports torch
+
+    return TorchRateStatistics(config.stats_device, config.height, config.width)
 
 
 def _call_now(function: Callable[[], object]) -> concurrent.futures.Future:
@@ -350,6 +370,7 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     if not (isinstance(frames_in_flight, int) and not isinstance(frames_in_flight, bool)
             and frames_in_flight >= 1):
         raise ValueError(f"frames_in_flight: expected an integer >= 1, got {frames_in_flight!r}")
+    statistics = rate_statistics(config)  # a missing GPU fails before the scene is built
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     setup = build_scene(config)
@@ -362,7 +383,7 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
 
     def rain_of(index: int, frame: FrameResult, K: np.ndarray) -> tuple:
         return _rain_for_frame(config, frame, K, config.frame_offset + index, stats_pool,
-                               weathers, setup.layout, base_weather)
+                               weathers, setup.layout, base_weather, statistics)
 
     def write(index: int, frame: FrameResult, rained) -> None:
         """Store frame ``index``; ``rained`` is its rain (a tuple, or a future of one)."""

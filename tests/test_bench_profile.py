@@ -37,9 +37,10 @@ def _profile(tmp_path, *args):
 def test_the_profile_times_every_stage_of_a_real_generation(tmp_path, rain_model, stages):
     frames = 2 if rain_model == "jeon2022" else 1
     result, table = _profile(tmp_path, "--rain-model", rain_model, "--frames", str(frames),
-                             "--threads", "2")
+                             "--threads", "2", "--device", "cpu")
     assert result["frames"] == frames and result["rates"] == 11 and result["threads"] == 2
     assert result["weather_follows_rate"] == (rain_model == "physical")
+    assert result["stats_device"] == "cpu" and "statistics on cpu" in table
     for stage in stages:
         row = result["stages"].get(stage)
         assert row is not None, f"{stage}: never timed (its function was renamed or moved?)"
@@ -72,3 +73,24 @@ def test_the_pieces_profile_sees_every_piece_joined(tmp_path):
     assert result["stages"]["join: commit the shard (parent)"]["calls"] == 1
     assert result["shard_bytes"] > 16 * 11 * 100_000  # 176 deflated 800x600 images
     assert "pieces joined from" in table
+
+
+def test_the_profile_times_the_torch_statistics_where_they_run():
+    """With a GPU statistics device the profile wraps the batched torch statistics (run here
+    on the CPU: the stage is the same function)."""
+    code = """
+import numpy as np, sys
+sys.path.insert(0, "bench")
+import generate_profile as gp
+from rainbench.rain.metrics_torch import TorchRateStatistics
+timers = gp.StageTimers()
+gp.install(timers, "cuda")
+clean = np.zeros((24, 32, 3), np.uint8)
+TorchRateStatistics("cpu", 24, 32).frame(clean, [clean + 9], [np.zeros((24, 32), np.float32)],
+                                         np.array([[1, 1, 9, 9]], np.float32))
+print(timers.calls)
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "'statistics: torch, all rates of a frame': 1" in run.stdout
