@@ -40,7 +40,7 @@ to the generation (interpreter and imports, what every worker process pays) is p
 joined and what copying them into the shard cost.
 
     python bench/generate_profile.py [--rain-model jeon2022] [--frames 200] [--threads N]
-        [--frames-in-flight K] [--workers N] [--device auto] [--json OUT]
+        [--frames-in-flight K] [--workers N] [--device auto] [--out DIR] [--json OUT]
 """
 
 from __future__ import annotations
@@ -145,7 +145,8 @@ def install(timers: StageTimers, stats_device: str = "cpu") -> None:
 
 
 def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight: int | None,
-            started_s: float | None = None, stats_device: str = "cpu") -> dict:
+            started_s: float | None = None, stats_device: str = "cpu",
+            out_dir: str | None = None) -> dict:
     config = DatasetConfig(frames=frames, clip_frames=max(frames, 200), rain_model=rain_model,
                            rates=tuple(float(rate) for rate in range(0, 101, 10)),
                            stats_device=stats_device).tasks()[0]
@@ -153,7 +154,7 @@ def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight:
     install(timers, stats_device)
     threads = threads or os.cpu_count() or 1
     in_flight = frames_in_flight or generate.default_frames_in_flight(threads)
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
         cpu_start, wall_start = time.process_time(), time.perf_counter()
         generate.generate_shard(config, Path(tmp), threads=threads, frames_in_flight=in_flight)
         wall = time.perf_counter() - wall_start
@@ -165,6 +166,7 @@ def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight:
         "rates": len(config.rates), "weather_follows_rate": config.follows_rate,
         "width": config.width, "height": config.height, "threads": threads,
         "frames_in_flight": in_flight, "stats_device": stats_device, "cpu_count": os.cpu_count(),
+        "out_dir": str(Path(out_dir or tempfile.gettempdir()).resolve()),
         "gl_backend": os.environ.get("MUJOCO_GL", ""), "process_start_to_generate_s": started_s,
         "wall_s": wall, "cpu_s": cpu,
         "cores_busy": cpu / wall, "main_thread_waiting_s": max(0.0, wall - main_stages),
@@ -176,7 +178,8 @@ def profile(rain_model: str, frames: int, threads: int | None, frames_in_flight:
     }
 
 
-def profile_pieces(rain_model: str, frames: int, workers: int, stats_device: str = "cpu") -> dict:
+def profile_pieces(rain_model: str, frames: int, workers: int, stats_device: str = "cpu",
+                   out_dir: str | None = None) -> dict:
     """The clip made by ``workers`` processes in pieces (``run_dataset``, as ``rainbench
     generate --workers N``), seen from the parent: when each piece's shard was joined into the
     clip's shard, and what copying the pieces and committing cost (the workers' own stages are
@@ -195,7 +198,7 @@ def profile_pieces(rain_model: str, frames: int, workers: int, stats_device: str
         joined.append(time.perf_counter() - wall_start)
 
     generate.ShardAssembler.add = noted_add
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
         wall_start = time.perf_counter()
         run_dataset(config, Path(tmp) / "clip", workers=workers)
         wall = time.perf_counter() - wall_start
@@ -204,6 +207,7 @@ def profile_pieces(rain_model: str, frames: int, workers: int, stats_device: str
         "benchmark": "generate_profile", "mode": "pieces", "rain_model": rain_model,
         "frames": frames, "rates": len(config.rates), "workers": workers,
         "stats_device": stats_device,
+        "out_dir": str(Path(out_dir or tempfile.gettempdir()).resolve()),
         "pieces": len(generate.piece_configs(config.tasks()[0], workers)),
         "cpu_count": os.cpu_count(), "gl_backend": os.environ.get("MUJOCO_GL", ""),
         "wall_s": wall, "shard_bytes": size, "joined_at_s": joined,
@@ -216,7 +220,8 @@ def profile_pieces(rain_model: str, frames: int, workers: int, stats_device: str
 def pieces_table(result: dict) -> str:
     joined = result["joined_at_s"]
     lines = [f"{result['rain_model']}, {result['frames']} frames x {result['rates']} rates in "
-             f"{result['pieces']} pieces by {result['workers']} workers: wall {result['wall_s']:.1f} s, "
+             f"{result['pieces']} pieces by {result['workers']} workers, written in "
+             f"{result['out_dir']}: wall {result['wall_s']:.1f} s, "
              f"shard {result['shard_bytes'] / 1e9:.2f} GB; pieces joined from {joined[0]:.1f} s to "
              f"{joined[-1]:.1f} s" if joined else "no piece was joined (one piece: the shard itself)"]
     for stage, row in result["stages"].items():
@@ -228,6 +233,7 @@ def table(result: dict) -> str:
     lines = [f"{result['rain_model']}, {result['frames']} frames x {result['rates']} rates, "
              f"{result['width']}x{result['height']}, {result['threads']} threads, "
              f"{result['frames_in_flight']} frames in flight, statistics on {result['stats_device']}, "
+             f"shard written in {result['out_dir']}, "
              f"{result['gl_backend'] or 'default'} GL: "
              f"wall {result['wall_s']:.1f} s, CPU {result['cpu_s']:.1f} s "
              f"({result['cores_busy']:.1f} cores busy); process start and imports before it: "
@@ -256,19 +262,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="auto",
                         help="the statistics' device, as rainbench generate --device (default: "
                              "auto, a CUDA GPU where torch sees one)")
+    parser.add_argument("--out", default=None,
+                        help="write the shard (a temporary folder) under this directory (default: "
+                             "the system's temporary directory; /dev/shm keeps it off the disk)")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
+    if args.out is not None and not Path(args.out).is_dir():
+        parser.error(f"--out: {args.out} is not a directory")
     stats_device = stats_device_for(args.device)
     if args.frames < 1:
         parser.error(f"--frames: expected an integer >= 1, got {args.frames}")
     if args.workers is not None and args.workers < 2:
         parser.error(f"--workers: expected an integer >= 2 (pieces), got {args.workers}")
     if args.workers is not None:
-        result = profile_pieces(args.rain_model, args.frames, args.workers, stats_device)
+        result = profile_pieces(args.rain_model, args.frames, args.workers, stats_device, args.out)
         print(pieces_table(result), flush=True)
     else:
         result = profile(args.rain_model, args.frames, args.threads, args.frames_in_flight,
-                         started_s=process_age_s(), stats_device=stats_device)
+                         started_s=process_age_s(), stats_device=stats_device, out_dir=args.out)
         print(table(result), flush=True)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

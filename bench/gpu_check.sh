@@ -9,9 +9,11 @@
 #   env        the GPU, torch, the GL renderer that MuJoCo's EGL context gets, core count, and
 #              the disk's write speed (1 GiB with fsync in data/ and /tmp)
 #   profile    bench/generate_profile.py: where one process's generation time goes, stage by
-#              stage, wall and CPU (the paper clip with jeon2022; 40 frames of it with
-#              physical; 13 frames on one thread, as one of 16 pieces), and the clip in 16
-#              pieces from the parent's side (when they were joined, what joining cost)
+#              stage, wall and CPU (the paper clip with jeon2022, its statistics on the GPU;
+#              the same with the statistics on the CPU, and with the shard written to
+#              /dev/shm instead of the disk; 40 frames of it with physical; 13 frames on one
+#              thread, as one of 16 pieces), and the clip in 16 pieces from the parent's side
+#              (when they were joined, what joining cost)
 #   inference  bench/inference.py: rainbench-yolo11s at 960 px, batch 64, 128 frames (eval
 #              images/s, the fp16 forward pass, ultralytics' predict; target >= 800 images/s
 #              from shards); ONNX and Darknet, CPU paths, left out; each figure printed as it
@@ -89,6 +91,8 @@ if [[ " $steps " == *" env "* ]]; then
 fi
 # the profiles' tables are in check.log ($OUT returns at most 8 files)
 step profile 60 "$python" bench/generate_profile.py --rain-model jeon2022
+step profile 45 "$python" bench/generate_profile.py --rain-model jeon2022 --device cpu
+step profile 45 "$python" bench/generate_profile.py --rain-model jeon2022 --out /dev/shm
 step profile 60 "$python" bench/generate_profile.py --rain-model physical --frames 40
 step profile 30 "$python" bench/generate_profile.py --frames 13 --threads 1  # one of 16 pieces
 step profile 60 "$python" bench/generate_profile.py --workers 16  # the 16 pieces, joined

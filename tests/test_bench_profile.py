@@ -37,10 +37,12 @@ def _profile(tmp_path, *args):
 def test_the_profile_times_every_stage_of_a_real_generation(tmp_path, rain_model, stages):
     frames = 2 if rain_model == "jeon2022" else 1
     result, table = _profile(tmp_path, "--rain-model", rain_model, "--frames", str(frames),
-                             "--threads", "2", "--device", "cpu")
+                             "--threads", "2", "--device", "cpu", "--out", str(tmp_path))
     assert result["frames"] == frames and result["rates"] == 11 and result["threads"] == 2
     assert result["weather_follows_rate"] == (rain_model == "physical")
     assert result["stats_device"] == "cpu" and "statistics on cpu" in table
+    assert result["out_dir"] == str(tmp_path.resolve()) and f"written in {tmp_path.resolve()}" in table
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["profile.json"]  # shard removed
     for stage in stages:
         row = result["stages"].get(stage)
         assert row is not None, f"{stage}: never timed (its function was renamed or moved?)"
@@ -58,6 +60,7 @@ def test_the_profile_times_every_stage_of_a_real_generation(tmp_path, rain_model
 
 def test_the_profile_refuses_no_frames_and_one_worker(tmp_path):
     for flags, message in ((["--frames", "0"], "--frames: expected an integer >= 1, got 0"),
+                           (["--out", str(tmp_path / "none")], f"--out: {tmp_path / 'none'} is not a directory"),
                            (["--workers", "1"], r"--workers: expected an integer >= 2 (pieces), got 1")):
         run = subprocess.run([sys.executable, str(SCRIPT), *flags], capture_output=True,
                              text=True, cwd=ROOT, timeout=120)
