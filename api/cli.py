@@ -394,8 +394,12 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_paper(args: argparse.Namespace) -> int:
     from rainbench.store.rates import parse_rates
 
+    from rainbench.experiments.train import check_device
+
+    # the evaluation's device (its own one-line errors) is also where the statistics run
+    stats_device = stats_device_for(check_device(args.device))
     dataset = DatasetConfig(**_scene_fields(args), scenes=args.scenes, rates=parse_rates(args.rates),
-                            stats_device=_stats_device(args.device))
+                            stats_device=stats_device)
     out = _writable_dir(Path(args.out), "--out")
     _choose_gl(None)
     import torch
