@@ -8,15 +8,37 @@
 # tool's 64 MiB: mujoco-studio and glfw (not imported with MUJOCO_GL=egl), h5py (the image has
 # one) and polars (ultralytics imports it only to read back a training run's results.csv).
 #
-# Usage:  bash bench/gpu_prepare.sh
+# The shipped weights are most of the tree (39 MiB of the 44 tracked; each small model 18 MiB).
+# GPU_WEIGHTS="NAME ..." keeps only the named shipped models in the tree for the call and moves
+# the others' files to .aside/ (ignored, so they do not travel): a training needs none of them
+# (GPU_WEIGHTS=none), the check needs rainbench-yolo11s and the models its paper step evaluates
+# (those present). Put them back after the call with `bash bench/gpu_prepare.sh --restore`
+# (also done first by every run of this script); until then git shows them as deleted.
+#
+# Usage:  [GPU_WEIGHTS="rainbench-yolo11s rainbench-yolo11n"] bash bench/gpu_prepare.sh
 # Then:   run(command="bash bench/gpu_check.sh", carry=[".whl", ".gl"], timeout_s=600)
 #    or:  run(command="bash bench/gpu_train.sh RECIPE", carry=[".whl", ".gl"], timeout_s=600)
+# After:  bash bench/gpu_prepare.sh --restore
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+weights=eval/weights
+restore() {  # the weights set aside by an earlier run back into the tree
+    if [[ -d .aside/$weights ]]; then
+        find ".aside/$weights" -type f -exec mv -n -t "$weights" {} +
+        rmdir ".aside/$weights" 2>/dev/null || true
+        echo "gpu_prepare: the weights set aside are back in $weights" \
+             "($(git status --short "$weights" | grep -c '^ D' || true) tracked files still missing)"
+    fi
+}
+restore
+if [[ "${1:-}" == "--restore" ]]; then
+    exit 0
+fi
+
 exclude=.git/info/exclude
 mkdir -p "$(dirname "$exclude")"
-for path in /.whl/ /.gl/; do
+for path in /.whl/ /.gl/ /.aside/; do
     grep -qxF "$path" "$exclude" 2>/dev/null || echo "$path" >> "$exclude"
 done
 
@@ -34,7 +56,18 @@ apt-get "${apt_options[@]}" update -qq
 (cd .gl && apt-get "${apt_options[@]}" download -qq libegl1 libglvnd0 libopengl0 libgl1 \
     libglx0 libgles2)
 
+if [[ -n "${GPU_WEIGHTS:-}" ]]; then
+    mkdir -p ".aside/$weights"
+    for file in "$weights"/*.pt "$weights"/*.onnx; do
+        [[ -e "$file" ]] || continue
+        name=$(basename "$file"); name=${name%.*}
+        [[ " $GPU_WEIGHTS " == *" $name "* ]] || mv "$file" ".aside/$weights/"
+    done
+    echo "gpu_prepare: weights in the tree: $(cd "$weights" && ls *.pt 2>/dev/null | tr '\n' ' ')" \
+         "(the rest in .aside/; bash bench/gpu_prepare.sh --restore puts them back)"
+fi
 tree_kib=$( (git ls-files -z --cached --others --exclude-standard; find .whl .gl -type f -print0) \
+            | while IFS= read -r -d '' file; do [[ -f "$file" ]] && printf '%s\0' "$file"; done \
             | du -ck --files0-from=- | tail -1 | cut -f1)
 echo "wheels: $(du -sh .whl | cut -f1), GL: $(du -sh .gl | cut -f1), tree with both: $((tree_kib / 1024)) MiB (limit 64)"
 if (( tree_kib > 64 * 1024 )); then

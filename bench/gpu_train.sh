@@ -11,6 +11,10 @@
 # RECIPE.pt split into 15 MiB parts (the tool returns files of at most 16 MiB); put them
 # together here with
 #   cat <files_at>/RECIPE.pt.part-* > eval/weights/RECIPE.pt
+# Once the tree with the wheels is over the tool's 64 MiB (each small model adds 18 MiB), keep
+# only the weights the recipe starts from: `GPU_WEIGHTS=rainbench-yolo11s bash
+# bench/gpu_prepare.sh` for a twin (its init_weights), `GPU_WEIGHTS=none` for a model trained
+# from scratch; `bash bench/gpu_prepare.sh --restore` afterwards.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 recipe=${1:?usage: bash bench/gpu_train.sh RECIPE}
