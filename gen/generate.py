@@ -13,6 +13,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -271,6 +272,21 @@ def rate_statistics(config: GenerateConfig):
     return TorchRateStatistics(config.stats_device, config.height, config.width)
 
 
+def _in_thread(function: Callable[..., object], *args) -> concurrent.futures.Future:
+    """``function(*args)`` started in a daemon thread of its own, as a future of its result
+    (or of its exception)."""
+    future: concurrent.futures.Future = concurrent.futures.Future()
+
+    def run() -> None:
+        try:
+            future.set_result(function(*args))
+        except BaseException as error:  # handed to whoever takes the result
+            future.set_exception(error)
+
+    threading.Thread(target=run, name="rainbench-stats-device", daemon=True).start()
+    return future
+
+
 def _call_now(function: Callable[[], object]) -> concurrent.futures.Future:
     """``function()`` run in this thread, as a finished future (the pool-less path)."""
     future: concurrent.futures.Future = concurrent.futures.Future()
@@ -370,7 +386,9 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     if not (isinstance(frames_in_flight, int) and not isinstance(frames_in_flight, bool)
             and frames_in_flight >= 1):
         raise ValueError(f"frames_in_flight: expected an integer >= 1, got {frames_in_flight!r}")
-    statistics = rate_statistics(config)  # a missing GPU fails before the scene is built
+    # a GPU's statistics cost torch's import and a CUDA context (seconds): started in a thread
+    # of their own while the scene builds, taken at the first rainy frame
+    statistics = None if config.stats_device == "cpu" else _in_thread(rate_statistics, config)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     setup = build_scene(config)
@@ -383,7 +401,8 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
 
     def rain_of(index: int, frame: FrameResult, K: np.ndarray) -> tuple:
         return _rain_for_frame(config, frame, K, config.frame_offset + index, stats_pool,
-                               weathers, setup.layout, base_weather, statistics)
+                               weathers, setup.layout, base_weather,
+                               statistics.result() if statistics is not None else None)
 
     def write(index: int, frame: FrameResult, rained) -> None:
         """Store frame ``index``; ``rained`` is its rain (a tuple, or a future of one)."""

@@ -94,11 +94,12 @@ def test_torch_statistics_refuse_tf32_matrix_products():
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error of a machine without CUDA")
-def test_a_cuda_stats_device_without_cuda_fails_before_rendering(tmp_path):
-    with pytest.raises(ValueError, match=r"stats_device cuda: CUDA is not available on this machine"):
-        generate.generate_shard(GenerateConfig(frames=1, width=64, height=48, rates=(0.0, 50.0),
-                                               stats_device="cuda"), tmp_path)
-    assert not any(tmp_path.iterdir())
+def test_a_cuda_stats_device_without_cuda_fails_and_leaves_no_shard(tmp_path):
+    for threads in (1, 2):  # the error of the device's start, taken in this thread or a pool's
+        with pytest.raises(ValueError, match=r"stats_device cuda: CUDA is not available on this machine"):
+            generate.generate_shard(GenerateConfig(frames=2, width=64, height=48, rates=(0.0, 50.0),
+                                                   stats_device="cuda"), tmp_path, threads=threads)
+        assert not any(tmp_path.iterdir())
 
 
 def test_stats_device_field_values_and_what_the_config_records():
