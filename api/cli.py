@@ -212,6 +212,10 @@ def _stats_device(device: str | None) -> str:
         if not torch.cuda.is_available():
             raise CliError(f"--device {device}: CUDA is not available on this machine "
                            "(torch.cuda.is_available() is False); use --device cpu")
+        index = int(resolved.partition(":")[2] or 0)
+        if index >= torch.cuda.device_count():
+            raise CliError(f"--device {device}: this machine has {torch.cuda.device_count()} "
+                           "CUDA device(s)")
     return resolved
 
 

@@ -387,7 +387,7 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
             and frames_in_flight >= 1):
         raise ValueError(f"frames_in_flight: expected an integer >= 1, got {frames_in_flight!r}")
     # a GPU's statistics cost torch's import and a CUDA context (seconds): started in a thread
-    # of their own while the scene builds, taken at the first rainy frame
+    # of their own while the scene builds, taken by the first frame's rain step
     statistics = None if config.stats_device == "cpu" else _in_thread(rate_statistics, config)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -58,9 +58,9 @@ class TorchRateStatistics:
         height, width: the images' size, both >= 11.
 
     Raises:
-        ValueError: a CUDA device without CUDA, an image smaller than the window, or a process
-            whose float32 matrix products may use TF32 (``torch.get_float32_matmul_precision()``
-            must be ``"highest"``).
+        ValueError: a CUDA device without CUDA or beyond the machine's devices, an image smaller
+            than the window, or a process whose float32 matrix products may use TF32
+            (``torch.get_float32_matmul_precision()`` must be ``"highest"``).
 
     Safe to call from several threads at once: it keeps no state between calls beyond the
     window matrices, which it never changes.
@@ -71,6 +71,9 @@ class TorchRateStatistics:
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"stats_device {device}: CUDA is not available on this machine "
                              "(torch.cuda.is_available() is False); use cpu")
+        if self.device.type == "cuda" and (self.device.index or 0) >= torch.cuda.device_count():
+            raise ValueError(f"stats_device {device}: this machine has "
+                             f"{torch.cuda.device_count()} CUDA device(s)")
         if min(height, width) < SSIM_WINDOW:
             raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels "
                              f"(11-tap window), got {width}x{height}")

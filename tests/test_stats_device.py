@@ -102,6 +102,16 @@ def test_a_cuda_stats_device_without_cuda_fails_and_leaves_no_shard(tmp_path):
         assert not any(tmp_path.iterdir())
 
 
+def test_a_cuda_index_beyond_the_machines_devices_is_named(monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match=r"stats_device cuda:1: this machine has 1 CUDA device\(s\)"):
+        TorchRateStatistics("cuda:1", HEIGHT, WIDTH)
+    code = cli_status(["generate", "--out", tmp_path / "data", "--quiet", "--device", "cuda:2"])
+    one_line_error(capsys, code, r"--device cuda:2: this machine has 1 CUDA device\(s\)")
+    assert not (tmp_path / "data").exists()
+
+
 def test_stats_device_field_values_and_what_the_config_records():
     assert DatasetConfig().stats_device == "cpu"
     # "cpu" is left out of the manifest's and the shard's config: old datasets keep matching
