@@ -14,6 +14,8 @@
 #              /dev/shm instead of the disk; 40 frames of it with physical; 13 frames on one
 #              thread, as one of 16 pieces), and the clip in 16 pieces from the parent's side
 #              (when they were joined, what joining cost)
+#   stats      bench/stats_device.py: one frame's per-rate statistics on the GPU (torch) against
+#              the CPU path on every core, in the same run (issue 17, item 3)
 #   inference  bench/inference.py: rainbench-yolo11s at 960 px, batch 64, 128 frames (eval
 #              images/s, the fp16 forward pass, ultralytics' predict; target >= 800 images/s
 #              from shards); ONNX and Darknet, CPU paths, left out; each figure printed as it
@@ -41,7 +43,7 @@ mkdir -p "$OUT"
 exec > >(tee -a "$OUT/check.log") 2>&1
 start=$(date +%s)
 deadline=$((start + ${GPU_CHECK_SECONDS:-540}))
-steps=${GPU_CHECK_STEPS:-"env profile inference dataset pieces scaling agreement paper"}
+steps=${GPU_CHECK_STEPS:-"env profile stats inference dataset pieces scaling agreement paper"}
 source bench/gpu_env.sh
 echo "== installed in $(($(date +%s) - start)) s"
 
@@ -96,6 +98,7 @@ step profile 45 "$python" bench/generate_profile.py --rain-model jeon2022 --out 
 step profile 60 "$python" bench/generate_profile.py --rain-model physical --frames 40
 step profile 30 "$python" bench/generate_profile.py --frames 13 --threads 1  # one of 16 pieces
 step profile 60 "$python" bench/generate_profile.py --workers 16  # the 16 pieces, joined
+step stats 40 "$python" bench/stats_device.py --frames 3
 step inference 150 "$python" bench/inference.py --weights rainbench-yolo11s --imgsz 960 \
     --images 128 --batch 64 --repeats 1 --skip onnx,darknet --json "$OUT/inference.json"
 step dataset 150 "$python" bench/dataset.py --skip scaling,reader --json "$OUT/dataset.json"

@@ -97,3 +97,18 @@ print(timers.calls)
                          timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "'statistics: torch, all rates of a frame': 1" in run.stdout
+
+
+def test_the_statistics_bench_compares_both_paths_on_the_same_frames(tmp_path):
+    """bench/stats_device.py, the GPU check's measure of item 3, run here with the CPU's torch
+    path standing in for the GPU: both paths timed and their figures compared."""
+    out = tmp_path / "stats.json"
+    run = subprocess.run([sys.executable, str(ROOT / "bench" / "stats_device.py"), "--frames", "1",
+                          "--repeats", "1", "--device", "cpu", "--threads", "2", "--json", str(out)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    result = json.loads(out.read_text())
+    assert result["device"] == "cpu" and result["cpu_threads"] == 2 and result["rainy_rates"] == 10
+    assert result["cpu_ms_per_frame"] > 0 and result["device_ms_per_frame"] > 0
+    assert result["largest_difference"]["ssim"] < 1e-5 and result["largest_difference"]["psnr"] == 0
+    assert "statistics of one frame" in run.stdout
