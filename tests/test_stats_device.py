@@ -55,6 +55,14 @@ def test_torch_statistics_equal_the_numpy_path():
         assert psnr[row] == np.float32(expected_psnr)  # the same integer sum: exactly
         np.testing.assert_allclose(rain_coverage[row], expected_coverage, rtol=0, atol=1e-6)
         np.testing.assert_allclose(contrast[row], expected_contrast, rtol=0, atol=1e-5)
+    # and against the independent reference, scikit-image's SSIM on BT.601 luma
+    from skimage.metrics import structural_similarity
+
+    for row, image in enumerate(rainy[:4]):
+        reference = structural_similarity(metrics.luma(clean), metrics.luma(image),
+                                          gaussian_weights=True, sigma=1.5,
+                                          use_sample_covariance=False, data_range=255)
+        assert abs(ssim[row] - reference) < 1e-5
     # the frame exercises every case: contrast lost, a flat box (none), empty boxes (zeros)
     assert contrast[3, 0] > 0.5 and contrast[:, 1].max() == 0.0
     assert (rain_coverage[:, 3:5] == 0).all() and rain_coverage[:, 5].min() > 0.4
