@@ -301,8 +301,8 @@ def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
 
     Each rate's scene (its weather's render with tyre spray) gets rain drawn in its light, then
     the camera's response with the frame's sensor-noise field ``noise`` ((H, W, 3) float32, or
-    None when no weather has gain). Rates whose light (exposure time, airlight) is the same
-    share one rain sweep.
+    None when no weather has gain). Rates whose exposure time is the same share one rain sweep
+    (the falling drops and their streaks drawn once), each blended towards its own airlight.
     """
     from rainbench import rain  # noqa: PLC0415
     from rainbench.rain import weather as wx  # noqa: PLC0415
@@ -317,7 +317,7 @@ def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
                                                child_generator(seeds, STREAM_SPRAY))
         pose = frame.T_world_cam
         spray_points = (world - pose[:3, 3]) @ pose[:3, :3]
-    scenes, sprays, groups = [], [], {}
+    scenes, sprays, airlights, groups = [], [], [], {}
     for index, weather in enumerate(weathers):
         scene = frame.weather_rgb(weather)
         spray = np.zeros((height, width), np.float32)
@@ -327,20 +327,23 @@ def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
             scene = wx.composite_spray(scene, spray, wx.mean_sky_rgb(weather) * wx.SPRAY_BRIGHTNESS)
         scenes.append(scene)
         sprays.append(spray)
-        light = {}
+        light, airlight = {}, None
         if rain_config.model == "physical":
             # the rain is drawn in this weather's light, unless the user fixed these values
             if "exposure_s" not in config.rain_options:
                 light["exposure_s"] = weather.exposure_s
             if "airlight_rgb" not in config.rain_options:
-                light["airlight_rgb"] = tuple(round(float(c), 1) for c in wx.airlight_rgb(weather))
+                airlight = tuple(round(float(c), 1) for c in wx.airlight_rgb(weather))
+        airlights.append(airlight)
         groups.setdefault(tuple(sorted(light.items())), []).append(index)
     rainy: list = [None] * len(weathers)
     for light, members in groups.items():
+        own = [airlights[i] for i in members]
         drawn = rain.render_rain_sweep(frame.rgb, frame.depth, [rates[i] for i in members],
                                        config=dataclasses.replace(rain_config, **dict(light)),
                                        K=K, seed_sequence=seeds, lens_clock=clock,
-                                       scenes=[scenes[i] for i in members])
+                                       scenes=[scenes[i] for i in members],
+                                       airlights=None if own[0] is None else own)
         for index, result in zip(members, drawn):
             rainy[index] = result
     out_frames, out_coverage = [], []

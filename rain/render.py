@@ -201,12 +201,14 @@ def render_rain_sweep(
     seed_sequence: np.random.SeedSequence,
     lens_clock: lens_mod.LensClock | None = None,
     scenes: Sequence[np.ndarray] | None = None,
+    airlights: Sequence[Sequence[float]] | None = None,
 ) -> list[RainFrame]:
     """Render one frame at several rates, sharing the work that does not depend on the rate.
 
     ``render_rain_sweep(rgb, depth, rates, ...)[i]`` equals ``render_rain(rgb, depth,
     rates[i], ...)`` byte for byte (rgb, coverage and drop_count); with ``scenes`` it equals
-    ``render_rain(scenes[i], depth, rates[i], ...)``.
+    ``render_rain(scenes[i], depth, rates[i], ...)``; with ``airlights`` it equals the same
+    with ``config.airlight_rgb = airlights[i]``.
 
     Args:
         rgb, depth, config, K, seed_sequence, lens_clock: as for :func:`render_rain`.
@@ -214,6 +216,11 @@ def render_rain_sweep(
         scenes: optional (H, W, 3) uint8 images, one per entry of ``rates``: the scene the rain
             of that rate is drawn over (the frame re-rendered in that rate's weather); ``rgb``
             otherwise. A rate given twice must come with the same scene.
+        airlights: optional (R, G, B) in 0..255, one per entry of ``rates`` (physical model
+            only): the airlight that rate's extinction and streaks blend towards, in place of
+            ``config.airlight_rgb`` (weather light that changes with the rate; the falling
+            drops and their streaks are still drawn once for all rates). A rate given twice must
+            come with the same airlight.
 
     Returns:
         list of RainFrame, one per entry of ``rates``, in the same order.
@@ -244,8 +251,21 @@ def render_rain_sweep(
             if rate in scene_of and not np.array_equal(scene_of[rate], scene):
                 raise ValueError(f"scenes: rate {rate:g} mm/h is given twice with different scenes")
             scene_of[rate] = scene
+    airlight_of: dict[float, tuple[float, float, float]] | None = None
+    if airlights is not None:
+        if not physical:
+            raise ValueError(f"airlights: only the physical model blends towards an airlight, got model {config.model!r}")
+        if len(airlights) != len(checked):
+            raise ValueError(f"airlights: expected one (R, G, B) per rate ({len(checked)}), got {len(airlights)}")
+        airlight_of = {}
+        for rate, airlight in zip(checked, airlights):
+            # RainConfig checks an airlight as it checks its own airlight_rgb
+            airlight = dataclasses.replace(config, airlight_rgb=tuple(airlight)).airlight_rgb
+            if airlight_of.setdefault(rate, airlight) != airlight:
+                raise ValueError(f"airlights: rate {rate:g} mm/h is given twice with different airlights")
     if physical:
-        frames = _physical_sweep(rgb, depth, ascending, config, matrix, seed_sequence, clock, scene_of)
+        frames = _physical_sweep(rgb, depth, ascending, config, matrix, seed_sequence, clock, scene_of,
+                                 airlight_of)
     elif scene_of is not None:  # lens water over a different scene at every rate
         frames = [_jeon_sweep(scene_of[rate], [rate], config, clock)[0] for rate in ascending]
     else:
@@ -326,6 +346,7 @@ def _physical_sweep(
     seed_sequence: np.random.SeedSequence,
     lens_clock: lens_mod.LensClock,
     scene_of: dict[float, np.ndarray] | None = None,
+    airlight_of: dict[float, tuple[float, float, float]] | None = None,
 ) -> list[RainFrame]:
     height, width = rgb.shape[:2]
     top_rate = ascending[-1]
@@ -344,8 +365,8 @@ def _physical_sweep(
     # extinction and airlight, channel-planar float32 for fast per-rate blending
     path_m = phys.ray_length_m(depth, K, config.sky_distance_m)
 
-    def blend_terms(scene: np.ndarray):
-        airlight = np.asarray(config.airlight_rgb, dtype=np.float64) if config.airlight_rgb is not None else phys.estimate_airlight(scene, depth)
+    def blend_terms(scene: np.ndarray, airlight_rgb: tuple[float, float, float] | None):
+        airlight = np.asarray(airlight_rgb, dtype=np.float64) if airlight_rgb is not None else phys.estimate_airlight(scene, depth)
         # a drop refracts a ~165 degree view, mostly of the sky: streak radiance is a blend of
         # the sky's colour (the airlight) and the frame's mean colour (Garg & Nayar)
         sky_weight = config.streak_sky_weight
@@ -354,7 +375,7 @@ def _physical_sweep(
         radiance_minus_air = [float(drop_radiance[channel] - airlight[channel]) for channel in range(3)]
         return airlight, scene_minus_air, radiance_minus_air
 
-    shared_terms = blend_terms(rgb) if scene_of is None else None
+    shared_terms = blend_terms(rgb, config.airlight_rgb) if scene_of is None and airlight_of is None else None
 
     lens_counts = [_lens_count(rate, config, K, height, width) for rate in ascending]
     lens_accumulator = _LensAccumulator(max(lens_counts), config, height, width, lens_clock) if max(lens_counts) > 0 else None
@@ -366,7 +387,8 @@ def _physical_sweep(
         if rate == 0:
             frames.append(_clean_frame(scene))
             continue
-        airlight, scene_minus_air, radiance_minus_air = shared_terms or blend_terms(scene)
+        airlight, scene_minus_air, radiance_minus_air = shared_terms or blend_terms(
+            scene, airlight_of[rate] if airlight_of is not None else config.airlight_rgb)
         upto = int(np.searchsorted(element_threshold, rate, side="right"))
         streaks.add(drawn, upto)
         drawn = upto

@@ -555,6 +555,69 @@ def test_sweep_over_per_rate_scenes_equals_single_rates(model):
                                scenes=scenes[:2])
 
 
+def test_sweep_with_per_rate_airlights_equals_single_rates_in_their_own_light():
+    """Weather that changes the airlight with the rate (dusk, night) draws the falling drops
+    once for the whole sweep: each rate still equals a sweep of its own with that airlight."""
+    rng = np.random.default_rng(5)
+    height, width = 90, 120
+    depth = np.full((height, width), 8.0, np.float32)
+    depth[:30] = np.inf
+    K = np.array([[60.0, 0, 60], [0, 60.0, 45], [0, 0, 1]])
+    rates = [100.0, 0.0, 30.0, 60.0]
+    scenes = [rng.integers(0, 256, (height, width, 3), dtype=np.uint8) for _ in rates]
+    airlights = [(40.0, 42.5, 45.0), (0.0, 0.0, 0.0), (200.0, 180.0, 160.0), (90.0, 90.0, 90.0)]
+    config = rain.RainConfig(model="physical", exposure_s=1 / 30)
+    seeds = np.random.SeedSequence([4, 5, 6])
+    for given_scenes in (scenes, None):
+        swept = rain.render_rain_sweep(scenes[0], depth, rates, config=config, K=K,
+                                       seed_sequence=seeds, scenes=given_scenes,
+                                       airlights=airlights)
+        for index, (rate, airlight, frame) in enumerate(zip(rates, airlights, swept)):
+            own = dataclasses.replace(config, airlight_rgb=airlight)
+            scene = scenes[index] if given_scenes is not None else scenes[0]
+            single = rain.render_rain(scene, depth, rate, config=own, K=K, seed_sequence=seeds)
+            assert np.array_equal(single.rgb, frame.rgb) and frame.drop_count == single.drop_count
+            assert np.array_equal(single.coverage, frame.coverage)
+    # the airlights matter: the same rates in one light give other images
+    one_light = rain.render_rain_sweep(scenes[0], depth, rates, config=config, K=K,
+                                       seed_sequence=seeds, scenes=scenes)
+    assert not np.array_equal(one_light[0].rgb, swept[0].rgb)
+    with pytest.raises(ValueError, match=r"airlights: expected one \(R, G, B\) per rate \(4\), got 3"):
+        rain.render_rain_sweep(scenes[0], depth, rates, config=config, K=K, seed_sequence=seeds,
+                               airlights=airlights[:3])
+    with pytest.raises(ValueError, match=r"airlights: rate 30 mm/h is given twice with different airlights"):
+        rain.render_rain_sweep(scenes[0], depth, [30.0, 30.0], config=config, K=K,
+                               seed_sequence=seeds, airlights=airlights[:2])
+    with pytest.raises(ValueError, match=r"RainConfig.airlight_rgb must be None or three numbers in \[0, 255\]"):
+        rain.render_rain_sweep(scenes[0], depth, [30.0], config=config, K=K, seed_sequence=seeds,
+                               airlights=[(300.0, 0.0, 0.0)])
+    with pytest.raises(ValueError, match=r"airlights: only the physical model .* got model 'jeon2022'"):
+        rain.render_rain_sweep(scenes[0], depth, [30.0], config=rain.RainConfig(model="jeon2022"),
+                               K=K, seed_sequence=seeds, airlights=[(9.0, 9.0, 9.0)])
+
+
+def test_a_dusk_frame_draws_its_falling_drops_once_for_all_rates(tmp_path, monkeypatch):
+    """At dusk the airlight changes with the rate and the exposure does not: one sweep per
+    frame, not one per rate."""
+    from rainbench.gen import generate
+
+    calls = []
+    sweep = rain.render_rain_sweep
+
+    def counted(*args, **kwargs):
+        calls.append((len(args[2]), kwargs.get("airlights") is not None))
+        return sweep(*args, **kwargs)
+
+    monkeypatch.setattr(rain, "render_rain_sweep", counted)
+    config = GenerateConfig(seed=3, sky="cloudy", rain_model="physical",
+                            rates=(0.0, 20.0, 60.0, 100.0), **{**SMALL, "time_of_day": "dusk"})
+    weathers = generate.sweep_weathers(config, build_scene(config).layout)
+    assert len({w.exposure_s for w in weathers[1:]}) == 1  # the case this covers
+    assert len({wx.airlight_rgb(w).tobytes() for w in weathers[1:]}) == 3
+    generate_shard(config, tmp_path, threads=1)
+    assert calls == [(3, True)] * 2
+
+
 def test_rgb_is_antialiased_and_segmentation_stays_exact():
     config = GenerateConfig(seed=3, **SMALL)
     setup = build_scene(config)
