@@ -267,7 +267,7 @@ def render_rain_sweep(
         frames = _physical_sweep(rgb, depth, ascending, config, matrix, seed_sequence, clock, scene_of,
                                  airlight_of)
     elif scene_of is not None:  # lens water over a different scene at every rate
-        frames = [_jeon_sweep(scene_of[rate], [rate], config, clock)[0] for rate in ascending]
+        frames = _jeon_scenes(scene_of, ascending, config, clock)
     else:
         frames = _jeon_sweep(rgb, ascending, config, clock)
     by_rate = dict(zip(ascending, frames))
@@ -333,6 +333,26 @@ def _jeon_sweep(rgb: np.ndarray, ascending: list[float], config: RainConfig, len
         accumulator.add(sums, view, drawn, count)
         drawn = count
         image, coverage = lens_mod.apply_lens(rgb, sums, accumulator.workspace)
+        frames.append(RainFrame(image, coverage, count))
+    return frames
+
+
+def _jeon_scenes(scene_of: dict[float, np.ndarray], ascending: list[float], config: RainConfig,
+                 lens_clock: lens_mod.LensClock) -> list[RainFrame]:
+    """Lens water over each rate's own scene: the drops sampled and rasterised once, for the
+    largest count; each rate composites its first ``count`` drops over its scene (what a sweep of
+    that rate alone draws, since a drop's footprint does not depend on the others)."""
+    height, width = scene_of[ascending[0]].shape[:2]
+    counts = [lens_mod.jeon2022_drop_count(rate, height, width) for rate in ascending]
+    if max(counts) == 0:
+        return [_clean_frame(scene_of[rate]) for rate in ascending]
+    accumulator = _LensAccumulator(max(counts), config, height, width, lens_clock)
+    frames = []
+    for rate, count in zip(ascending, counts):
+        if count == 0:
+            frames.append(_clean_frame(scene_of[rate]))
+            continue
+        image, coverage = accumulator.composite(scene_of[rate], count)
         frames.append(RainFrame(image, coverage, count))
     return frames
 
