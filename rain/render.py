@@ -260,7 +260,7 @@ def render_rain_sweep(
         airlight_of = {}
         for rate, airlight in zip(checked, airlights):
             # RainConfig checks an airlight as it checks its own airlight_rgb
-            airlight = dataclasses.replace(config, airlight_rgb=tuple(airlight)).airlight_rgb
+            airlight = dataclasses.replace(config, airlight_rgb=airlight).airlight_rgb
             if airlight_of.setdefault(rate, airlight) != airlight:
                 raise ValueError(f"airlights: rate {rate:g} mm/h is given twice with different airlights")
     if physical:
