@@ -22,6 +22,8 @@ STORE ?=
 SCENES ?= 1
 WORKERS ?=
 THREADS ?=
+# where the per-rate statistics run: auto (a CUDA GPU if torch sees one), cpu, cuda, cuda:N
+DEVICE ?=
 # make eval variables
 RESULTS ?= results/eval
 WEIGHTS ?=
@@ -67,6 +69,7 @@ dataset: $(STAMP)
 		$(if $(filter on,$(WEATHER)),--weather-follows-rate,) \
 		$(if $(filter off,$(WEATHER)),--no-weather-follows-rate,) \
 		$(if $(WORKERS),--workers $(WORKERS),) $(if $(THREADS),--threads $(THREADS),) \
+		$(if $(DEVICE),--device $(DEVICE),) \
 		$(if $(CLIP_FRAMES),--clip-frames $(CLIP_FRAMES),) \
 		$(if $(FIRST_FRAME),--first-frame $(FIRST_FRAME),)
 
