@@ -179,6 +179,10 @@ def test_make_dataset_refuses_a_bad_weather_and_quotes_paths():
                            "FIRST_FRAME=70"], capture_output=True, text=True, timeout=60)
     assert part.returncode == 0, part.stderr
     assert all(flag in part.stdout for flag in ("--frames 10", "--clip-frames 200", "--first-frame 70"))
+    device = subprocess.run(["make", "-n", "-C", REPO, "dataset", "DEVICE=cpu"],
+                            capture_output=True, text=True, timeout=60)
+    assert device.returncode == 0 and "--device cpu" in device.stdout, device.stderr
+    assert "--device" not in good.stdout  # unset: the CLI's own default (auto)
 
 
 # -- a corrupt manifest and --overwrite ---------------------------------------------------------
