@@ -11,9 +11,10 @@
 #   profile    bench/generate_profile.py: where one process's generation time goes, stage by
 #              stage, wall and CPU (the paper clip with jeon2022, its statistics on the GPU;
 #              the same with the statistics on the CPU, and with the shard written to
-#              /dev/shm instead of the disk; 40 frames of it with physical; 13 frames on one
-#              thread, as one of 16 pieces), and the clip in 16 pieces from the parent's side
-#              (when they were joined, what joining cost)
+#              /dev/shm instead of the disk; 40 frames of it with physical, with the default 4
+#              and then 8 frames in flight; 13 frames on one thread, as one of 16 pieces), and
+#              the clip in 16 pieces from the parent's side (when they were joined, what joining
+#              cost)
 #   stats      bench/stats_device.py: one frame's per-rate statistics on the GPU (torch) against
 #              the CPU path on every core, in the same run (issue 17, item 3)
 #   inference  bench/inference.py: rainbench-yolo11s at 960 px, batch 64, 128 frames (eval
@@ -96,6 +97,8 @@ step profile 60 "$python" bench/generate_profile.py --rain-model jeon2022
 step profile 45 "$python" bench/generate_profile.py --rain-model jeon2022 --device cpu
 step profile 45 "$python" bench/generate_profile.py --rain-model jeon2022 --out /dev/shm
 step profile 60 "$python" bench/generate_profile.py --rain-model physical --frames 40
+# each physical frame's weather rain is one thread's serial work: does feeding more frames pay?
+step profile 45 "$python" bench/generate_profile.py --rain-model physical --frames 40 --frames-in-flight 8
 step profile 30 "$python" bench/generate_profile.py --frames 13 --threads 1  # one of 16 pieces
 step profile 60 "$python" bench/generate_profile.py --workers 16  # the 16 pieces, joined
 step stats 40 "$python" bench/stats_device.py --frames 3
