@@ -240,7 +240,7 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
                                                       frame.pending_by_weather.values()))
         frames, coverages = _weather_rain(config, frame, K, seeds, clock, rain_config,
                                           [weathers[r] for r in rainy_rows],
-                                          [rates[r] for r in rainy_rows], layout, noise)
+                                          [rates[r] for r in rainy_rows], layout, noise, pool)
     for row, rainy in zip(rainy_rows, frames):
         images[row] = rainy.rgb
         drop_count[row] = rainy.drop_count
@@ -296,13 +296,16 @@ def _call_now(function: Callable[[], object]) -> concurrent.futures.Future:
 
 def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
                   seeds: np.random.SeedSequence, clock, rain_config, weathers: list[Weather],
-                  rates: list[float], layout: L.Layout, noise: np.ndarray | None):
+                  rates: list[float], layout: L.Layout, noise: np.ndarray | None,
+                  pool: ThreadPoolExecutor | None = None):
     """Rain over each rate's own weather: (list of RainFrame, list of (H, W) coverage incl. spray).
 
     Each rate's scene (its weather's render with tyre spray) gets rain drawn in its light, then
     the camera's response with the frame's sensor-noise field ``noise`` ((H, W, 3) float32, or
     None when no weather has gain). Rates whose exposure time is the same share one rain sweep
     (the falling drops and their streaks drawn once), each blended towards its own airlight.
+    Each rate's spray and camera response run in ``pool``'s threads (each rate's on its own, so
+    the result does not depend on the threads), the sweeps in this thread.
     """
     from rainbench import rain  # noqa: PLC0415
     from rainbench.rain import weather as wx  # noqa: PLC0415
@@ -317,16 +320,21 @@ def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
                                                child_generator(seeds, STREAM_SPRAY))
         pose = frame.T_world_cam
         spray_points = (world - pose[:3, 3]) @ pose[:3, :3]
-    scenes, sprays, airlights, groups = [], [], [], {}
-    for index, weather in enumerate(weathers):
+    each = pool.map if pool is not None else map
+
+    def sprayed(weather: Weather) -> tuple[np.ndarray, np.ndarray]:
+        """(the weather's scene with its tyre spray, the spray's (H, W) opacity)."""
         scene = frame.weather_rgb(weather)
         spray = np.zeros((height, width), np.float32)
         if spray_points is not None and weather.spray > 0:
             spray = wx.spray_opacity(frame.depth, K, spray_points,
                                      spray_weights * (wx.SPRAY_OPACITY * weather.spray))
             scene = wx.composite_spray(scene, spray, wx.mean_sky_rgb(weather) * wx.SPRAY_BRIGHTNESS)
-        scenes.append(scene)
-        sprays.append(spray)
+        return scene, spray
+
+    scenes, sprays = (list(column) for column in zip(*each(sprayed, weathers)))
+    airlights, groups = [], {}
+    for index, weather in enumerate(weathers):
         light, airlight = {}, None
         if rain_config.model == "physical":
             # the rain is drawn in this weather's light, unless the user fixed these values
@@ -346,11 +354,14 @@ def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
                                        airlights=None if own[0] is None else own)
         for index, result in zip(members, drawn):
             rainy[index] = result
-    out_frames, out_coverage = [], []
-    for weather, result, spray in zip(weathers, rainy, sprays):
+    def seen(weather_result_spray) -> tuple:
+        """(the rate's RainFrame through the camera, its coverage with the spray's)."""
+        weather, result, spray = weather_result_spray
         image = wx.camera_response(result.rgb, weather, noise)
-        out_frames.append(rain.RainFrame(image, result.coverage, result.drop_count))
-        out_coverage.append((1.0 - (1.0 - result.coverage) * (1.0 - spray)).astype(np.float32))
+        return (rain.RainFrame(image, result.coverage, result.drop_count),
+                (1.0 - (1.0 - result.coverage) * (1.0 - spray)).astype(np.float32))
+
+    out_frames, out_coverage = (list(column) for column in zip(*each(seen, zip(weathers, rainy, sprays))))
     return out_frames, out_coverage
 
 

@@ -349,9 +349,21 @@ def test_weather_images_finished_off_the_render_thread_keep_the_bytes(tmp_path, 
         return rain_for_frame(config, frame, K, global_frame, *args)
 
     monkeypatch.setattr(gen_module, "_rain_for_frame", late_rain)
+    # each rainy rate's camera response runs in the pool too, off the frame's own thread (which
+    # gives the clean image its night noise first)
+    from rainbench.rain import weather as wx
+
+    response, responded_in = wx.camera_response, []
+
+    def watched_response(*args):
+        responded_in.append(threading.current_thread().name)
+        return response(*args)
+
+    monkeypatch.setattr(wx, "camera_response", watched_response)
     pipelined = generate_shard(config, tmp_path / "pipelined", threads=4, frames_in_flight=3)
     assert hashlib.sha256(pipelined.read_bytes()).hexdigest() == serial.hexdigest()
     assert finished_in and all(name.startswith("rainbench-rate") for name in finished_in)
+    assert sorted(name.split("_")[0] for name in responded_in) == ["rainbench-frame"] * 4 + ["rainbench-rate"] * 8
 
 
 def test_frames_in_flight_default_and_bad_values(tmp_path):
