@@ -354,6 +354,7 @@ def _weather_rain(config: GenerateConfig, frame: FrameResult, K: np.ndarray,
                                        airlights=None if own[0] is None else own)
         for index, result in zip(members, drawn):
             rainy[index] = result
+
     def seen(weather_result_spray) -> tuple:
         """(the rate's RainFrame through the camera, its coverage with the spray's)."""
         weather, result, spray = weather_result_spray
