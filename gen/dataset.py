@@ -477,6 +477,10 @@ def _run_ray(tasks, pending, root, ray_address, threads, record, progress) -> No
     # GPU-aware: where the cluster has GPUs, each task asks for a share of one (EGL renders
     # on it); otherwise one CPU.
     gpus = ray.cluster_resources().get("GPU", 0)
+    devices = sorted({tasks[i].stats_device for i in pending} - {"cpu"})
+    if devices and not gpus:  # the tasks could not see a GPU: fail now, not in every task
+        raise DatasetError(f"--device {devices[0]}: the Ray cluster has no GPU for the statistics; "
+                           "use --device cpu")
     options = {"num_cpus": 1, "num_gpus": 0.25 if gpus else 0}
     remote = ray.remote(_generate_task).options(**options)
     refs = {remote.remote(tasks[i], str(root), threads): i for i in pending}

@@ -198,3 +198,24 @@ def test_a_shard_with_torch_statistics_holds_the_same_images_and_close_figures(
         for key in ("labels/rain_coverage", "labels/contrast_loss"):
             assert device[key].shape == cpu[key].shape and cpu[key][()].max() > 0
             np.testing.assert_allclose(device[key][()], cpu[key][()], rtol=0, atol=1e-5)
+
+
+def test_ray_tasks_on_a_cluster_without_gpus_are_refused_before_they_start(tmp_path, monkeypatch):
+    """A GPU statistics device (``--device auto`` on a machine with a GPU) and a Ray cluster
+    whose nodes have none: every task would fail on its first rainy frame, so the run is refused
+    first, naming --device."""
+    import sys
+    import types
+
+    from rainbench.gen import dataset as ds
+
+    started = []
+    fake_ray = types.SimpleNamespace(is_initialized=lambda: True,
+                                     cluster_resources=lambda: {"CPU": 8.0},
+                                     remote=lambda function: started.append(function))
+    monkeypatch.setitem(sys.modules, "ray", fake_ray)
+    config = DatasetConfig(frames=1, width=64, height=48, rates=(0.0, 50.0), stats_device="cuda")
+    with pytest.raises(DatasetError, match=r"--device cuda: the Ray cluster has no GPU for the "
+                                           r"statistics; use --device cpu"):
+        ds.run_dataset(config, tmp_path / "data", executor="ray")
+    assert started == [] and not list((tmp_path / "data").glob("*.h5"))
