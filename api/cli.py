@@ -209,13 +209,11 @@ def _stats_device(device: str | None) -> str:
     if resolved != "cpu" and device not in (None, "auto"):
         import torch  # noqa: PLC0415 -- only when a GPU is asked for
 
-        if not torch.cuda.is_available():
-            raise CliError(f"--device {device}: CUDA is not available on this machine "
-                           "(torch.cuda.is_available() is False); use --device cpu")
-        index = int(resolved.partition(":")[2] or 0)
-        if index >= torch.cuda.device_count():
-            raise CliError(f"--device {device}: this machine has {torch.cuda.device_count()} "
-                           "CUDA device(s)")
+        from rainbench.rain.metrics_torch import cuda_device_problem  # noqa: PLC0415
+
+        problem = cuda_device_problem(torch.device(resolved), "use --device cpu")
+        if problem is not None:
+            raise CliError(f"--device {device}: {problem}")
     return resolved
 
 

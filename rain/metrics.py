@@ -166,10 +166,24 @@ def psnr(clean: np.ndarray, rainy: np.ndarray) -> float:
         clean, rainy: (H, W, 3) uint8.
     """
     _check_rgb_pair(clean, rainy)
-    mse = cv2.norm(clean, rainy, cv2.NORM_L2SQR) / clean.size  # exact: integer squares in double
+    return psnr_of_squared_error(cv2.norm(clean, rainy, cv2.NORM_L2SQR), clean.size)
+
+
+def psnr_of_squared_error(squared_error_sum: float, values: int) -> float:
+    """PSNR in dB of a sum of squared differences over ``values`` RGB values (an exact integer:
+    the CPU and GPU paths give the same figure); ``math.inf`` when the sum is 0."""
+    mse = float(squared_error_sum) / values
     if mse == 0.0:
         return math.inf
     return 10.0 * math.log10(DATA_RANGE * DATA_RANGE / mse)
+
+
+def contrast_loss_of(std_rainy: float, std_clean: float) -> float:
+    """``1 - std_rainy / std_clean`` clipped to [0, 1]; 0 for a flat box (``std_clean`` below
+    1e-6: no contrast to lose). The standard deviations are of a box's BT.601 luma."""
+    if std_clean < _CLEAN_STD_FLOOR:
+        return 0.0
+    return min(max(1.0 - std_rainy / std_clean, 0.0), 1.0)
 
 
 def image_quality(clean: np.ndarray, rainy: np.ndarray) -> tuple[float, float]:
@@ -280,5 +294,5 @@ class BoxRainReference:
             if std_clean < _CLEAN_STD_FLOOR:
                 continue
             std_rainy = float(luma(rainy[row0:row1, col0:col1]).std())
-            contrast_loss[index] = np.float32(min(max(1.0 - std_rainy / std_clean, 0.0), 1.0))
+            contrast_loss[index] = np.float32(contrast_loss_of(std_rainy, std_clean))
         return rain_coverage, contrast_loss

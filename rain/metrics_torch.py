@@ -24,14 +24,26 @@ dataset's ``stats_device`` is not ``"cpu"``.
 
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
 import numpy as np
 import torch
 
-from rainbench.rain.metrics import (_CLEAN_STD_FLOOR, _KERNEL, DATA_RANGE, LUMA_WEIGHTS, SSIM_K1,
-                                    SSIM_K2, SSIM_RADIUS, SSIM_WINDOW, box_pixel_ranges)
+from rainbench.rain.metrics import (_KERNEL, DATA_RANGE, LUMA_WEIGHTS, SSIM_K1, SSIM_K2,
+                                    SSIM_RADIUS, SSIM_WINDOW, _check_coverage, box_pixel_ranges,
+                                    contrast_loss_of, psnr_of_squared_error)
+
+
+def cuda_device_problem(device: torch.device, cpu_hint: str) -> str | None:
+    """Why ``device`` cannot run here (``cpu_hint`` appended when there is no CUDA at all), or
+    None (a CPU device, or a CUDA device this machine has)."""
+    if device.type != "cuda":
+        return None
+    if not torch.cuda.is_available():
+        return f"CUDA is not available on this machine (torch.cuda.is_available() is False); {cpu_hint}"
+    if (device.index or 0) >= torch.cuda.device_count():
+        return f"this machine has {torch.cuda.device_count()} CUDA device(s)"
+    return None
 
 
 def _window_matrix(size: int) -> np.ndarray:
@@ -68,12 +80,9 @@ class TorchRateStatistics:
 
     def __init__(self, device: str | torch.device, height: int, width: int) -> None:
         self.device = torch.device(device)
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ValueError(f"stats_device {device}: CUDA is not available on this machine "
-                             "(torch.cuda.is_available() is False); use cpu")
-        if self.device.type == "cuda" and (self.device.index or 0) >= torch.cuda.device_count():
-            raise ValueError(f"stats_device {device}: this machine has "
-                             f"{torch.cuda.device_count()} CUDA device(s)")
+        problem = cuda_device_problem(self.device, "use cpu")
+        if problem is not None:
+            raise ValueError(f"stats_device {device}: {problem}")
         if min(height, width) < SSIM_WINDOW:
             raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels "
                              f"(11-tap window), got {width}x{height}")
@@ -86,6 +95,7 @@ class TorchRateStatistics:
         self._columns_t = torch.as_tensor(_window_matrix(width).T.copy(), dtype=torch.float32,
                                           device=self.device)
         self._luma_weights = torch.tensor(LUMA_WEIGHTS, dtype=torch.float64, device=self.device)
+        self._luma_weights32 = self._luma_weights.to(torch.float32)
 
     def _filter(self, images: torch.Tensor) -> torch.Tensor:
         """The Gaussian window over (B, H, W) float32 images."""
@@ -104,9 +114,8 @@ class TorchRateStatistics:
     def mean_ssim(self, clean: torch.Tensor, rainy: torch.Tensor) -> torch.Tensor:
         """(B,) float64 mean SSIM of each of ``rainy`` (B, H, W, 3) uint8 against ``clean``
         (H, W, 3) uint8, both on the device; the border of :data:`SSIM_RADIUS` cropped."""
-        weights = torch.tensor(LUMA_WEIGHTS, dtype=torch.float32, device=self.device)
-        x = (clean.to(torch.float32) * weights).sum(dim=-1)  # (H, W)
-        y = (rainy.to(torch.float32) * weights).sum(dim=-1)  # (B, H, W)
+        x = (clean.to(torch.float32) * self._luma_weights32).sum(dim=-1)  # (H, W)
+        y = (rainy.to(torch.float32) * self._luma_weights32).sum(dim=-1)  # (B, H, W)
         c1 = (SSIM_K1 * DATA_RANGE) ** 2
         c2 = (SSIM_K2 * DATA_RANGE) ** 2
         mu_x, x_sq = self._filter(torch.stack([x, x * x]))
@@ -148,9 +157,7 @@ class TorchRateStatistics:
         if count == 0:
             return ssim, psnr, rain_coverage, contrast_loss
         for opacity in coverage:
-            if not (isinstance(opacity, np.ndarray) and opacity.shape == (self.height, self.width)):
-                raise ValueError(f"coverage must be an ({self.height}, {self.width}) array, got "
-                                 f"{getattr(opacity, 'shape', type(opacity).__name__)}")
+            _check_coverage(opacity, self.height, self.width)
         with torch.inference_mode():
             images = self._to_device([clean, *rainy])  # row 0: the clean image
             clean_image, rainy_images = images[0], images[1:]
@@ -176,17 +183,12 @@ class TorchRateStatistics:
                 means = torch.stack(mean_rows, dim=1).cpu().numpy()  # (R, K)
             ssim_host = ssim_values.cpu().numpy()
             squared_host = squared_sums.cpu().numpy()
-        size = clean.size
         for row in range(count):
             ssim[row] = np.float32(ssim_host[row])
-            if squared_host[row] != 0:
-                psnr[row] = np.float32(10.0 * math.log10(DATA_RANGE * DATA_RANGE / (float(squared_host[row]) / size)))
+            psnr[row] = np.float32(psnr_of_squared_error(int(squared_host[row]), clean.size))
         for column, index in enumerate(kept):
-            std_clean = float(stds[0, column])
             rain_coverage[:, index] = means[:, column].astype(np.float32)
-            if std_clean < _CLEAN_STD_FLOOR:
-                continue
             for row in range(count):
                 contrast_loss[row, index] = np.float32(
-                    min(max(1.0 - float(stds[row + 1, column]) / std_clean, 0.0), 1.0))
+                    contrast_loss_of(float(stds[row + 1, column]), float(stds[0, column])))
         return ssim, psnr, rain_coverage, contrast_loss
