@@ -23,7 +23,7 @@ timers wrapped around:
   PSNR and per-box rain labels (statistics threads); with ``--device cuda`` (the default where
   torch sees a GPU) ``statistics: torch, all rates of a frame`` instead (frame threads: the
   images' copy to the device, the batched filters and the figures' copy back);
-- ``compress``: libdeflate of every image (the writer's threads); ``write``: the writer
+- ``compress``: igzip of every image (the writer's threads); ``write``: the writer
   thread's whole :meth:`~rainbench.store.shard.ShardWriter.write_frame` (it waits for the
   compression); ``commit``: the tables and the rename (once).
 

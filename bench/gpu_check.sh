@@ -6,8 +6,9 @@
 #
 # Steps, in this order (GPU_CHECK_STEPS picks some; each is cut at its own cap, and a step is
 # skipped once fewer than 30 s are left before GPU_CHECK_SECONDS, default 540, have passed):
-#   env        the GPU, torch, the GL renderer that MuJoCo's EGL context gets, core count, and
-#              the disk's write speed (1 GiB with fsync in data/ and /tmp)
+#   env        the GPU, torch, the GL renderer that MuJoCo's EGL context gets, core count, the
+#              disk's write speed (1 GiB with fsync in data/ and /tmp), and whether igzip
+#              compresses to the development machine's bytes (bench/deflate_identity.py)
 #   profile    bench/generate_profile.py: where one process's generation time goes, stage by
 #              stage, wall and CPU (the paper clip with jeon2022, its statistics on the GPU;
 #              the same with the statistics on the CPU, and with the shard written to
@@ -83,6 +84,8 @@ if [[ " $steps " == *" env "* ]]; then
     { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null \
           || echo "no nvidia-smi"
       step env 60 "$python" /tmp/gpu_check_env.py
+      # igzip (the shard writer) picks its code by CPU features: the same bytes as here?
+      step env 30 "$python" bench/deflate_identity.py
       # the paper clip's shard is about 1.5 GB (2 200 deflated images): what writing it costs
       for folder in data /tmp; do
           mkdir -p "$folder"

@@ -47,7 +47,8 @@ python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
     --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
     --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl \
     mujoco==4.0.0 mujoco-core==4.0.0 PyOpenGL==3.1.10 ultralytics-opencv-headless==8.4.190 \
-    ultralytics-thop==2.2.3 ultralytics-platform==0.1.99 deflate==0.9.0 pycocotools==2.0.11
+    ultralytics-thop==2.2.3 ultralytics-platform==0.1.99 deflate==0.9.0 isal==1.9.1 \
+    pycocotools==2.0.11
 
 mkdir -p .gl /tmp/rainbench-apt/partial
 apt_options=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64

@@ -19,6 +19,7 @@ from pathlib import Path
 import deflate
 import h5py
 import numpy as np
+from isal import isal_zlib
 
 from .classes import CLASS_NAMES, LABELLED_CLASSES
 from .images import file_error
@@ -27,18 +28,22 @@ from .labels import FrameLabels
 FORMAT = "rainbench.shard"
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)  # v2 adds /weather and the sky / weather_follows_rate attributes
-# gzip level 1, chosen by measurement on a rendered 800x600 frame (docs/format.md). gzip is in
-# every HDF5 build, so plain h5py (and other HDF5 tools) read the shards without plugins. The
-# RGB chunks are deflated here with libdeflate (the `deflate` package) rather than by HDF5's
-# zlib: the same zlib format, 2.2x faster to write (6.3 vs 13.8 ms per image), 2.6x faster to
-# read (1.7 vs 4.4 ms) and 10 % smaller.
+# The RGB dataset's filter: gzip, in every HDF5 build, so plain h5py (and other HDF5 tools) read
+# the shards without plugins (docs/format.md "Compression"). Level 1 is what HDF5 itself uses
+# where it writes a chunk (copies through h5py); rainbench writes its own chunks (below).
 RGB_COMPRESSION = {"compression": "gzip", "compression_opts": 1}
+# rainbench deflates each RGB chunk itself with ISA-L's igzip at this level (the `isal`
+# package): the zlib stream the gzip filter stores. On rainy 800x600 frames, one thread: 6.0 ms
+# an image against 13.1 ms for libdeflate level 1 (the writer before) and about 25 ms for zlib
+# level 1, 4 % larger than libdeflate's; its streams also inflate faster (3.8 against 4.7 ms
+# with libdeflate, which the readers keep). Level 2 costs what level 1 does and is 3 % smaller.
+RGB_DEFLATE_LEVEL = 2
 STORABLE = ("depth", "instance")
 
 
 def _deflate(image: np.ndarray) -> bytes:
     """One RGB chunk as HDF5's gzip filter stores it (a zlib stream); drops the GIL."""
-    return deflate.zlib_compress(np.ascontiguousarray(image), RGB_COMPRESSION["compression_opts"])
+    return isal_zlib.compress(np.ascontiguousarray(image), RGB_DEFLATE_LEVEL)
 
 
 def _one_gzip_chunk_per_image(rgb: h5py.Dataset) -> bool:
@@ -53,8 +58,9 @@ def rgb_checksum(handle: h5py.File, rate_row: int, frame: int, raw=None) -> byte
     chunk's size and the Adler-32 checksum of the pixels that ends its zlib stream (the last 4
     bytes of a gzip-filtered chunk), read from ``raw`` (the shard file opened in binary; opened
     here when None). Images stored any other way give the sha256 of their pixels. Equal images
-    written by rainbench give equal checksums (libdeflate's bytes depend only on the image); a
-    changed image changes it but with a chance of about 2^-32."""
+    written by rainbench on one machine give equal checksums (igzip's bytes depend on the image
+    and may depend on the CPU's instruction sets, docs/format.md); a changed image changes it
+    but with a chance of about 2^-32."""
     rgb = handle["rgb"]
     if _one_gzip_chunk_per_image(rgb):
         info = rgb.id.get_chunk_info_by_coord((rate_row, frame, 0, 0, 0))
@@ -125,7 +131,7 @@ class ShardWriter:
                 self._file.close()
             self._tmp.unlink(missing_ok=True)
             raise
-        # libdeflate drops the GIL: images of one frame are compressed on ``threads`` threads.
+        # igzip drops the GIL: images of one frame are compressed on ``threads`` threads.
         threads = threads or os.cpu_count() or 1
         self._pool = (ThreadPoolExecutor(max_workers=threads, thread_name_prefix="rainbench-deflate")
                       if threads > 1 else None)

@@ -277,3 +277,37 @@ def test_other_runtime_errors_pass_the_shard_writer_unchanged(tmp_path, monkeypa
     with pytest.raises(RuntimeError, match="^something else$"):
         _rate_shard(tmp_path / "d")
     assert list((tmp_path / "d").iterdir()) == []
+
+
+def test_rgb_chunks_are_zlib_streams_that_stdlib_zlib_and_plain_h5py_read(tmp_path):
+    """The writer deflates each image itself (ISA-L's igzip): the stored chunk must be exactly
+    what HDF5's gzip filter would store, so any HDF5 reader decodes it."""
+    import zlib
+
+    from rainbench.store.shard import read_rgb
+
+    rng = np.random.default_rng(3)
+    rates = (0.0, 50.0)
+    gradient = np.arange(24 * 32 * 3, dtype=np.uint32).reshape(24, 32, 3) % 256
+    images = np.stack([gradient.astype(np.uint8),
+                       rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)])
+    path = tmp_path / shard_name(0, 0)
+    labels = FrameLabels(bbox=np.zeros((0, 4), np.float32), bbox_amodal=np.zeros((0, 4), np.float32),
+                         class_id=np.zeros(0, np.int32), instance_id=np.zeros(0, np.int32),
+                         visible_fraction=np.zeros(0, np.float32), truncation=np.zeros(0, np.float32))
+    with ShardWriter(path, attrs={"class_names": '["person", "bicycle", "car", "motorcycle"]'},
+                     rates=np.asarray(rates, np.float32), num_frames=1, width=32, height=24,
+                     K=np.eye(3), threads=2) as writer:
+        writer.write_frame(0, images, labels, np.eye(4))
+        writer.commit()
+    with h5py.File(path, "r") as handle:
+        rgb = handle["rgb"]
+        assert rgb.compression == "gzip" and rgb.chunks == (1, 1, 24, 32, 3)
+        for row in range(len(rates)):
+            filter_mask, chunk = rgb.id.read_direct_chunk((row, 0, 0, 0, 0))
+            assert filter_mask == 0
+            assert zlib.decompress(chunk) == images[row].tobytes()
+            np.testing.assert_array_equal(rgb[row, 0], images[row])  # HDF5's own gzip filter
+            np.testing.assert_array_equal(read_rgb(handle, row, 0), images[row])
+        # the gradient repeats itself: deflated, not stored
+        assert rgb.id.get_chunk_info_by_coord((0, 0, 0, 0, 0)).size < images[0].nbytes // 4
