@@ -110,3 +110,30 @@ def test_an_actor_alone_in_a_window_is_the_window_of_the_whole_canvas(make_tiny_
         for x0, y0, x1, y1 in windows:
             window = renderer.render_alone(data, ids, (x0, y0, x1, y1))
             np.testing.assert_array_equal(window, whole[y0:y1, x0:x1], err_msg=str((x0, y0, x1, y1)))
+
+
+def test_geoms_behind_the_camera_are_left_out_of_the_segmentation_without_changing_it(make_tiny_scene):
+    # the camera is at (0, 0, 1.5) looking along +x
+    boxes = [((10.0, 0.0, 1.0), (0.5, 0.5, 0.5)),     # ahead
+             ((-5.0, 0.0, 1.0), (0.5, 0.5, 0.5)),     # wholly behind
+             ((-0.3, 0.0, 1.5), (1.0, 0.2, 0.2)),     # across the camera's plane
+             ((-3.0, 0.0, 0.2), (5.5, 3.0, 0.1))]     # centre behind, front end in view
+    model, table = make_tiny_scene(boxes, W, H)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    with FrameRenderer(model, W, H, table) as renderer:
+        with pytest.raises(RuntimeError, match=r"call update\(data\) before a segmentation pass"):
+            renderer.render_instances()
+        behind = renderer.behind_camera(data)
+        assert {int(table[g]) for g in np.flatnonzero(behind)} == {1}  # the plane is never behind
+        renderer.update(data)
+        assert renderer._label_scene.ngeom == renderer._scene.ngeom - 1
+        culled = renderer.render_instances_depth()
+        renderer._cullable[:] = False  # every geom drawn, as before the culling
+        renderer.update(data)
+        assert renderer._label_scene.ngeom == renderer._scene.ngeom
+        full = renderer.render_instances_depth()
+    for got, expected in zip(culled, full):
+        np.testing.assert_array_equal(got, expected)
+    assert {0, 3} <= set(np.unique(culled[0]).tolist())  # the long box's front end shows
+    assert 1 not in culled[0]
