@@ -2,8 +2,9 @@
 run in the same process and the same run:
 
 1. end to end: ``rainbench generate`` of the paper's clip (1 scene, 200 frames, 800x600,
-   RATES=0:100:10) against a bare ``mujoco.Renderer`` RGB-only pass over the same 200 frames.
-   Target: ratio <= 3 (jeon2022 keeps <= 2.5).
+   RATES=0:100:10) against a bare ``mujoco.Renderer`` RGB-only pass over the same 200 frames
+   (the mean of one loop before the generation and one after). Target: ratio <= 3 (jeon2022
+   keeps <= 2.5).
    With the weather following the rate (``--rain-model physical``): against a bare renderer
    rendering 11 images per frame of the same scene. Target: ratio <= 1.6.
    ``--workers N`` generates both with N workers (more workers than the clip's one shard:
@@ -80,11 +81,18 @@ def _workers_args(workers: int | None) -> list[str]:
 
 
 def end_to_end(tmp: Path, frames: int, workers: int | None = None) -> dict:
+    """The paper clip's ``rainbench generate`` between two bare loops (one before, one after),
+    against their mean: this machine's speed drifts by 20 % or more within minutes (a bare loop
+    took 16.8 s in one run and 22.8 s in the next), so one loop on one side of the run could
+    fall in a fast or a slow spell that the generation did not share."""
+    before = bare_render_seconds(frames, 800, 600)
     seconds = cli_seconds(["--out", str(tmp / "e2e"), "--frames", str(frames),
                            "--rates", "0:100:10", *_workers_args(workers)])
-    bare = bare_render_seconds(frames, 800, 600)
+    after = bare_render_seconds(frames, 800, 600)
+    bare = (before + after) / 2
     return {"frames": frames, "workers": workers, "generate_s": seconds, "bare_render_s": bare,
-            "ratio": seconds / bare, "target_ratio": 3.0}
+            "bare_render_before_s": before, "bare_render_after_s": after,
+            "ratio": seconds / bare, "target_ratio": 3.0, "target_ratio_jeon2022": 2.5}
 
 
 def weather_end_to_end(tmp: Path, frames: int, workers: int | None = None) -> dict:
@@ -184,7 +192,9 @@ def main() -> None:
         if "e2e" not in skip:
             results["end_to_end"] = e2e = end_to_end(tmp, args.frames, args.workers)
             print(f"end to end: generate {e2e['generate_s']:.1f} s, bare RGB {e2e['bare_render_s']:.1f}"
-                  f" s, ratio {e2e['ratio']:.2f} (target <= 3)")
+                  f" s (mean of {e2e['bare_render_before_s']:.1f} s before and "
+                  f"{e2e['bare_render_after_s']:.1f} s after), ratio {e2e['ratio']:.2f} (target "
+                  f"<= 3; jeon2022, the default rain model, <= 2.5)")
         if "weather" not in skip:
             results["weather_end_to_end"] = weather = weather_end_to_end(tmp, args.weather_frames, args.workers)
             print(f"weather following the rate (physical, 11 rates): generate "
