@@ -240,8 +240,8 @@ class FrameRenderer:
             self._weather = weather
 
     def update(self, data: mujoco.MjData) -> None:
-        """Build the scene of ``data`` in the base weather (call once per frame, before the
-        passes)."""
+        """Build the scene of ``data`` in the base weather, and the segmentation pass's own
+        scene of it (call once per frame, before the passes)."""
         self._require_open()
         self._set_weather(self.base_weather)
         if self._rig is not None:
@@ -530,8 +530,9 @@ class FrameRenderer:
 
     def behind_camera(self, data: mujoco.MjData) -> np.ndarray:
         """(ngeom,) bool: geoms whose bounding sphere (``geom_rbound`` about ``geom_xpos``) lies
-        wholly behind the plane of the camera's centre, facing its view; such a geom cannot
-        show in the image. Planes (unbounded) are never behind."""
+        wholly behind the plane through the camera's centre square to its view direction; such
+        a geom cannot show in the image. Planes (unbounded) are never behind. ``data`` needs its
+        kinematics (``mj_forward``): with none computed nothing is behind."""
         forward = -data.cam_xmat[self.camera_id].reshape(3, 3)[:, 2]  # cameras look along -z
         ahead = (data.geom_xpos - data.cam_xpos[self.camera_id]) @ forward
         return self._cullable & (ahead < -self.model.geom_rbound)

@@ -58,9 +58,10 @@ def rgb_checksum(handle: h5py.File, rate_row: int, frame: int, raw=None) -> byte
     chunk's size and the Adler-32 checksum of the pixels that ends its zlib stream (the last 4
     bytes of a gzip-filtered chunk), read from ``raw`` (the shard file opened in binary; opened
     here when None). Images stored any other way give the sha256 of their pixels. Equal images
-    written by rainbench on one machine give equal checksums (igzip's bytes depend on the image
-    and may depend on the CPU's instruction sets, docs/format.md); a changed image changes it
-    but with a chance of about 2^-32."""
+    written by the same rainbench on one machine give equal checksums (igzip's bytes depend on
+    the image and may depend on the CPU's instruction sets, docs/format.md; shards written with
+    libdeflate before 2026-11-27 differ too); a changed image changes it but with a chance of
+    about 2^-32. Unequal checksums of equal images cost a cache miss, never a wrong match."""
     rgb = handle["rgb"]
     if _one_gzip_chunk_per_image(rgb):
         info = rgb.id.get_chunk_info_by_coord((rate_row, frame, 0, 0, 0))
