@@ -543,15 +543,23 @@ class FrameRenderer:
         change a pixel of that pass (it draws no shadows, reflections or sky) but cost
         llvmpipe their vertices: the paper clip's segmentation 10-20 % faster
         (bench/RESULTS.md)."""
-        groups = self.model.geom_group
-        saved = groups.copy()
-        try:
-            groups[self.behind_camera(data)] = HIDDEN_GROUP
-            mujoco.mjv_updateScene(self.model, data, self._option, None, self._camera,
-                                   mujoco.mjtCatBit.mjCAT_ALL, self._label_scene)
-        finally:
-            groups[:] = saved
+        groups = self.model.geom_group.copy()
+        groups[self.behind_camera(data)] = HIDDEN_GROUP
+        self._update_scene_in_groups(data, self._option, self._label_scene, groups)
         self._label_scene_ready = True
+
+    def _update_scene_in_groups(self, data: mujoco.MjData, option: mujoco.MjvOption,
+                                scene: mujoco.MjvScene, groups: np.ndarray) -> None:
+        """``mjv_updateScene`` of ``data`` into ``scene`` with the geoms in ``groups`` ((ngeom,)
+        int32; :data:`HIDDEN_GROUP` hides a geom) instead of the model's own, which are put
+        back afterwards."""
+        saved = self.model.geom_group.copy()
+        try:
+            self.model.geom_group[:] = groups
+            mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
+                                   mujoco.mjtCatBit.mjCAT_ALL, scene)
+        finally:
+            self.model.geom_group[:] = saved
 
     def render_alone(self, data: mujoco.MjData, instance_ids,
                      window: tuple[int, int, int, int] | None = None) -> np.ndarray:
@@ -568,16 +576,9 @@ class FrameRenderer:
         if not (0 <= x0 < x1 <= self.padded_width and 0 <= y0 < y1 <= self.padded_height):
             raise ValueError(f"window: expected inside (0, 0, {self.padded_width}, "
                              f"{self.padded_height}), got {(x0, y0, x1, y1)}")
-        groups = self.model.geom_group
-        saved = groups.copy()
-        try:
-            groups[:] = HIDDEN_GROUP
-            selected = np.isin(self._geom_instance, np.asarray(instance_ids, dtype=np.int32))
-            groups[selected] = 0
-            mujoco.mjv_updateScene(self.model, data, self._alone_option, None, self._camera,
-                                   mujoco.mjtCatBit.mjCAT_ALL, self._scene)
-        finally:
-            groups[:] = saved
+        groups = np.full(self.model.ngeom, HIDDEN_GROUP, np.int32)
+        groups[np.isin(self._geom_instance, np.asarray(instance_ids, dtype=np.int32))] = 0
+        self._update_scene_in_groups(data, self._alone_option, self._scene, groups)
         # Only the window's rows are rasterised: the frustum is cut to canvas rows y0..y1 and
         # rendered into a viewport of that height and the canvas's width: 30 % faster on the
         # residential street. The pixels are the whole canvas's but for a rare edge pixel (1 in
