@@ -7,15 +7,19 @@ Runs ``rainbench eval`` on ``--data`` (default ``data/paper/jeon2022``, the pape
 ``--device`` (default: CUDA when present, else the CPU). Reports, per class and rate, the two
 AP@0.5 and AP@0.5:0.95 and their largest absolute difference (the issue's bar: AP@0.5 within
 0.002 per class), plus the wall time and images/s of each run (inference and metrics; the
-ratio is the batched run's speed over the baseline's, measured in the same process).
+ratio is the batched run's speed over the baseline's, measured in the same process). With
+``--fp32`` on CUDA a third run keeps the batched backend's network in fp32 (its default there is
+fp16), so that what fp16 makes of the difference shows apart from the rest.
 
 Usage: ``python bench/backend_agreement.py [--data DIR] [--weights rainbench-yolo11n]
-[--device cpu] [--json OUT]``
+[--device cpu] [--json OUT] [--fp32]``
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import json
 import os
 import platform
@@ -23,6 +27,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from unittest import mock
 
 from rainbench.eval.backends.ultralytics import preload_torch
 
@@ -30,6 +35,9 @@ preload_torch()  # before Mesa renders (when the paper clip has to be generated)
 import torch  # noqa: E402
 
 from rainbench.eval import pipeline, weights as registry  # noqa: E402
+from rainbench.eval.backends import torch_batched  # noqa: E402
+
+_torch_detector = torch_batched.torch_detector
 
 
 def paper_clip(folder: Path) -> Path:
@@ -44,12 +52,20 @@ def paper_clip(folder: Path) -> Path:
     return folder
 
 
+def _fp32_detector(*args, **kwargs):
+    """``torch_detector`` with the network kept in fp32 on CUDA too (``--fp32``)."""
+    detector = _torch_detector(*args, **kwargs)
+    return dataclasses.replace(detector, network=detector.network.float(), half=False)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default="data/paper/jeon2022")
     parser.add_argument("--weights", default="rainbench-yolo11n", help="shipped model name or a .pt")
     parser.add_argument("--device", default=None)
     parser.add_argument("--json", default=None)
+    parser.add_argument("--fp32", action="store_true",
+                        help="on CUDA, also run the batched backend in fp32: what of the difference fp16 makes")
     args = parser.parse_args(argv)
     device = args.device or ("0" if torch.cuda.is_available() else "cpu")
     data = Path(args.data)
@@ -59,38 +75,53 @@ def main(argv: list[str] | None = None) -> int:
     imgsz = registry.model_imgsz(args.weights)
     dataset = pipeline.open_dataset(data)
     images = len(dataset.images) * len(dataset.rates)
+    variants = ["ultralytics", "batched"] + (["batched_fp32"] if args.fp32 and device != "cpu" else [])
     runs, seconds = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
-        for pt_backend in ("ultralytics", "batched"):
+        for variant in variants:
             start = time.perf_counter()
-            outputs = pipeline.run_eval(data, Path(tmp) / pt_backend, weights=[checkpoint], imgsz=imgsz,
-                                        device=device, n_boot=1, progress=False, pt_backend=pt_backend)
-            seconds[pt_backend] = time.perf_counter() - start
-            runs[pt_backend] = {(r["class"], r["rate"]): r for r in outputs.records}
+            with contextlib.ExitStack() as stack:
+                if variant == "batched_fp32":
+                    stack.enter_context(mock.patch.object(torch_batched, "torch_detector", _fp32_detector))
+                outputs = pipeline.run_eval(data, Path(tmp) / variant, weights=[checkpoint], imgsz=imgsz,
+                                            device=device, n_boot=1, progress=False,
+                                            pt_backend=variant.split("_")[0])
+            seconds[variant] = time.perf_counter() - start
+            runs[variant] = {(r["class"], r["rate"]): r for r in outputs.records}
     rows = []
     for key, reference in runs["ultralytics"].items():
-        ours = runs["batched"][key]
         if reference["ap50"] is None:
             continue
-        rows.append({"class": key[0], "rate": key[1], "n_gt": reference["n_gt"],
-                     "ap50_ultralytics": reference["ap50"], "ap50_batched": ours["ap50"],
-                     "ap50_95_ultralytics": reference["ap50_95"], "ap50_95_batched": ours["ap50_95"]})
-    largest = {metric: max(abs(row[f"{metric}_batched"] - row[f"{metric}_ultralytics"]) for row in rows)
-               for metric in ("ap50", "ap50_95")}
-    by_class = {}
-    for row in rows:
-        entry = by_class.setdefault(row["class"], 0.0)
-        by_class[row["class"]] = max(entry, abs(row["ap50_batched"] - row["ap50_ultralytics"]))
+        row = {"class": key[0], "rate": key[1], "n_gt": reference["n_gt"]}
+        for variant in variants:
+            row[f"ap50_{variant}"] = runs[variant][key]["ap50"]
+            row[f"ap50_95_{variant}"] = runs[variant][key]["ap50_95"]
+        rows.append(row)
+
+    def largest(variant: str) -> tuple[dict, dict]:
+        overall = {metric: max(abs(row[f"{metric}_{variant}"] - row[f"{metric}_ultralytics"]) for row in rows)
+                   for metric in ("ap50", "ap50_95")}
+        by_class: dict[str, float] = {}
+        for row in rows:
+            by_class[row["class"]] = max(by_class.get(row["class"], 0.0),
+                                         abs(row[f"ap50_{variant}"] - row["ap50_ultralytics"]))
+        return ({k: round(v, 5) for k, v in overall.items()}, {k: round(v, 5) for k, v in by_class.items()})
+
+    overall, by_class = largest("batched")
     result = {
         "benchmark": "backend_agreement", "data": str(data), "weights": str(checkpoint), "imgsz": imgsz,
         "device": device, "cuda": torch.cuda.is_available(), "machine": platform.machine(), "cpus": os.cpu_count(),
         "images": images, "seconds": {k: round(v, 1) for k, v in seconds.items()},
         "images_per_s": {k: round(images / v, 2) for k, v in seconds.items()},
         "ratio_batched_vs_ultralytics": round(seconds["ultralytics"] / seconds["batched"], 3),
-        "largest_abs_difference": {k: round(v, 5) for k, v in largest.items()},
-        "largest_abs_ap50_difference_by_class": {k: round(v, 5) for k, v in by_class.items()},
-        "rows": rows,
+        "largest_abs_difference": overall,
+        "largest_abs_ap50_difference_by_class": by_class,
     }
+    if "batched_fp32" in variants:
+        overall, by_class = largest("batched_fp32")
+        result["largest_abs_difference_fp32"] = overall
+        result["largest_abs_ap50_difference_by_class_fp32"] = by_class
+    result["rows"] = rows
     print(json.dumps({k: v for k, v in result.items() if k != "rows"}, indent=1))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

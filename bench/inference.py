@@ -14,9 +14,12 @@ Timed (best of ``--repeats``):
   agree with the baseline's (share of the baseline's detections scoring >= 0.25 that have a twin:
   the same class, every edge within 1 px, the score within 0.02);
 - forward pass alone: the batched backend's network on a ready (B, 3, h, w) batch, for scale;
-- eval from shards: the batched backend over a shard of the same frames at 11 rates
-  (``jeon2022``), as ``rainbench eval`` runs it (parallel decoding, letterbox, network, NMS,
-  COCO records), images/s over all rates;
+- shard reader alone: ``rainbench eval``'s reader over a shard of the same frames at 11 rates
+  (``jeon2022``): decoded, letterboxed with OpenCV and batched, no network; in this process, and
+  in ``default_read_workers()`` worker processes (started once for all the rates, every batch
+  split among them): what the reader can feed the network;
+- eval from shards: the batched backend over that shard, as ``rainbench eval`` runs it
+  (parallel decoding and letterbox, network, NMS, COCO records), images/s over all rates;
 - onnx backend: the same model exported to ONNX (``rainbench.eval.weights.export_onnx``, dynamic input), run by
   onnxruntime: what a shipped model runs on CPU;
 - darknet backend: a YOLOv4-tiny-sized Darknet network (random weights, built here: no download)
@@ -30,7 +33,7 @@ on the CPU.
 
 Each figure is printed as soon as it is measured (a run cut short still shows what it got);
 ``--skip`` leaves measurements out by name (``baseline``, ``ultralytics``, ``batched``,
-``forward``, ``shards``, ``onnx``, ``darknet``; without the baseline no ratios). A Darknet network
+``forward``, ``reader``, ``shards``, ``onnx``, ``darknet``; without the baseline no ratios). A Darknet network
 this OpenCV cannot read (OpenCV 5 has no Darknet importer) is reported as unavailable.
 
 Usage: ``python bench/inference.py [--weights rainbench-yolo11n] [--json OUT] [--imgsz 640]
@@ -51,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rainbench.eval import backends, weights as registry
+from rainbench.eval import backends, pipeline, weights as registry
 from rainbench.eval.backends.ultralytics import preload_torch
 
 preload_torch()  # before Mesa renders the frames
@@ -136,31 +139,55 @@ def forward_rate(detector, images: list[np.ndarray], imgsz: int, batch: int, rep
         return best_rate(run, [None] * len(canvas), len(canvas), repeats)
 
 
+def rate_shard(count: int, folder: Path) -> Path:
+    """A shard of ``count`` frames at 11 rates (``jeon2022``) in ``folder/shard``, generated on
+    first use."""
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import generate_shard
+
+    out = folder / "shard"
+    if not out.is_dir():
+        generate_shard(GenerateConfig(seed=0, frames=count, fps=count / 20.0, layout="street", time_of_day="day",
+                                      rates=tuple(float(r) for r in range(0, 101, 10)), rain_model="jeon2022"), out)
+    return out
+
+
 def shard_rate(detector, count: int, imgsz: int, batch: int, repeats: int, folder: Path) -> float:
     """Images per second of ``rainbench eval``'s inference over a shard of ``count`` frames at 11
     rates (``jeon2022``), from the shard to COCO records."""
     from rainbench.eval import pipeline
-    from rainbench.gen.config import GenerateConfig
-    from rainbench.gen.generate import generate_shard
 
-    generate_shard(GenerateConfig(seed=0, frames=count, fps=count / 20.0, layout="street", time_of_day="day",
-                                  rates=tuple(float(r) for r in range(0, 101, 10)), rain_model="jeon2022"),
-                   folder / "shard")
-    dataset = pipeline.open_dataset(folder / "shard")
+    dataset = pipeline.open_dataset(rate_shard(count, folder))
 
     class Bar:
         def update(self, _):
             pass
 
     def run(_):
-        for rate in dataset.rates:
-            pipeline._infer(detector, dataset, rate, batch=batch, imgsz=imgsz, conf=0.001, iou=0.7, max_det=300,
-                            bar=Bar(), classes=(0, 1, 2, 3), workers=pipeline.default_read_workers())
+        for _rate, _records in pipeline._infer(detector, dataset, dataset.rates, batch=batch, imgsz=imgsz, conf=0.001,
+                                               iou=0.7, max_det=300, bar=Bar(), classes=(0, 1, 2, 3),
+                                               workers=pipeline.default_read_workers()):
+            pass
     images = len(dataset.images) * len(dataset.rates)
     return best_rate(run, [None] * images, images, repeats)
 
 
-MEASUREMENTS = ("baseline", "ultralytics", "batched", "forward", "shards", "onnx", "darknet")
+def reader_rate(count: int, imgsz: int, batch: int, repeats: int, folder: Path, workers: int) -> float:
+    """Images per second of ``rainbench eval``'s shard reader alone (decoded, letterboxed and
+    batched by ``workers`` processes, no network) over the shard of :func:`shard_rate`."""
+    from rainbench.eval import pipeline
+    from rainbench.eval.backends.torch_batched import frame_batches
+
+    dataset = pipeline.open_dataset(rate_shard(count, folder))
+
+    def run(_):
+        for _batch in frame_batches(dataset, dataset.rates, batch, workers, imgsz=imgsz):
+            pass
+    images = len(dataset.images) * len(dataset.rates)
+    return best_rate(run, [None] * images, images, repeats)
+
+
+MEASUREMENTS = ("baseline", "ultralytics", "batched", "forward", "reader", "shards", "onnx", "darknet")
 """The measurements in the order they run (``--skip`` takes their names)."""
 
 
@@ -231,6 +258,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"batched backend's agreement with the ultralytics backend: {agreed:.4f}", flush=True)
         measure("forward", "forward pass alone (batched backend's network)", lambda: forward_rate(
             batched, images, args.imgsz, args.batch, args.repeats))
+        read_workers = pipeline.default_read_workers()
+        measure("reader", "shard reader alone, one process", lambda: reader_rate(
+            args.images, args.imgsz, args.batch, args.repeats, folder, 0))
+        measure("reader", f"shard reader alone, {read_workers} worker processes", lambda: reader_rate(
+            args.images, args.imgsz, args.batch, args.repeats, folder, read_workers))
         measure("shards", "eval from shards, 11 rates (batched backend)", lambda: shard_rate(
             batched, args.images, args.imgsz, args.batch, args.repeats, folder))
         if "onnx" not in skip:

@@ -308,6 +308,8 @@ def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map, clas
 
         settings["pt_backend"] = pt_backend
         settings["cuda"] = _on_cuda(device)
+        if settings["cuda"] and pt_backend == "batched":  # since 2026-11-27 OpenCV's, not the GPU's
+            settings["letterbox"] = "opencv"
     return settings
 
 
@@ -319,21 +321,33 @@ def default_read_workers(cpu_count: int | None = None) -> int:
     return max(0, min(8, cores - 1))
 
 
-def _infer(detector, dataset: Dataset, rate: float, *, batch, imgsz, conf, iou, max_det, bar,
-           classes: Sequence[int], workers: int = 0) -> list[dict]:
-    """COCO results records of ``detector`` on ``images`` at one rate, of the rainbench ids
-    ``classes`` only. A batched torch detector gets (B, H, W, 3) blocks decoded by ``workers``
-    processes; the others get lists of arrays read here."""
-    if hasattr(detector, "predict_frames"):
+def _infer(detector, dataset: Dataset, rates: Sequence[float], *, batch, imgsz, conf, iou, max_det, bar,
+           classes: Sequence[int], workers: int = 0):
+    """Yield ``(rate, COCO results records)`` of ``detector`` at each of ``rates`` in turn, of the
+    rainbench ids ``classes`` only. A batched torch detector gets its frames decoded and
+    letterboxed by ``workers`` processes, started once for all the rates
+    (:func:`rainbench.eval.backends.torch_batched.frame_batches`); the others get lists of arrays
+    read here, rate by rate."""
+    if hasattr(detector, "predict_canvases"):
         from .backends.torch_batched import frame_batches
 
-        batches = frame_batches(dataset, rate, batch, workers, pin_memory=detector.device.type == "cuda")
-        predict = detector.predict_frames
+        def batches():
+            for rate, image_ids, canvases in frame_batches(dataset, rates, batch, workers, imgsz=imgsz,
+                                                           device=detector.device):
+                size = dataset.size(dataset.image(image_ids[0]).shard_index)
+                yield rate, image_ids, detector.predict_canvases(canvases, size, conf=conf, iou=iou, max_det=max_det)
     else:
-        batches, predict = _read_rgb(dataset, rate, batch), detector.predict
+        def batches():
+            for rate in rates:
+                for image_ids, arrays in _read_rgb(dataset, rate, batch):
+                    yield rate, image_ids, detector.predict(arrays, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det)
     records: list[dict] = []
-    for image_ids, arrays in batches:
-        outputs = predict(arrays, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det)
+    current = None
+    for rate, image_ids, outputs in batches():
+        if current is not None and rate != current:
+            yield current, records
+            records = []
+        current = rate
         for image_id, (boxes, scores, class_ids) in zip(image_ids, outputs, strict=True):
             class_ids = np.asarray(class_ids, np.int64).reshape(-1)
             keep = np.isin(class_ids, np.asarray(classes, np.int64))
@@ -341,7 +355,8 @@ def _infer(detector, dataset: Dataset, rate: float, *, batch, imgsz, conf, iou, 
                                        np.clip(np.asarray(scores, np.float64).reshape(-1), 0.0, 1.0)[keep],
                                        class_ids[keep])
         bar.update(len(image_ids))
-    return records
+    if current is not None:
+        yield current, records
 
 
 def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str | Path | None = None,
@@ -536,20 +551,21 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
     detections: dict[tuple[str, float], list[dict]] = {}
     inference_runs = 0
     for model, model_imgsz, settings, meta_path, fresh, detector in plans:
-        for rate in rates:
-            cache = predictions_path(cache_root, model, rate)
-            if rate in fresh:
-                detections[(model, rate)] = load_predictions_file(cache, image_ids, class_ids, cache=True)
-                continue
-            with tqdm(total=len(dataset), unit="img", desc=f"{model} {rate_token(rate)} mm/h",
+        for rate in fresh:
+            detections[(model, rate)] = load_predictions_file(predictions_path(cache_root, model, rate), image_ids,
+                                                              class_ids, cache=True)
+        stale = [rate for rate in rates if rate not in fresh]
+        if stale:
+            rate_names = ", ".join(rate_token(rate) for rate in stale)
+            with tqdm(total=len(dataset) * len(stale), unit="img", desc=f"{model} at {rate_names} mm/h",
                       disable=not progress, dynamic_ncols=True) as bar:
-                records = _infer(detector, dataset, rate, batch=batch, imgsz=model_imgsz, conf=conf,
-                                 iou=iou, max_det=max_det, bar=bar, classes=class_ids, workers=workers)
-            if classes_given:  # an ONNX file without names learns its classes at its first batch
-                backends.check_model_classes(detector, model, class_ids)
-            _write_json(cache, records)
-            detections[(model, rate)] = records
-            inference_runs += 1
+                for rate, records in _infer(detector, dataset, stale, batch=batch, imgsz=model_imgsz, conf=conf,
+                                            iou=iou, max_det=max_det, bar=bar, classes=class_ids, workers=workers):
+                    if classes_given:  # an ONNX file without names learns its classes at its first batch
+                        backends.check_model_classes(detector, model, class_ids)
+                    _write_json(predictions_path(cache_root, model, rate), records)
+                    detections[(model, rate)] = records
+                    inference_runs += 1
         if detector is not None:
             # Written once every rate is cached, so an interrupted run re-infers what is stale.
             _write_json(meta_path, {**settings, "images": fingerprints})

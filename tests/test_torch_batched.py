@@ -154,20 +154,51 @@ def test_shard_batches_never_mix_shards():
     assert shard_batches(images, 32) == [[0, 1, 2], [3, 4], [5]]
 
 
-@pytest.mark.parametrize("workers", [0, 1])
-def test_frame_batches_read_every_frame_in_id_order(two_shards, workers):
-    """In image-id order, one frame size per batch, the bytes the dataset reader reads; the same
-    with a worker process."""
+@pytest.mark.parametrize("workers", [0, 1, 2])
+def test_frame_batches_read_every_frame_at_every_rate_in_id_order(two_shards, workers):
+    """Rate by rate, in image-id order, one frame size per batch, the bytes the dataset reader
+    reads; the same with one worker process and with two (each batch then read in two chunks)."""
     dataset = Dataset(two_shards)
     seen = []
-    for image_ids, block in frame_batches(dataset, 50.0, batch=2, workers=workers):
+    for rate, image_ids, block in frame_batches(dataset, [50.0, 0.0], batch=2, workers=workers):
         assert block.dtype == torch.uint8 and block.ndim == 4 and len(block) == len(image_ids) <= 2
         for image_id, frame in zip(image_ids, block):
             image = dataset.image(image_id)
             with dataset.open(image.shard_index) as handle:
-                np.testing.assert_array_equal(frame.numpy(), dataset.read_rgb(handle, image, 50.0))
-        seen += image_ids
-    assert seen == [1, 2, 3, 4, 5]
+                np.testing.assert_array_equal(frame.numpy(), dataset.read_rgb(handle, image, rate))
+        seen.append((rate, image_ids))
+    # the first shard holds images 1..3, the second 4 and 5 (batches never mix shards)
+    assert seen == [(50.0, [1, 2]), (50.0, [3]), (50.0, [4, 5]), (0.0, [1, 2]), (0.0, [3]), (0.0, [4, 5])]
+
+
+def test_frame_batches_letterbox_in_the_reader_with_opencv(two_shards):
+    """With imgsz the reader's workers hand over each frame on its canvas exactly as the numpy
+    (OpenCV) letterbox draws it: ultralytics' predict's own pixels."""
+    dataset = Dataset(two_shards)
+    for rate, image_ids, canvases in frame_batches(dataset, [50.0], batch=3, workers=1, imgsz=64):
+        for image_id, canvas in zip(image_ids, canvases):
+            image = dataset.image(image_id)
+            with dataset.open(image.shard_index) as handle:
+                frame = dataset.read_rgb(handle, image, rate)
+            np.testing.assert_array_equal(canvas.numpy(), letterbox(frame, rect_shape(*frame.shape[:2], 64))[0])
+
+
+def test_frame_batches_start_the_workers_once_and_split_each_batch_among_them(two_shards, monkeypatch):
+    """One DataLoader for all the rates (its workers start once, not once a rate), whose keys cut
+    each batch into ceil(batch / workers) frames, so that every worker decodes part of it."""
+    loaders = []
+    real = torch.utils.data.DataLoader
+
+    def recording(dataset, **options):
+        loaders.append(list(options["sampler"]))
+        return real(dataset, **options)
+
+    monkeypatch.setattr(torch.utils.data, "DataLoader", recording)
+    dataset = Dataset(two_shards)
+    batches = list(frame_batches(dataset, [0.0, 50.0], batch=3, workers=2))
+    assert len(loaders) == 1
+    assert [indices for _, indices in loaders[0]] == [(0, 1), (2,), (3, 4)] * 2
+    assert [image_ids for _, image_ids, _ in batches] == [[1, 2, 3], [4, 5]] * 2
 
 
 def _saved_model(tmp_path, yaml):
@@ -235,6 +266,26 @@ def test_cpu_runs_the_network_one_image_at_a_time(monkeypatch, tmp_path):
     for a, b in zip(one_by_one, together, strict=True):
         for x, y in zip(a, b):
             np.testing.assert_allclose(x, y, atol=1e-3)
+
+
+def test_letterboxed_canvases_give_the_frames_detections(tmp_path):
+    """predict_canvases of the reader's letterboxed canvases gives exactly predict_frames'
+    detections on the CPU (both draw the canvas with OpenCV), boxes in frame pixels; a canvas
+    that is not (B, h, w, 3) uint8 is refused, naming what came."""
+    detector = backends.load_detector(_saved_model(tmp_path, "yolo11n.yaml"), device="cpu")
+    frames = np.stack([_frame(72, 96, seed) for seed in range(3)])
+    settings = dict(conf=0.0001, iou=0.7, max_det=20)
+    canvases = torch.from_numpy(np.stack([letterbox(frame, rect_shape(72, 96, 128))[0] for frame in frames]))
+    assert canvases.shape == (3, 96, 128, 3)
+    found = detector.predict_canvases(canvases, (72, 96), **settings)
+    expected = detector.predict_frames(torch.from_numpy(frames), imgsz=128, **settings)
+    assert sum(len(scores) for _, scores, _ in found) > 0
+    for ours, theirs in zip(found, expected, strict=True):
+        for x, y in zip(ours, theirs, strict=True):
+            np.testing.assert_array_equal(x, y)
+        assert (ours[0][:, [0, 2]] <= 96).all() and (ours[0][:, [1, 3]] <= 72).all()
+    with pytest.raises(ValueError, match=r"canvases: expected \(B, h, w, 3\) uint8, got \(3, 96, 128, 3\) torch.float32"):
+        detector.predict_canvases(canvases.float(), (72, 96), **settings)
 
 
 def test_default_read_workers_leave_a_core_to_the_network():

@@ -5,10 +5,13 @@ Python loop, box mapping), this backend does for a whole batch with torch on the
 
 - letterbox: (B, H, W, 3) uint8 frames -> (B, 3, h, w) in 0..1, padded with grey 114 to the
   smallest multiple of 32 around the image (ultralytics' rectangular inference shape,
-  :func:`rainbench.eval.backends.letterbox.rect_shape`). On CUDA, on the GPU
-  (:func:`letterbox_batch`: bilinear with half-pixel centres, OpenCV's ``INTER_LINEAR`` sampling,
-  rounded to uint8 levels); on the CPU with OpenCV's own resize (:func:`letterbox_frames`), so the
-  network sees exactly the pixels ultralytics' predict gives it;
+  :func:`rainbench.eval.backends.letterbox.rect_shape`). Frames read from shards
+  (:func:`frame_batches`, ``rainbench eval``) are letterboxed by the reader's worker processes
+  with OpenCV's own resize, so the network sees exactly the pixels ultralytics' predict gives it
+  (:meth:`TorchDetector.predict_canvases`); arrays handed to :meth:`TorchDetector.predict` are
+  letterboxed on CUDA on the GPU (:func:`letterbox_batch`: bilinear with half-pixel centres,
+  OpenCV's ``INTER_LINEAR`` sampling, rounded to uint8 levels) and on the CPU with OpenCV
+  (:func:`letterbox_frames`);
 - the network, fused (convolution + batch norm) as ultralytics predicts, channels-last, in fp16 on
   CUDA and fp32 on the CPU;
 - NMS (:func:`select_batch`): ultralytics' ``non_max_suppression`` step for step (best class per
@@ -16,12 +19,13 @@ Python loop, box mapping), this backend does for a whole batch with torch on the
   offset, ``max_det``), on the device;
 - boxes mapped back to image pixels and clipped (:func:`unletterbox_boxes`), on the device.
 
-The same code runs on the CPU and on CUDA except the resize (the tests run the CPU, and check the
-GPU's resize against OpenCV's on the CPU). Against ultralytics' ``predict``: on the CPU the same
-input pixels, the same fused network (its convolutions run channels-last, one image per call, so
-sums are added in another order) and the same NMS; on CUDA the resize's float arithmetic (a pixel
-differs by at most one grey level from OpenCV's fixed point) and fp16 instead of predict's default
-fp32 (``tests/test_torch_batched.py``, ``tests/test_train_paper.py``, ``bench/backend_agreement.py``).
+The same code runs on the CPU and on CUDA except the GPU resize of :meth:`TorchDetector.predict`
+(the tests run the CPU, and check the GPU's resize against OpenCV's on the CPU). Against
+ultralytics' ``predict``: on the CPU the same input pixels, the same fused network (its
+convolutions run channels-last, one image per call, so sums are added in another order) and the
+same NMS; on CUDA also fp16 instead of predict's default fp32, and for arrays the GPU resize's
+float arithmetic (a pixel differs by at most one grey level from OpenCV's fixed point)
+(``tests/test_torch_batched.py``, ``tests/test_train_paper.py``, ``bench/backend_agreement.py``).
 
 Models it runs: ultralytics detection models with a ``Detect`` head that needs NMS (YOLOv3u,
 v5u, v8, v9, 11, 12). End-to-end heads (YOLOv10, YOLO26) and other model types (RT-DETR) are run
@@ -190,15 +194,44 @@ class TorchDetector:
         height, width = int(frames.shape[1]), int(frames.shape[2])
         shape = rect_shape(height, width, imgsz)
         frames = frames.to(self.device, non_blocking=True)
-        step = len(frames) if self.device.type == "cuda" else CPU_BATCH
+        if self.device.type == "cuda":
+            canvases, gain, pad = letterbox_batch(frames, shape, self.dtype)
+            return self._detect(lambda start, stop: canvases[start:stop], len(frames), gain, pad, width, height,
+                                conf=conf, iou=iou, max_det=max_det)
+        # OpenCV's resize, as ultralytics' predict: the same input pixels, faster here
+        gain, _, (top, left) = letterbox_geometry(height, width, shape)
+        return self._detect(lambda start, stop: letterbox_frames(frames[start:stop], shape)[0], len(frames), gain,
+                            (float(left), float(top)), width, height, conf=conf, iou=iou, max_det=max_det)
+
+    def predict_canvases(self, canvases: torch.Tensor, frame_size: tuple[int, int], *, conf: float, iou: float,
+                         max_det: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Detections of frames already letterboxed: ``canvases`` (B, h, w, 3) uint8 on any device,
+        each a ``frame_size`` (H, W) frame on its canvas as
+        :func:`rainbench.eval.backends.letterbox.letterbox` draws it (OpenCV's resize: the pixels
+        ultralytics' predict feeds its network; :func:`frame_batches` with ``imgsz``). Returns what
+        :meth:`predict` returns, boxes in frame pixels."""
+        if canvases.ndim != 4 or canvases.shape[-1] != 3 or canvases.dtype != torch.uint8:
+            raise ValueError(f"canvases: expected (B, h, w, 3) uint8, got {tuple(canvases.shape)} {canvases.dtype}")
+        height, width = (int(side) for side in frame_size)
+        gain, _, (top, left) = letterbox_geometry(height, width, (int(canvases.shape[1]), int(canvases.shape[2])))
+        canvases = canvases.to(self.device, non_blocking=True)
+
+        def canvas(start: int, stop: int) -> torch.Tensor:  # (n, 3, h, w) channels-last memory, 0..1
+            return canvases[start:stop].permute(0, 3, 1, 2).to(self.dtype).div_(255.0)
+
+        return self._detect(canvas, len(canvases), gain, (float(left), float(top)), width, height, conf=conf,
+                            iou=iou, max_det=max_det)
+
+    def _detect(self, canvas, count: int, gain: float, pad: tuple[float, float], width: int, height: int, *,
+                conf: float, iou: float, max_det: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The network, NMS and box mapping of ``count`` letterboxed images; ``canvas(start, stop)``
+        gives images start..stop as (n, 3, h, w) of the network's dtype in 0..1 on its device
+        (channels-last memory). CUDA takes all in one call, the CPU ``CPU_BATCH`` at a time."""
+        step = count if self.device.type == "cuda" else CPU_BATCH
         results = []
         with torch.inference_mode():
-            for start in range(0, len(frames), step):
-                if self.device.type == "cuda":
-                    canvas, gain, pad = letterbox_batch(frames[start:start + step], shape, self.dtype)
-                else:  # OpenCV's resize, as ultralytics' predict: the same input pixels, faster here
-                    canvas, gain, pad = letterbox_frames(frames[start:start + step], shape)
-                raw = self.network(canvas)
+            for start in range(0, count, step):
+                raw = self.network(canvas(start, start + step))
                 raw = raw[0] if isinstance(raw, (tuple, list)) else raw
                 results += [(unletterbox_boxes(boxes, gain, pad, width, height), scores, ids)
                             for boxes, scores, ids in select_batch(raw, self._lookup, conf=conf, iou=iou,
@@ -250,25 +283,31 @@ def torch_device(device: str | None) -> torch.device:
 
 
 
-class _RateImages(torch.utils.data.Dataset):
-    """The frames of a :class:`rainbench.store.Dataset` at one rate, in image-id order: item i is
-    ``(image_id, (H, W, 3) uint8 RGB)``. Shards are opened once per process
-    (:meth:`rainbench.store.Dataset.handle`), so it is safe in ``DataLoader`` workers."""
+class _FrameChunks(torch.utils.data.Dataset):
+    """Frames of a :class:`rainbench.store.Dataset` read in chunks: the key ``(rate, (i, j, ...))``
+    (indices of ``dataset.images``, one shard) gives ``(image ids, (n, H, W, 3) uint8 RGB)``, or
+    with ``imgsz`` the frames letterboxed on their ``rect_shape`` canvas with OpenCV
+    (:func:`rainbench.eval.backends.letterbox.letterbox`): (n, h, w, 3) uint8. Shards are opened
+    once per process (:meth:`rainbench.store.Dataset.handle`), so it is safe in ``DataLoader``
+    workers."""
 
-    def __init__(self, dataset: Any, rate: float) -> None:
-        self.dataset, self.rate = dataset, rate
+    def __init__(self, dataset: Any, imgsz: int | None = None) -> None:
+        self.dataset, self.imgsz = dataset, imgsz
 
-    def __len__(self) -> int:
-        return len(self.dataset.images)
+    def __getitem__(self, key: tuple[float, tuple[int, ...]]) -> tuple[list[int], torch.Tensor]:
+        rate, indices = key
+        images = [self.dataset.images[index] for index in indices]
+        handle = self.dataset.handle(images[0].shard_index)
+        frames = [self.dataset.read_rgb(handle, image, rate) for image in images]
+        if self.imgsz is not None:
+            shape = rect_shape(frames[0].shape[0], frames[0].shape[1], self.imgsz)
+            frames = [letterbox(frame, shape)[0] for frame in frames]
+        return [image.image_id for image in images], torch.from_numpy(np.stack(frames))
 
-    def __getitem__(self, index: int) -> tuple[int, np.ndarray]:
-        image = self.dataset.images[index]
-        return image.image_id, self.dataset.read_rgb(self.dataset.handle(image.shard_index), image, self.rate)
 
-
-def _collate_frames(batch: list[tuple[int, np.ndarray]]) -> tuple[list[int], torch.Tensor]:
-    """One (B, H, W, 3) block per batch: one shared-memory segment crosses from a worker."""
-    return [image_id for image_id, _ in batch], torch.from_numpy(np.stack([frame for _, frame in batch]))
+def _as_read(chunk: tuple[list[int], torch.Tensor]) -> tuple[list[int], torch.Tensor]:
+    """The ``DataLoader``'s collate function: a chunk is already one block."""
+    return chunk
 
 
 def shard_batches(images: Sequence[Any], batch: int) -> list[list[int]]:
@@ -283,16 +322,40 @@ def shard_batches(images: Sequence[Any], batch: int) -> list[list[int]]:
     return batches
 
 
-def frame_batches(dataset: Any, rate: float, batch: int, workers: int, pin_memory: bool = False):
-    """Yield ``(image_ids, (B, H, W, 3) uint8 tensor)`` of every frame of ``dataset``
-    (:class:`rainbench.store.Dataset`) at ``rate``, in image-id order, in batches of at most
-    ``batch`` frames of one shard. ``workers`` > 0 decode in that many ``DataLoader`` worker
-    processes (0: in this process)."""
-    frames = _RateImages(dataset, rate)
+def frame_batches(dataset: Any, rates: Sequence[float], batch: int, workers: int, *, imgsz: int | None = None,
+                  device: torch.device | str | None = None):
+    """Yield ``(rate, image_ids, block)`` for every frame of ``dataset``
+    (:class:`rainbench.store.Dataset`) at each of ``rates`` in turn, in image-id order, in batches
+    of at most ``batch`` frames of one shard (:func:`shard_batches`).
+
+    ``block``: (B, H, W, 3) uint8 RGB frames; with ``imgsz``, the frames letterboxed for a network
+    of that size (:class:`_FrameChunks`; for :meth:`TorchDetector.predict_canvases`), (B, h, w, 3)
+    uint8. On ``device`` when given (default the CPU).
+
+    ``workers`` > 0: that many ``DataLoader`` worker processes, started once for all the rates,
+    decode (and letterbox); each batch is split into chunks of ``ceil(batch / workers)`` frames
+    so that all workers decode the frames of one batch at once, and the chunks are joined here
+    (on ``device``: each chunk is copied there from pinned memory, then joined). 0: all in this
+    process."""
+    device = torch.device("cpu") if device is None else torch.device(device)
+    chunk = batch if workers == 0 else max(1, -(-batch // workers))
+    keys, groups = [], []  # the DataLoader's keys, and the batch each one belongs to
+    for rate in rates:
+        for group, indices in enumerate(shard_batches(dataset.images, batch)):
+            for start in range(0, len(indices), chunk):
+                keys.append((float(rate), tuple(indices[start:start + chunk])))
+                groups.append((float(rate), group))
     loader = torch.utils.data.DataLoader(
-        frames, batch_sampler=shard_batches(dataset.images, batch), num_workers=workers,
-        collate_fn=_collate_frames, pin_memory=pin_memory, prefetch_factor=2 if workers else None)
+        _FrameChunks(dataset, imgsz), batch_size=None, sampler=keys, num_workers=workers, collate_fn=_as_read,
+        pin_memory=device.type == "cuda", prefetch_factor=2 if workers else None)
+    pending_ids: list[int] = []
+    pending: list[torch.Tensor] = []
     try:
-        yield from loader
+        for position, (image_ids, block) in enumerate(loader):
+            pending_ids += image_ids
+            pending.append(block.to(device, non_blocking=True))
+            if position + 1 == len(groups) or groups[position + 1] != groups[position]:
+                yield groups[position][0], pending_ids, pending[0] if len(pending) == 1 else torch.cat(pending)
+                pending_ids, pending = [], []
     finally:
         dataset.close()
