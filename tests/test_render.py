@@ -137,3 +137,53 @@ def test_geoms_behind_the_camera_are_left_out_of_the_segmentation_without_changi
         np.testing.assert_array_equal(got, expected)
     assert {0, 3} <= set(np.unique(culled[0]).tolist())  # the long box's front end shows
     assert 1 not in culled[0]
+
+
+def test_scene_geom_records_read_what_the_bindings_read(make_tiny_scene):
+    """The scene's geom memory read at once gives each geom's objtype, objid and segid as the
+    bindings' attributes do, decor geoms (the bodies' frames: no model geom) included."""
+    from rainbench.gen.render import scene_geom_records
+
+    model, _ = make_tiny_scene([((10.0, 0.0, 1.0), (0.5, 0.5, 0.5)), ((12.0, 2.0, 1.0), (0.4, 0.4, 0.9))], W, H)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    scene = mujoco.MjvScene(model, maxgeom=100)
+    option = mujoco.MjvOption()
+    option.frame = mujoco.mjtFrame.mjFRAME_BODY
+    mujoco.mjv_updateScene(model, data, option, None, mujoco.MjvCamera(), mujoco.mjtCatBit.mjCAT_ALL, scene)
+    records = scene_geom_records(scene)
+    assert records is not None and len(records) == 100
+    geoms = scene.geoms[: scene.ngeom]
+    assert {int(geom.objtype) for geom in geoms} >= {int(mujoco.mjtObj.mjOBJ_GEOM), int(mujoco.mjtObj.mjOBJ_UNKNOWN)}
+    for field in ("objtype", "objid", "segid"):
+        assert records[field][: scene.ngeom].tolist() == [int(getattr(geom, field)) for geom in geoms]
+
+
+def test_segmentation_decode_reads_the_geoms_one_by_one_once_per_scene(make_tiny_scene, monkeypatch):
+    """The bindings' geom-by-geom reading checks the records once for each scene, then the
+    records alone serve, with the same instance ids."""
+    from rainbench.gen import render
+
+    model, table = make_tiny_scene([((10.0, 0.0, 1.0), (0.5, 0.5, 0.5)), ((12.0, 2.0, 1.0), (0.4, 0.4, 0.9))], W, H)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    calls = []
+    one_by_one = render._shown_geoms_one_by_one
+    monkeypatch.setattr(render, "_shown_geoms_one_by_one", lambda scene: calls.append(id(scene)) or one_by_one(scene))
+    with FrameRenderer(model, W, H, table) as renderer:
+        renderer.update(data)
+        first = renderer.render_instances_depth()
+        for _ in range(3):
+            renderer.update(data)
+            again = renderer.render_instances_depth()
+        assert calls == [id(renderer._label_scene)]
+        monkeypatch.setattr(render, "scene_geom_records", lambda scene: None)  # another layout: geom by geom
+        renderer._geom_records.clear()
+        for _ in range(2):
+            renderer.update(data)
+            fallback = renderer.render_instances_depth()
+        assert len(calls) == 3  # one a decode
+    assert {0, 1} <= set(np.unique(first[0]).tolist())
+    for a, b, c in zip(first, again, fallback):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
