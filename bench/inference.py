@@ -14,6 +14,9 @@ Timed (best of ``--repeats``):
   agree with the baseline's (share of the baseline's detections scoring >= 0.25 that have a twin:
   the same class, every edge within 1 px, the score within 0.02);
 - forward pass alone: the batched backend's network on a ready (B, 3, h, w) batch, for scale;
+- stages: the batched backend from letterboxed uint8 canvases (what the shard reader hands
+  over), ms per image of each stage with the device synchronised between them: copy and
+  convert, network, NMS, boxes back to the host (not an images/s figure);
 - shard reader alone: ``rainbench eval``'s reader over a shard of the same frames at 11 rates
   (``jeon2022``): decoded, letterboxed with OpenCV and batched, no network; in this process, and
   in ``default_read_workers()`` worker processes (started once for all the rates, every batch
@@ -33,7 +36,7 @@ on the CPU.
 
 Each figure is printed as soon as it is measured (a run cut short still shows what it got);
 ``--skip`` leaves measurements out by name (``baseline``, ``ultralytics``, ``batched``,
-``forward``, ``reader``, ``shards``, ``onnx``, ``darknet``; without the baseline no ratios). A Darknet network
+``forward``, ``stages``, ``reader``, ``shards``, ``onnx``, ``darknet``; without the baseline no ratios). A Darknet network
 this OpenCV cannot read (OpenCV 5 has no Darknet importer) is reported as unavailable.
 
 Usage: ``python bench/inference.py [--weights rainbench-yolo11n] [--json OUT] [--imgsz 640]
@@ -139,6 +142,60 @@ def forward_rate(detector, images: list[np.ndarray], imgsz: int, batch: int, rep
         return best_rate(run, [None] * len(canvas), len(canvas), repeats)
 
 
+def batched_stages(detector, images: list[np.ndarray], imgsz: int, batch: int, repeats: int) -> dict[str, float]:
+    """Milliseconds per image of each stage of the batched backend's path from the reader's
+    letterboxed uint8 canvases (:meth:`TorchDetector.predict_canvases`), on its device, the
+    device synchronised after each stage (best of ``repeats`` over the frames, in batches of
+    ``batch``): the canvases' copy to the device and conversion, the network, NMS
+    (``select_batch``), and the boxes' mapping and copy back."""
+    from rainbench.eval.backends.letterbox import letterbox, letterbox_geometry, rect_shape
+    from rainbench.eval.backends.torch_batched import select_batch, unletterbox_boxes
+
+    height, width = images[0].shape[:2]
+    shape = rect_shape(height, width, imgsz)
+    gain, _, (top, left) = letterbox_geometry(height, width, shape)
+    blocks = [torch.from_numpy(np.stack([letterbox(image, shape)[0] for image in images[start:start + batch]]))
+              for start in range(0, len(images), batch)]
+    if detector.device.type == "cuda":
+        blocks = [block.pin_memory() for block in blocks]
+    step = batch if detector.device.type == "cuda" else 1  # as _detect runs it
+
+    def sync():
+        if detector.device.type == "cuda":
+            torch.cuda.synchronize()
+
+    best: dict[str, float] = {}
+    for attempt in range(repeats + 1):  # the first pass warms up
+        seconds = dict.fromkeys(("copy and convert", "network", "nms", "boxes back"), 0.0)
+        with torch.inference_mode():
+            for block in blocks:
+                for start in range(0, len(block), step):
+                    clock = time.perf_counter()
+                    canvas = block[start:start + step].to(detector.device, non_blocking=True)
+                    canvas = canvas.permute(0, 3, 1, 2).to(detector.dtype).div_(255.0)
+                    sync()
+                    now = time.perf_counter()
+                    seconds["copy and convert"] += now - clock
+                    raw = detector.network(canvas)
+                    raw = raw[0] if isinstance(raw, (tuple, list)) else raw
+                    sync()
+                    clock, now = now, time.perf_counter()
+                    seconds["network"] += now - clock
+                    selected = select_batch(raw, detector._lookup, conf=0.001, iou=0.7, max_det=300)
+                    sync()
+                    clock, now = now, time.perf_counter()
+                    seconds["nms"] += now - clock
+                    for boxes, scores, ids in selected:
+                        unletterbox_boxes(boxes, gain, (float(left), float(top)), width, height).float().cpu().numpy()
+                        scores.float().cpu().numpy()
+                        ids.cpu().numpy()
+                    seconds["boxes back"] += time.perf_counter() - now
+        if attempt or not repeats:
+            for stage, value in seconds.items():
+                best[stage] = min(best.get(stage, float("inf")), value)
+    return {stage: round(value / len(images) * 1e3, 3) for stage, value in best.items()}
+
+
 def rate_shard(count: int, folder: Path) -> Path:
     """A shard of ``count`` frames at 11 rates (``jeon2022``) in ``folder/shard``, generated on
     first use."""
@@ -187,7 +244,7 @@ def reader_rate(count: int, imgsz: int, batch: int, repeats: int, folder: Path, 
     return best_rate(run, [None] * images, images, repeats)
 
 
-MEASUREMENTS = ("baseline", "ultralytics", "batched", "forward", "reader", "shards", "onnx", "darknet")
+MEASUREMENTS = ("baseline", "ultralytics", "batched", "forward", "stages", "reader", "shards", "onnx", "darknet")
 """The measurements in the order they run (``--skip`` takes their names)."""
 
 
@@ -227,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label}: {rates[label]:.1f} images/s (measured in {time.perf_counter() - start:.0f} s, "
               f"{time.perf_counter() - started:.0f} s since the start)", flush=True)
 
-    agreed = None
+    agreed, stages = None, None
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         if args.weights in registry.shipped_models():
@@ -258,6 +315,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"batched backend's agreement with the ultralytics backend: {agreed:.4f}", flush=True)
         measure("forward", "forward pass alone (batched backend's network)", lambda: forward_rate(
             batched, images, args.imgsz, args.batch, args.repeats))
+        if "stages" not in skip:
+            stages = batched_stages(batched, images, args.imgsz, args.batch, args.repeats)
+            print("batched backend's stages from letterboxed canvases, ms per image: "
+                  + ", ".join(f"{stage} {value:.3f}" for stage, value in stages.items()), flush=True)
         read_workers = pipeline.default_read_workers()
         measure("reader", "shard reader alone, one process", lambda: reader_rate(
             args.images, args.imgsz, args.batch, args.repeats, folder, 0))
@@ -285,6 +346,7 @@ def main(argv: list[str] | None = None) -> int:
         "torch_threads": threads, "cuda": torch.cuda.is_available(), "device": device,
         "batched_precision": "fp16" if batched.half else "fp32",
         "batched_agreement_with_baseline": None if agreed is None else round(agreed, 4),
+        "batched_stages_ms_per_image": stages,
         "images_per_s": {k: round(v, 2) for k, v in rates.items()},
         "ratio_vs_baseline": {k: round(v / baseline, 3) for k, v in rates.items()} if baseline else {},
         "skipped": sorted(skip), "unavailable": unavailable,
