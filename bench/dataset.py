@@ -105,18 +105,20 @@ def weather_end_to_end(tmp: Path, frames: int, workers: int | None = None) -> di
             "ratio": seconds / bare, "target_ratio": 1.6}
 
 
-def scaling(tmp: Path, frames: int, workers: int = 2, rates: str = "0,50,100") -> dict:
+def scaling(tmp: Path, frames: int, workers: int = 2, rates: str = "0,50,100", device: str | None = None) -> dict:
     """``workers`` workers on ``workers`` scenes against one worker on 2 scenes (the same scenes'
-    first two), in images per second; with 2 workers both runs do the same work."""
+    first two), in images per second; with 2 workers both runs do the same work. ``device``:
+    ``rainbench generate --device`` (where the statistics run; None: its default, ``auto``)."""
     num_rates = len(parse_rates(rates))
-    result = {"frames_per_scene": frames, "rates": rates, "workers": workers}
+    result = {"frames_per_scene": frames, "rates": rates, "workers": workers, "device": device or "auto"}
+    device_args = [] if device is None else ["--device", device]
     for label, env, threads in (("one_core_per_worker", {"LP_NUM_THREADS": "1"}, ["--threads", "1"]),
                                 ("default_threads", {}, [])):
         runs = {}
         for count, scenes in ((1, 2), (workers, workers)):
             seconds = cli_seconds(["--out", str(tmp / f"s{count}{label}"), "--workers", str(count),
                                    "--scenes", str(scenes), "--frames", str(frames),
-                                   "--rates", rates, *threads], env)
+                                   "--rates", rates, *threads, *device_args], env)
             runs[count] = (seconds, scenes * frames * num_rates / seconds)
         result[label] = {"one_worker_s": runs[1][0], "n_workers_s": runs[workers][0],
                          "one_worker_images_per_s": runs[1][1],
@@ -175,6 +177,8 @@ def main() -> None:
     parser.add_argument("--scaling-workers", type=int, default=2,
                         help="workers (and scenes) against one worker on 2 scenes (default 2)")
     parser.add_argument("--scaling-rates", default="0,50,100")
+    parser.add_argument("--scaling-device", default=None,
+                        help="rainbench generate --device of the scaling runs (default: its own, auto)")
     parser.add_argument("--weather-frames", type=int, default=200)
     parser.add_argument("--reader-frames", type=int, default=100)
     parser.add_argument("--skip", default="", help="comma list of e2e,weather,scaling,reader")
@@ -202,10 +206,10 @@ def main() -> None:
                   f" s, ratio {weather['ratio']:.2f} (target <= 1.6)")
         if "scaling" not in skip:
             results["scaling"] = scale = scaling(tmp, args.scaling_frames, args.scaling_workers,
-                                                 args.scaling_rates)
+                                                 args.scaling_rates, args.scaling_device)
             for label in ("one_core_per_worker", "default_threads"):
                 row = scale[label]
-                print(f"scaling ({label}): 1 worker {row['one_worker_images_per_s']:.0f} images/s"
+                print(f"scaling ({label}, --device {scale['device']}): 1 worker {row['one_worker_images_per_s']:.0f} images/s"
                       f" ({row['one_worker_s']:.1f} s), {args.scaling_workers} workers "
                       f"{row['n_workers_images_per_s']:.0f} images/s ({row['n_workers_s']:.1f} s),"
                       f" speed-up {row['speedup']:.2f}x")

@@ -33,6 +33,8 @@
 #   pieces     the same as dataset with 16 workers: the clip in 16 pieces, each its own GL context
 #   scaling    bench/dataset.py scaling: 16 workers on 16 scenes against 1 worker, 50 frames,
 #              11 rates (target >= 10x)
+#   scaling-cpu  the same with the statistics on the CPU (--device cpu): 5.5x with them on the
+#              GPU on 2026-11-27, 16 processes each with its own CUDA context on one GPU
 # The third run (2026-11-27, second session) measured everything up to the agreement step, which
 # was cut; the paper step has never finished. What that run measured now comes last.
 # Everything it prints goes to $OUT/check.log too; JSON and the report go to $OUT (at most 8 files).
@@ -45,7 +47,7 @@ mkdir -p "$OUT"
 exec > >(tee -a "$OUT/check.log") 2>&1
 start=$(date +%s)
 deadline=$((start + ${GPU_CHECK_SECONDS:-540}))
-steps=${GPU_CHECK_STEPS:-"env inference agreement paper dataset profile stats pieces scaling"}
+steps=${GPU_CHECK_STEPS:-"env inference agreement paper dataset profile stats pieces scaling scaling-cpu"}
 source bench/gpu_env.sh
 echo "== installed in $(($(date +%s) - start)) s"
 
@@ -120,4 +122,7 @@ step stats 40 "$python" bench/stats_device.py --frames 3
 step pieces 120 "$python" bench/dataset.py --skip scaling,reader --workers 16 --json "$OUT/dataset_pieces.json"
 step scaling 200 "$python" bench/dataset.py --skip e2e,weather,reader --scaling-workers 16 \
     --scaling-frames 50 --scaling-rates 0:100:10 --json "$OUT/scaling.json"
+# the same with the statistics on the CPU: do 16 CUDA contexts on one GPU hold the workers back?
+step scaling-cpu 200 "$python" bench/dataset.py --skip e2e,weather,reader --scaling-workers 16 \
+    --scaling-frames 50 --scaling-rates 0:100:10 --scaling-device cpu --json "$OUT/scaling_cpu.json"
 echo "== done in $(($(date +%s) - start)) s"
