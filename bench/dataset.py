@@ -9,17 +9,20 @@ run in the same process and the same run:
    rendering 11 images per frame of the same scene. Target: ratio <= 1.6.
    ``--workers N`` generates both with N workers (more workers than the clip's one shard:
    the clip in pieces, docs/datasets.md); default: ``rainbench generate``'s own default.
+   ``--device`` passes ``rainbench generate --device`` (where the statistics run) to both.
 2. scaling: 2 scenes with 2 workers against 1 worker (``--scaling-workers N``: N scenes with N
    workers against 1 worker on 2 scenes, in images/s), once with each worker on one core
    (one Mesa render thread, ``LP_NUM_THREADS=1``, and ``--threads 1``: no rain or compression
    threads beside the render; target >= 1.6x) and once with the defaults (Mesa's threads on
-   every core, rain and compression threads = cores / workers).
+   every core, rain and compression threads = cores / workers). ``--scaling-device`` passes
+   ``--device`` to its runs.
 3. reader: images/s through ``ShardDataset`` + ``DataLoader(num_workers=2)`` (second epoch of
    persistent workers, as in training) against reading the same images from PNG files with
    ``cv2.imread`` (warm cache too). Target >= 2x.
 
-    python bench/dataset.py [--frames 200] [--workers N] [--scaling-frames 40] [--scaling-workers 2]
-        [--scaling-rates 0,50,100] [--json OUT] [--skip e2e,...]
+    python bench/dataset.py [--frames 200] [--workers N] [--device auto] [--scaling-frames 40]
+        [--scaling-workers 2] [--scaling-rates 0,50,100] [--scaling-device auto] [--json OUT]
+        [--skip e2e,...]
 """
 
 from __future__ import annotations
@@ -76,32 +79,34 @@ def cli_seconds(args: list[str], env: dict | None = None) -> float:
     return time.perf_counter() - start
 
 
-def _workers_args(workers: int | None) -> list[str]:
-    return [] if workers is None else ["--workers", str(workers)]
+def _workers_args(workers: int | None, device: str | None = None) -> list[str]:
+    return ([] if workers is None else ["--workers", str(workers)]) + ([] if device is None else ["--device", device])
 
 
-def end_to_end(tmp: Path, frames: int, workers: int | None = None) -> dict:
+def end_to_end(tmp: Path, frames: int, workers: int | None = None, device: str | None = None) -> dict:
     """The paper clip's ``rainbench generate`` between two bare loops (one before, one after),
     against their mean: this machine's speed drifts by 20 % or more within minutes (a bare loop
     took 16.8 s in one run and 22.8 s in the next), so one loop on one side of the run could
     fall in a fast or a slow spell that the generation did not share."""
     before = bare_render_seconds(frames, 800, 600)
     seconds = cli_seconds(["--out", str(tmp / "e2e"), "--frames", str(frames),
-                           "--rates", "0:100:10", *_workers_args(workers)])
+                           "--rates", "0:100:10", *_workers_args(workers, device)])
     after = bare_render_seconds(frames, 800, 600)
     bare = (before + after) / 2
-    return {"frames": frames, "workers": workers, "generate_s": seconds, "bare_render_s": bare,
+    return {"frames": frames, "workers": workers, "device": device or "auto", "generate_s": seconds,
+            "bare_render_s": bare,
             "bare_render_before_s": before, "bare_render_after_s": after,
             "ratio": seconds / bare, "target_ratio": 3.0, "target_ratio_jeon2022": 2.5}
 
 
-def weather_end_to_end(tmp: Path, frames: int, workers: int | None = None) -> dict:
+def weather_end_to_end(tmp: Path, frames: int, workers: int | None = None, device: str | None = None) -> dict:
     """The 11-rate paper clip with the weather following the rate (physical rain) against a
     bare renderer that renders as many images (11 per frame) of the same scene."""
     seconds = cli_seconds(["--out", str(tmp / "weather"), "--frames", str(frames),
-                           "--rates", "0:100:10", "--rain-model", "physical", *_workers_args(workers)])
+                           "--rates", "0:100:10", "--rain-model", "physical", *_workers_args(workers, device)])
     bare = bare_render_seconds(frames, 800, 600, images_per_frame=11)
-    return {"frames": frames, "workers": workers, "generate_s": seconds, "bare_render_11x_s": bare,
+    return {"frames": frames, "workers": workers, "device": device or "auto", "generate_s": seconds,
+            "bare_render_11x_s": bare,
             "ratio": seconds / bare, "target_ratio": 1.6}
 
 
@@ -173,6 +178,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--workers", type=int, default=None,
                         help="workers of the end-to-end runs (default: rainbench generate's)")
+    parser.add_argument("--device", default=None,
+                        help="rainbench generate --device of the end-to-end runs (default: its own, auto)")
     parser.add_argument("--scaling-frames", type=int, default=40)
     parser.add_argument("--scaling-workers", type=int, default=2,
                         help="workers (and scenes) against one worker on 2 scenes (default 2)")
@@ -194,13 +201,14 @@ def main() -> None:
                      "gl_backend": os.environ.get("MUJOCO_GL", "")}
     try:
         if "e2e" not in skip:
-            results["end_to_end"] = e2e = end_to_end(tmp, args.frames, args.workers)
+            results["end_to_end"] = e2e = end_to_end(tmp, args.frames, args.workers, args.device)
             print(f"end to end: generate {e2e['generate_s']:.1f} s, bare RGB {e2e['bare_render_s']:.1f}"
                   f" s (mean of {e2e['bare_render_before_s']:.1f} s before and "
                   f"{e2e['bare_render_after_s']:.1f} s after), ratio {e2e['ratio']:.2f} (target "
                   f"<= 3; jeon2022, the default rain model, <= 2.5)")
         if "weather" not in skip:
-            results["weather_end_to_end"] = weather = weather_end_to_end(tmp, args.weather_frames, args.workers)
+            results["weather_end_to_end"] = weather = weather_end_to_end(tmp, args.weather_frames, args.workers,
+                                                                         args.device)
             print(f"weather following the rate (physical, 11 rates): generate "
                   f"{weather['generate_s']:.1f} s, bare RGB x11 {weather['bare_render_11x_s']:.1f}"
                   f" s, ratio {weather['ratio']:.2f} (target <= 1.6)")
