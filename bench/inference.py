@@ -149,7 +149,7 @@ def batched_stages(detector, images: list[np.ndarray], imgsz: int, batch: int, r
     ``batch``): the canvases' copy to the device and conversion, the network, NMS
     (``select_batch``), and the boxes' mapping and copy back."""
     from rainbench.eval.backends.letterbox import letterbox, letterbox_geometry, rect_shape
-    from rainbench.eval.backends.torch_batched import select_batch, unletterbox_boxes
+    from rainbench.eval.backends.torch_batched import _to_host, select_batch, unletterbox_boxes
 
     height, width = images[0].shape[:2]
     shape = rect_shape(height, width, imgsz)
@@ -185,10 +185,8 @@ def batched_stages(detector, images: list[np.ndarray], imgsz: int, batch: int, r
                     sync()
                     clock, now = now, time.perf_counter()
                     seconds["nms"] += now - clock
-                    for boxes, scores, ids in selected:
-                        unletterbox_boxes(boxes, gain, (float(left), float(top)), width, height).float().cpu().numpy()
-                        scores.float().cpu().numpy()
-                        ids.cpu().numpy()
+                    _to_host([(unletterbox_boxes(boxes, gain, (float(left), float(top)), width, height), scores, ids)
+                              for boxes, scores, ids in selected])
                     seconds["boxes back"] += time.perf_counter() - now
         if attempt or not repeats:
             for stage, value in seconds.items():

@@ -288,6 +288,23 @@ def test_letterboxed_canvases_give_the_frames_detections(tmp_path):
         detector.predict_canvases(canvases.float(), (72, 96), **settings)
 
 
+def test_detections_come_back_to_the_host_in_one_transfer_per_kind_with_each_image_its_own():
+    """_to_host gives each image its own boxes, scores and ids (an image without any too), as
+    converting them one image at a time would."""
+    from rainbench.eval.backends.torch_batched import _to_host
+
+    generator = torch.Generator().manual_seed(0)
+    results = [(torch.rand(count, 4, generator=generator, dtype=torch.float16), torch.rand(count, generator=generator),
+                torch.randint(0, 4, (count,), generator=generator)) for count in (3, 0, 5, 1)]
+    host = _to_host(results)
+    assert len(host) == 4 and _to_host([]) == []
+    for (boxes, scores, ids), (ours_boxes, ours_scores, ours_ids) in zip(results, host, strict=True):
+        assert ours_boxes.dtype == np.float32 and ours_scores.dtype == np.float32 and ours_ids.dtype == np.int64
+        np.testing.assert_array_equal(ours_boxes, boxes.float().numpy().reshape(-1, 4))
+        np.testing.assert_array_equal(ours_scores, scores.float().numpy())
+        np.testing.assert_array_equal(ours_ids, ids.numpy())
+
+
 def test_default_read_workers_leave_a_core_to_the_network():
     from rainbench.eval.pipeline import default_read_workers
 

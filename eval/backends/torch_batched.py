@@ -123,9 +123,14 @@ def select_batch(prediction: torch.Tensor, lookup: torch.Tensor, *, conf: float,
     mapped = lookup[best]
     keep = (scores > conf) & (mapped >= 0)
     centres = prediction[:, :4].transpose(1, 2)  # (B, N, 4)
+    # every image's candidate rows at once (one wait for the device, not one an image)
+    image_of, candidate_rows = keep.nonzero(as_tuple=True)  # by image, rows ascending
+    counts = torch.bincount(image_of, minlength=prediction.shape[0]).tolist()
     outputs = []
-    for image in range(prediction.shape[0]):
-        rows = keep[image].nonzero().view(-1)
+    start = 0
+    for image, count in enumerate(counts):
+        rows = candidate_rows[start:start + count]
+        start += count
         image_scores = scores[image, rows]
         order = image_scores.argsort(descending=True)[:MAX_NMS]
         rows, image_scores = rows[order], image_scores[order]
@@ -236,8 +241,20 @@ class TorchDetector:
                 results += [(unletterbox_boxes(boxes, gain, pad, width, height), scores, ids)
                             for boxes, scores, ids in select_batch(raw, self._lookup, conf=conf, iou=iou,
                                                                    max_det=max_det)]
-        return [(boxes.float().cpu().numpy().reshape(-1, 4), scores.float().cpu().numpy(),
-                 ids.cpu().numpy().astype(np.int64)) for boxes, scores, ids in results]
+        return _to_host(results)
+
+
+def _to_host(results: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+             ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per image (boxes (K, 4), scores (K,), ids (K,)) tensors on any device -> NumPy (float32,
+    float32, int64), copied to the host in one transfer of each kind for the whole batch."""
+    if not results:
+        return []
+    ends = np.cumsum([len(scores) for _, scores, _ in results])[:-1]
+    boxes = np.split(torch.cat([b.reshape(-1, 4) for b, _, _ in results]).float().cpu().numpy(), ends)
+    scores = np.split(torch.cat([s for _, s, _ in results]).float().cpu().numpy(), ends)
+    ids = np.split(torch.cat([i for _, _, i in results]).cpu().numpy().astype(np.int64), ends)
+    return list(zip(boxes, scores, ids, strict=True))
 
 
 def torch_detector(yolo: Any, name: str, device: str | None, lookups: tuple[np.ndarray, np.ndarray]
