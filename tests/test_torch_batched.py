@@ -268,6 +268,23 @@ def test_cpu_runs_the_network_one_image_at_a_time(monkeypatch, tmp_path):
             np.testing.assert_allclose(x, y, atol=1e-3)
 
 
+def test_frame_batches_workers_run_opencv_on_one_thread(two_shards, monkeypatch):
+    """Each reader worker resizes on one OpenCV thread (the workers are the parallelism); this
+    process keeps its own setting."""
+    import cv2
+
+    def threads_seen(self, key):
+        rate, indices = key
+        return [self.dataset.images[i].image_id for i in indices], torch.full((len(indices), 1, 1, 3),
+                                                                            cv2.getNumThreads(), dtype=torch.uint8)
+
+    monkeypatch.setattr(torch_batched._FrameChunks, "__getitem__", threads_seen)
+    before = cv2.getNumThreads()
+    blocks = [block for _, _, block in frame_batches(Dataset(two_shards), [0.0], batch=2, workers=1)]
+    assert blocks and all((block == 1).all() for block in blocks)
+    assert cv2.getNumThreads() == before
+
+
 def test_letterboxed_canvases_give_the_frames_detections(tmp_path):
     """predict_canvases of the reader's letterboxed canvases gives exactly predict_frames'
     detections on the CPU (both draw the canvas with OpenCV), boxes in frame pixels; a canvas

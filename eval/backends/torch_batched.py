@@ -327,6 +327,15 @@ def _as_read(chunk: tuple[list[int], torch.Tensor]) -> tuple[list[int], torch.Te
     return chunk
 
 
+def _one_thread_worker(_worker_id: int) -> None:
+    """A reader worker's OpenCV on one thread (torch's already is, in a ``DataLoader`` worker):
+    the workers are the parallelism, and each one's resize on every core would oversubscribe
+    them."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
 def shard_batches(images: Sequence[Any], batch: int) -> list[list[int]]:
     """Indices of ``images`` (:class:`rainbench.store.dataset.Image`, in image-id order) in batches
     of at most ``batch`` frames of one shard (so each batch has one frame size)."""
@@ -364,7 +373,8 @@ def frame_batches(dataset: Any, rates: Sequence[float], batch: int, workers: int
                 groups.append((float(rate), group))
     loader = torch.utils.data.DataLoader(
         _FrameChunks(dataset, imgsz), batch_size=None, sampler=keys, num_workers=workers, collate_fn=_as_read,
-        pin_memory=device.type == "cuda", prefetch_factor=2 if workers else None)
+        pin_memory=device.type == "cuda", prefetch_factor=2 if workers else None,
+        worker_init_fn=_one_thread_worker if workers else None)
     pending_ids: list[int] = []
     pending: list[torch.Tensor] = []
     try:
