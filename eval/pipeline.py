@@ -343,9 +343,11 @@ def _infer(detector, dataset: Dataset, rates: Sequence[float], *, batch, imgsz, 
                     yield rate, image_ids, detector.predict(arrays, imgsz=imgsz, conf=conf, iou=iou, max_det=max_det)
     records: list[dict] = []
     current = None
+    done = set()
     for rate, image_ids, outputs in batches():
         if current is not None and rate != current:
             yield current, records
+            done.add(current)
             records = []
         current = rate
         for image_id, (boxes, scores, class_ids) in zip(image_ids, outputs, strict=True):
@@ -357,6 +359,10 @@ def _infer(detector, dataset: Dataset, rates: Sequence[float], *, batch, imgsz, 
         bar.update(len(image_ids))
     if current is not None:
         yield current, records
+        done.add(current)
+    for rate in rates:  # a dataset without frames: nothing was read at any rate
+        if rate not in done:
+            yield rate, []
 
 
 def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str | Path | None = None,

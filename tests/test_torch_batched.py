@@ -268,6 +268,37 @@ def test_cpu_runs_the_network_one_image_at_a_time(monkeypatch, tmp_path):
             np.testing.assert_allclose(x, y, atol=1e-3)
 
 
+def test_inference_yields_every_rate_in_turn_even_without_frames(two_shards):
+    """rainbench eval's inference over several rates gives each rate its records in the rates'
+    order, one reader for them all; a dataset without frames still gives every rate (empty)."""
+    from rainbench.eval.pipeline import _infer
+
+    class Detector:  # the batched backend's interface, one fixed detection a frame
+        device = torch.device("cpu")
+
+        def predict_canvases(self, canvases, size, **_):
+            assert canvases.shape[1:3] == tuple(rect_shape(*size, 64))
+            return [(np.array([[1.0, 2.0, 5.0, 9.0]], np.float32), np.array([0.5], np.float32),
+                     np.array([2], np.int64))] * len(canvases)
+
+    class Bar:
+        def update(self, _):
+            pass
+
+    settings = dict(batch=2, imgsz=64, conf=0.001, iou=0.7, max_det=10, bar=Bar(), classes=(0, 1, 2, 3))
+    got = list(_infer(Detector(), Dataset(two_shards), [50.0, 0.0], workers=1, **settings))
+    assert [rate for rate, _ in got] == [50.0, 0.0]
+    assert all(sorted(r["image_id"] for r in records) == [1, 2, 3, 4, 5] for _, records in got)
+
+    class Empty:
+        images: list = []
+
+        def close(self):
+            pass
+
+    assert list(_infer(Detector(), Empty(), [0.0, 50.0], workers=0, **settings)) == [(0.0, []), (50.0, [])]
+
+
 def test_frame_batches_workers_run_opencv_on_one_thread(two_shards, monkeypatch):
     """Each reader worker resizes on one OpenCV thread (the workers are the parallelism); this
     process keeps its own setting."""
