@@ -662,7 +662,7 @@ def build_parser() -> argparse.ArgumentParser:
                                "fp16 on CUDA; default) or ultralytics (its own predict, the reference); "
                                "shipped models run their ONNX copy on CPU either way")
     evaluate.add_argument("--workers", type=_positive_int("WORKERS", 1024, 0), default=None,
-                          help="processes decoding shards for the batched backend (default: "
+                          help="processes decoding and letterboxing shard frames for the batched backend (default: "
                                "min(8, cores - 1))")
     evaluate.add_argument("--min-height", type=_number("MIN_HEIGHT", 0, 100_000), default=0.0,
                           help="score only labels at least this many pixels tall (KITTI moderate: 25); the "
