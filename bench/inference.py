@@ -149,7 +149,7 @@ def batched_stages(detector, images: list[np.ndarray], imgsz: int, batch: int, r
     ``batch``): the canvases' copy to the device and conversion, the network, NMS
     (``select_batch``), and the boxes' mapping and copy back."""
     from rainbench.eval.backends.letterbox import letterbox, letterbox_geometry, rect_shape
-    from rainbench.eval.backends.torch_batched import _to_host, select_batch, unletterbox_boxes
+    from rainbench.eval.backends.torch_batched import CPU_BATCH, _to_host, select_batch, unletterbox_boxes
 
     height, width = images[0].shape[:2]
     shape = rect_shape(height, width, imgsz)
@@ -158,7 +158,7 @@ def batched_stages(detector, images: list[np.ndarray], imgsz: int, batch: int, r
               for start in range(0, len(images), batch)]
     if detector.device.type == "cuda":
         blocks = [block.pin_memory() for block in blocks]
-    step = batch if detector.device.type == "cuda" else 1  # as _detect runs it
+    step = batch if detector.device.type == "cuda" else CPU_BATCH  # as _detect runs it
 
     def sync():
         if detector.device.type == "cuda":
