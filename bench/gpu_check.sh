@@ -29,7 +29,8 @@
 #              /dev/shm instead of the disk; 40 frames of it with physical, with the default 4
 #              and then 8 frames in flight; 13 frames on one thread, as one of 16 pieces), and
 #              the clip in 16 pieces from the parent's side (when they were joined, what joining
-#              cost)
+#              cost); then jeon2022 and physical again with OpenCV on one thread
+#              (OPENCV_FOR_THREADS_NUM=1: are its threads inside 16 pool threads oversubscribed?)
 #   stats      bench/stats_device.py: one frame's per-rate statistics on the GPU (torch) against
 #              the CPU path on every core, in the same run (issue 17, item 3)
 #   pieces     the same as dataset with 16 workers: the clip in 16 pieces, each its own GL context
@@ -126,6 +127,9 @@ step profile 60 "$python" bench/generate_profile.py --rain-model physical --fram
 step profile 45 "$python" bench/generate_profile.py --rain-model physical --frames 40 --frames-in-flight 8
 step profile 30 "$python" bench/generate_profile.py --frames 13 --threads 1  # one of 16 pieces
 step profile 60 "$python" bench/generate_profile.py --workers 16  # the 16 pieces, joined
+# OpenCV's own threads inside 16 pool threads (oversubscribed?): the same two runs with one each
+step profile 45 env OPENCV_FOR_THREADS_NUM=1 "$python" bench/generate_profile.py --rain-model jeon2022
+step profile 45 env OPENCV_FOR_THREADS_NUM=1 "$python" bench/generate_profile.py --rain-model physical --frames 40
 step stats 40 "$python" bench/stats_device.py --frames 3
 step pieces 120 "$python" bench/dataset.py --skip scaling,reader --workers 16 --json "$OUT/dataset_pieces.json"
 step scaling 200 "$python" bench/dataset.py --skip e2e,weather,reader --scaling-workers 16 \
