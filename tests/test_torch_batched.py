@@ -4,6 +4,9 @@ box mapping, the parallel shard reader, which models it runs, and device errors.
 model's detections against ultralytics' predict are checked on the guard scene in
 test_train_paper.py. No file is downloaded."""
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -297,6 +300,29 @@ def test_inference_yields_every_rate_in_turn_even_without_frames(two_shards):
             pass
 
     assert list(_infer(Detector(), Empty(), [0.0, 50.0], workers=0, **settings)) == [(0.0, []), (50.0, [])]
+
+
+@pytest.mark.parametrize("workers", [0, 1])
+def test_a_corrupt_chunk_stops_the_reader_with_its_own_one_line_error(two_shards, tmp_path, workers):
+    """A chunk that does not inflate, read by a worker process or here, raises the reader's own
+    ShardFormatError naming the file, the rate row and the frame, not a worker's traceback."""
+    import shutil
+
+    import h5py
+
+    from rainbench.store.shard import ShardFormatError
+
+    paths = [Path(shutil.copy(path, tmp_path / path.name)) for path in two_shards]
+    with h5py.File(paths[1], "r") as handle:
+        offset = handle["rgb"].id.get_chunk_info_by_coord((1, 1, 0, 0, 0)).byte_offset
+    with open(paths[1], "r+b") as raw:
+        raw.seek(offset + 20)
+        raw.write(b"\xff" * 200)
+    dataset = Dataset(paths)
+    message = rf"^{re.escape(str(paths[1]))}: /rgb chunk of rate row 1, frame 1 is corrupt \([^\n]*\)$"
+    with pytest.raises(ShardFormatError, match=message):
+        for _ in frame_batches(dataset, [0.0, 50.0], batch=2, workers=workers):
+            pass
 
 
 def test_frame_batches_workers_run_opencv_on_one_thread(two_shards, monkeypatch):

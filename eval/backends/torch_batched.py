@@ -311,19 +311,26 @@ class _FrameChunks(torch.utils.data.Dataset):
     def __init__(self, dataset: Any, imgsz: int | None = None) -> None:
         self.dataset, self.imgsz = dataset, imgsz
 
-    def __getitem__(self, key: tuple[float, tuple[int, ...]]) -> tuple[list[int], torch.Tensor]:
+    def __getitem__(self, key: tuple[float, tuple[int, ...]]) -> tuple[list[int], torch.Tensor] | Exception:
+        """The chunk of ``key``; a file that cannot be read (a corrupt chunk, a missing or
+        unreadable shard: ValueError, OSError) comes back as its exception, which
+        :func:`frame_batches` raises in the reading process with its own one-line message (a
+        ``DataLoader`` worker's exception would carry the worker's traceback in its message)."""
         rate, indices = key
         images = [self.dataset.images[index] for index in indices]
-        handle = self.dataset.handle(images[0].shard_index)
-        frames = [self.dataset.read_rgb(handle, image, rate) for image in images]
+        try:
+            handle = self.dataset.handle(images[0].shard_index)
+            frames = [self.dataset.read_rgb(handle, image, rate) for image in images]
+        except (ValueError, OSError) as error:
+            return error
         if self.imgsz is not None:
             shape = rect_shape(frames[0].shape[0], frames[0].shape[1], self.imgsz)
             frames = [letterbox(frame, shape)[0] for frame in frames]
         return [image.image_id for image in images], torch.from_numpy(np.stack(frames))
 
 
-def _as_read(chunk: tuple[list[int], torch.Tensor]) -> tuple[list[int], torch.Tensor]:
-    """The ``DataLoader``'s collate function: a chunk is already one block."""
+def _as_read(chunk: tuple[list[int], torch.Tensor] | Exception) -> tuple[list[int], torch.Tensor] | Exception:
+    """The ``DataLoader``'s collate function: a chunk is already one block (or its read error)."""
     return chunk
 
 
@@ -378,7 +385,10 @@ def frame_batches(dataset: Any, rates: Sequence[float], batch: int, workers: int
     pending_ids: list[int] = []
     pending: list[torch.Tensor] = []
     try:
-        for position, (image_ids, block) in enumerate(loader):
+        for position, chunk_read in enumerate(loader):
+            if isinstance(chunk_read, Exception):
+                raise chunk_read
+            image_ids, block = chunk_read
             pending_ids += image_ids
             pending.append(block.to(device, non_blocking=True))
             if position + 1 == len(groups) or groups[position + 1] != groups[position]:
