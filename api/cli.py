@@ -737,6 +737,23 @@ def _stdout_closed() -> bool:
         return False
 
 
+def worker_error_message(error: BaseException) -> str:
+    """``error``'s message; for an error that torch re-raised from a ``DataLoader`` worker (a
+    corrupt shard read while training, say), the worker's own message without the traceback
+    torch folds into it (``Caught ShardFormatError in DataLoader worker process 0. Original
+    Traceback ...``): the last line of that traceback, less its exception type."""
+    text = str(error)
+    first, _, rest = text.partition("\n")
+    if not (first.startswith("Caught ") and " in DataLoader worker process " in first and rest):
+        return text
+    last = rest.rstrip().rsplit("\n", 1)[-1]
+    kind = type(error)
+    for prefix in (f"{kind.__module__}.{kind.__qualname__}: ", f"{kind.__qualname__}: "):
+        if last.startswith(prefix):
+            return last[len(prefix):]
+    return last
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -748,7 +765,7 @@ def main(argv: list[str] | None = None) -> int:
             # as a shell tool stopped by SIGPIPE, with 128 + SIGPIPE
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
             return 141
-        message = " ".join(str(error).split())
+        message = " ".join(worker_error_message(error).split())
         print(f"rainbench: error: {message}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

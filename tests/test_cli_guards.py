@@ -359,3 +359,36 @@ def test_rain_options_reach_the_rain_and_the_manifest(tmp_path):
                           capture_output=True, text=True, timeout=60)
     assert made.returncode == 0, made.stderr
     assert "--rain-option 'lens_drops=false' --rain-option 'exposure_s=0.002'" in made.stdout
+
+
+def test_an_error_raised_in_a_dataloader_worker_is_reported_without_its_traceback(monkeypatch, capsys):
+    """torch re-raises a worker's error with the worker's traceback folded into its message (a
+    corrupt shard read while training): the command line prints the worker's own message, one
+    line, exit 2."""
+    import torch
+
+    from rainbench import cli
+    from rainbench.store.shard import ShardFormatError
+
+    message = "/data/s.h5: /rgb chunk of rate row 1, frame 1 is corrupt (Decompression failed)"
+
+    class Corrupt(torch.utils.data.Dataset):
+        def __len__(self):
+            return 1
+
+        def __getitem__(self, index):
+            raise ShardFormatError(message)
+
+    def train_on_corrupt(args):
+        for _ in torch.utils.data.DataLoader(Corrupt(), num_workers=1):
+            pass
+        return 0
+
+    with pytest.raises(ShardFormatError) as caught:
+        train_on_corrupt(None)
+    assert str(caught.value).startswith("Caught ShardFormatError in DataLoader worker process 0.")
+    assert cli.worker_error_message(caught.value) == message
+    assert cli.worker_error_message(ValueError("plain\nmessage")) == "plain\nmessage"
+    monkeypatch.setattr(cli, "cmd_train", train_on_corrupt)
+    assert cli.main(["train"]) == 2
+    assert capsys.readouterr().err == f"rainbench: error: {message}\n"
