@@ -149,7 +149,8 @@ def batched_stages(detector, images: list[np.ndarray], imgsz: int, batch: int, r
     ``batch``): the canvases' copy to the device and conversion, the network, NMS
     (``select_batch``), and the boxes' mapping and copy back."""
     from rainbench.eval.backends.letterbox import letterbox, letterbox_geometry, rect_shape
-    from rainbench.eval.backends.torch_batched import CPU_BATCH, _to_host, select_batch, unletterbox_boxes
+    from rainbench.eval.backends.torch_batched import (CPU_BATCH, _to_host, network_input, select_batch,
+                                                       unletterbox_boxes)
 
     height, width = images[0].shape[:2]
     shape = rect_shape(height, width, imgsz)
@@ -171,8 +172,8 @@ def batched_stages(detector, images: list[np.ndarray], imgsz: int, batch: int, r
             for block in blocks:
                 for start in range(0, len(block), step):
                     clock = time.perf_counter()
-                    canvas = block[start:start + step].to(detector.device, non_blocking=True)
-                    canvas = canvas.permute(0, 3, 1, 2).to(detector.dtype).div_(255.0)
+                    canvas = network_input(block[start:start + step].to(detector.device, non_blocking=True),
+                                           detector.dtype)
                     sync()
                     now = time.perf_counter()
                     seconds["copy and convert"] += now - clock

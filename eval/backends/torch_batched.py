@@ -95,6 +95,12 @@ def letterbox_batch(frames: torch.Tensor, shape: tuple[int, int], dtype: torch.d
     return canvas, gain, (float(left), float(top))
 
 
+def network_input(canvases: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """(B, h, w, 3) uint8 letterboxed canvases -> (B, 3, h, w) of ``dtype`` in 0..1 on their
+    device, channels-last memory (what the network takes)."""
+    return canvases.permute(0, 3, 1, 2).to(dtype).div_(255.0)
+
+
 def letterbox_frames(frames: torch.Tensor, shape: tuple[int, int]) -> tuple[torch.Tensor, float, tuple[float, float]]:
     """:func:`letterbox_batch` on the CPU with OpenCV's resize
     (:func:`rainbench.eval.backends.letterbox.letterbox`, ultralytics' own pixels): ``frames``
@@ -102,7 +108,7 @@ def letterbox_frames(frames: torch.Tensor, shape: tuple[int, int]) -> tuple[torc
     (pad_x, pad_y))."""
     boxed = [letterbox(frame, shape) for frame in frames.numpy()]
     block = torch.from_numpy(np.stack([canvas for canvas, _, _ in boxed]))
-    return block.permute(0, 3, 1, 2).float().div_(255.0), boxed[0][1], boxed[0][2]
+    return network_input(block, torch.float32), boxed[0][1], boxed[0][2]
 
 
 def select_batch(prediction: torch.Tensor, lookup: torch.Tensor, *, conf: float, iou: float,
@@ -220,12 +226,8 @@ class TorchDetector:
         height, width = (int(side) for side in frame_size)
         gain, _, (top, left) = letterbox_geometry(height, width, (int(canvases.shape[1]), int(canvases.shape[2])))
         canvases = canvases.to(self.device, non_blocking=True)
-
-        def canvas(start: int, stop: int) -> torch.Tensor:  # (n, 3, h, w) channels-last memory, 0..1
-            return canvases[start:stop].permute(0, 3, 1, 2).to(self.dtype).div_(255.0)
-
-        return self._detect(canvas, len(canvases), gain, (float(left), float(top)), width, height, conf=conf,
-                            iou=iou, max_det=max_det)
+        return self._detect(lambda start, stop: network_input(canvases[start:stop], self.dtype), len(canvases),
+                            gain, (float(left), float(top)), width, height, conf=conf, iou=iou, max_det=max_det)
 
     def _detect(self, canvas, count: int, gain: float, pad: tuple[float, float], width: int, height: int, *,
                 conf: float, iou: float, max_det: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -373,8 +375,9 @@ def frame_batches(dataset: Any, rates: Sequence[float], batch: int, workers: int
     device = torch.device("cpu") if device is None else torch.device(device)
     chunk = batch if workers == 0 else max(1, -(-batch // workers))
     keys, groups = [], []  # the DataLoader's keys, and the batch each one belongs to
+    batches = shard_batches(dataset.images, batch)  # the same at every rate
     for rate in rates:
-        for group, indices in enumerate(shard_batches(dataset.images, batch)):
+        for group, indices in enumerate(batches):
             for start in range(0, len(indices), chunk):
                 keys.append((float(rate), tuple(indices[start:start + chunk])))
                 groups.append((float(rate), group))
