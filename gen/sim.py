@@ -18,7 +18,7 @@ import numpy as np
 
 from rainbench.mjcf import layout as L
 from rainbench.mjcf import parts
-from rainbench.mjcf.scene import ACTOR_PREFIX, ride_style
+from rainbench.mjcf.scene import ACTOR_PREFIX, ride_style, sun_rig_position
 
 
 class ActorDriver:
@@ -73,8 +73,8 @@ class ActorDriver:
         x, y, yaw = targets.ego[step]
         data.mocap_pos[self._ego_mocap] = [x, y, 0.0]
         data.mocap_quat[self._ego_mocap] = parts.unit_yaw_quat(yaw)
-        if self._rig_mocap >= 0:  # the sun follows the ego's position, not its yaw
-            data.mocap_pos[self._rig_mocap] = [x, y, 0.0]
+        if self._rig_mocap >= 0:  # the sun's shadow box stays ahead of the ego; never turned
+            data.mocap_pos[self._rig_mocap] = sun_rig_position(x, y, yaw)
         if len(self._unit_mocap):
             poses = targets.units[:, step]
             data.mocap_pos[self._unit_mocap, 0] = poses[:, 0]

@@ -32,6 +32,8 @@ SKY_TEXTURE_SIZE = 128  # skybox face size: re-uploaded whenever the weather cha
 CLOUD_TEXTURE = "clouds"  # the cloud field the sky is drawn from (rainbench.gen.weather)
 CLOUD_STREAM = 13  # the cloud field draws from default_rng([seed, CLOUD_STREAM])
 PLAIN_GREY = (0.5, 0.5, 0.5, 1.0)  # a prop with neither a material nor a colour
+SHADOW_HALF_SIZE_M = 45.0  # half the sun's shadow box (MuJoCo's shadowclip x stat.extent)
+SHADOW_CENTER_AHEAD_M = 35.0  # the box's centre ahead of the ego: it spans -10..80 m
 
 
 def padded_size(width: int, height: int) -> tuple[int, int, int, int]:
@@ -68,6 +70,14 @@ def _add_texture_material(spec, name: str, image: np.ndarray, repeat_per_m: floa
     material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = name
 
 
+def sun_rig_position(ego_x: float, ego_y: float, ego_yaw: float) -> list[float]:
+    """World position (x, y, 0) of the "sun_rig" mocap body for an ego at (``ego_x``, ``ego_y``)
+    heading ``ego_yaw`` (radians): SHADOW_CENTER_AHEAD_M ahead of it, where the sun's shadow
+    box is centred."""
+    return [ego_x + SHADOW_CENTER_AHEAD_M * math.cos(ego_yaw),
+            ego_y + SHADOW_CENTER_AHEAD_M * math.sin(ego_yaw), 0.0]
+
+
 def _static_box(body, name, size, pos, *, material=None, rgba=None, quat=None):
     kwargs = {"material": material} if material else {"rgba": list(rgba)}
     if quat is not None:
@@ -102,7 +112,12 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     spec.stat.center = [0.0, 0.0, 0.0]
     spec.visual.map.znear = 0.001  # 0.1 m
     spec.visual.map.zfar = 10.0  # 1000 m
-    spec.visual.map.shadowclip = 0.8
+    # The sun's shadow box: +-SHADOW_HALF_SIZE_M (shadowclip x extent) around a point
+    # SHADOW_CENTER_AHEAD_M ahead of the ego (the sun rig, below), so its 2048 texels cover
+    # 10 m behind to 80 m ahead: 4.4 cm texels (+-80 m, the box before: 7.8 cm, whose steps
+    # showed as 20-60 px blocks on the road under a low sun). Shadows beyond 80 m end within a
+    # few pixels of the horizon.
+    spec.visual.map.shadowclip = SHADOW_HALF_SIZE_M / spec.stat.extent
     base = weather_at(layout.sky, 0.0, time_of_day=layout.time_of_day)
     lighting = scene_lighting(base)
     spec.visual.headlight.ambient = list(lighting.headlight_ambient)
@@ -162,20 +177,20 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
                        group=PUDDLE_GROUP, contype=0, conaffinity=0)
 
     # Ego: a mocap body carrying the camera. The sun and the skylight ride on their own mocap
-    # body "sun_rig" that follows the ego's position but not its yaw, so that the shadow map
-    # covers the view while the light keeps its world direction when the ego turns.
+    # body "sun_rig", kept SHADOW_CENTER_AHEAD_M ahead of the ego along its heading but never
+    # turned (gen/sim.py), so that the shadow map covers the view, on curves too, while the
+    # light keeps its world direction.
     ego = world.add_body(name="ego", mocap=True, pos=[layout.ego.start_xy[0],
                                                       layout.ego.start_xy[1], 0.0],
                          quat=parts.unit_yaw_quat(layout.ego.heading).tolist())
     ego.add_camera(name=EGO_CAMERA, pos=[0.6, 0.0, layout.camera_height],
                    quat=_camera_quat(math.radians(layout.camera_pitch_deg)),
                    fovy=horizontal_to_vertical_fov(hfov_deg, width, height))
-    rig = world.add_body(name="sun_rig", mocap=True, pos=[layout.ego.start_xy[0],
-                                                          layout.ego.start_xy[1], 0.0])
+    rig = world.add_body(name="sun_rig", mocap=True,
+                         pos=sun_rig_position(*layout.ego.start_xy, layout.ego.heading))
     sun = np.asarray(layout.sun_direction)
-    ahead = 35.0 * np.array([math.cos(layout.ego.heading), math.sin(layout.ego.heading), 0.0])
     rig.add_light(name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
-                  pos=(ahead - 60.0 * sun).tolist(), dir=sun.tolist(),
+                  pos=(-60.0 * sun).tolist(), dir=sun.tolist(),
                   castshadow=lighting.sun_castshadow, diffuse=list(lighting.sun_diffuse),
                   specular=[lighting.sun_specular] * 3, ambient=[0.0, 0.0, 0.0])
     rig.add_light(name="skylight", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,

@@ -335,6 +335,25 @@ def test_the_ego_camera_turns_with_the_curved_road():
     assert np.ptp(yaws) > math.radians(10)
 
 
+def test_the_sun_shadow_box_stays_ahead_of_the_ego_on_the_curved_road():
+    # The sun's shadow box (+-45 m) is centred 35 m ahead of the camera along its heading at
+    # every time, while the sun keeps its world direction: on a curve the view stays covered.
+    config = _config("curved", seed=1, frames=1, duration=20.0)
+    setup = build_scene(config)
+    model, data = setup.model, mujoco.MjData(setup.model)
+    assert model.vis.map.shadowclip * model.stat.extent == pytest.approx(45.0)
+    driver = sim.ActorDriver(model, setup.layout)
+    sun = model.light("sun").id
+    sun_direction = np.asarray(setup.layout.sun_direction)
+    for t in (0.0, 10.0, 20.0):
+        sim.advance(model, data, driver, t, t)
+        x, y, yaw = L.unit_pose(setup.layout.ego, t)
+        box_centre = data.light_xpos[sun] + 60.0 * sun_direction
+        np.testing.assert_allclose(box_centre, [x + 35.0 * math.cos(yaw),
+                                                y + 35.0 * math.sin(yaw), 0.0], atol=1e-6)
+        np.testing.assert_allclose(data.light_xdir[sun], sun_direction, atol=1e-9)
+
+
 def test_a_parked_car_hides_part_of_a_person_stepping_out():
     config = _config("residential", seed=0, frames=40, fps=2.0, duration=20.0)
     setup = build_scene(config)
