@@ -12,6 +12,7 @@ import contextlib
 import hashlib
 import json
 import os
+import threading
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -39,6 +40,40 @@ RGB_COMPRESSION = {"compression": "gzip", "compression_opts": 1}
 # with libdeflate, which the readers keep). Level 2 costs what level 1 does and is 3 % smaller.
 RGB_DEFLATE_LEVEL = 2
 STORABLE = ("depth", "instance")
+# While a shard is written, a thread hands its pages to the disk every WRITEBACK_INTERVAL_S
+# (fdatasync), so that commit's fsync, which makes the shard durable before it takes its final
+# name, waits for the last seconds of data only: on the paper clip (1.7 GB) it took 1.25 s at
+# the end of a 62 s run, in which no other work is left to overlap it.
+WRITEBACK_INTERVAL_S = 2.0
+
+
+class _Writeback:
+    """A daemon thread that calls ``fdatasync`` on ``path`` every ``interval_s`` seconds until
+    :meth:`stop`. Usable while another handle writes the file; its errors are left to the final
+    fsync, which reports them."""
+
+    def __init__(self, path: Path, interval_s: float) -> None:
+        self._fd = os.open(path, os.O_RDONLY)
+        self._stopped = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(interval_s,),
+                                        name="rainbench-shard-writeback", daemon=True)
+        self._thread.start()
+
+    def _run(self, interval_s: float) -> None:
+        while not self._stopped.wait(interval_s):
+            try:
+                os.fdatasync(self._fd)
+            except OSError:
+                return
+
+    def stop(self) -> None:
+        """End the thread (after its current fdatasync) and close its descriptor; once."""
+        if self._fd is None:
+            return
+        self._stopped.set()
+        self._thread.join()
+        os.close(self._fd)
+        self._fd = None
 
 
 def _deflate(image: np.ndarray) -> bytes:
@@ -127,6 +162,7 @@ class ShardWriter:
         try:
             with _naming(self.path):
                 self._create(attrs, num_frames, width, height, K, store, weather)
+            self._writeback = _Writeback(self._tmp, WRITEBACK_INTERVAL_S)
         except BaseException:
             with contextlib.suppress(OSError, RuntimeError):
                 self._file.close()
@@ -281,6 +317,7 @@ class ShardWriter:
         missing = [i for i, labels in enumerate(self._labels) if labels is None]
         if missing:
             raise RuntimeError(f"shard {self.path.name}: frames {missing[:5]} were never written")
+        self._writeback.stop()
         with _naming(self.path):
             self._write_tables()
         if self._pool is not None:
@@ -327,6 +364,7 @@ class ShardWriter:
         is still full): that is not reported, the error that led here is."""
         if self._pool is not None:
             self._pool.shutdown(cancel_futures=True)
+        self._writeback.stop()
         try:
             with contextlib.suppress(OSError, RuntimeError):
                 self._file.close()

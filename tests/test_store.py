@@ -279,6 +279,50 @@ def test_other_runtime_errors_pass_the_shard_writer_unchanged(tmp_path, monkeypa
     assert list((tmp_path / "d").iterdir()) == []
 
 
+def _writeback_threads():
+    import threading
+
+    return [t for t in threading.enumerate() if t.name == "rainbench-shard-writeback"]
+
+
+@pytest.mark.parametrize("commit", [True, False])
+def test_the_shard_is_handed_to_the_disk_while_written_and_the_thread_ends_with_it(
+        tmp_path, monkeypatch, commit):
+    """While frames are written a thread fdatasyncs the temporary file (so commit's fsync waits
+    for little); committing or abandoning the shard stops it and closes its descriptor."""
+    import threading
+
+    from rainbench.store import shard as shard_module
+
+    synced = []
+    wrote_frame = threading.Event()
+    real_fdatasync = os.fdatasync
+
+    def fdatasync(fd):
+        synced.append(os.readlink(f"/proc/self/fd/{fd}"))
+        wrote_frame.set()
+        real_fdatasync(fd)
+
+    monkeypatch.setattr(shard_module, "WRITEBACK_INTERVAL_S", 0.01)
+    monkeypatch.setattr(shard_module.os, "fdatasync", fdatasync)
+    path = tmp_path / shard_name(0, 0)
+    labels = FrameLabels(bbox=np.zeros((0, 4), np.float32), bbox_amodal=np.zeros((0, 4), np.float32),
+                         class_id=np.zeros(0, np.int32), instance_id=np.zeros(0, np.int32),
+                         visible_fraction=np.zeros(0, np.float32), truncation=np.zeros(0, np.float32))
+    before = len(os.listdir("/proc/self/fd"))
+    with ShardWriter(path, attrs={"class_names": '["person", "bicycle", "car", "motorcycle"]'},
+                     rates=np.zeros(1, np.float32), num_frames=1, width=32, height=24,
+                     K=np.eye(3), threads=1) as writer:
+        assert len(_writeback_threads()) == 1
+        writer.write_frame(0, np.zeros((1, 24, 32, 3), np.uint8), labels, np.eye(4))
+        assert wrote_frame.wait(5.0)
+        if commit:
+            writer.commit()
+    assert _writeback_threads() == [] and len(os.listdir("/proc/self/fd")) == before
+    assert synced and all(name.startswith(str(tmp_path / ".")) and ".tmp-" in name for name in synced)
+    assert path.is_file() == commit and len(list(tmp_path.iterdir())) == int(commit)
+
+
 def test_rgb_chunks_are_zlib_streams_that_stdlib_zlib_and_plain_h5py_read(tmp_path):
     """The writer deflates each image itself (ISA-L's igzip): the stored chunk must be exactly
     what HDF5's gzip filter would store, so any HDF5 reader decodes it."""
