@@ -305,7 +305,7 @@ _sum64 = np.add.reduce  # ndarray.mean's own sum, without its Python wrapper
 
 def _box_luma_std(rgb: np.ndarray) -> float:
     """Population standard deviation of the float64 BT.601 luma of ``rgb`` (h, w, 3) uint8, a
-    box's pixels. Two C calls a box (a frame sweeps about 10 boxes x 10 rates; numpy's
-    ``luma(...).std()`` took 13 array operations a box, 4x the time, held by the GIL)."""
+    box's pixels, in two C calls (numpy's ``luma(...).std()`` takes 13 array operations, each
+    holding the GIL; a frame's 10 boxes x 10 rates of labels went from 6.3 to 4.0 ms)."""
     _, std = cv2.meanStdDev(rgb @ _LUMA_WEIGHTS64)
     return float(std[0, 0])

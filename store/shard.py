@@ -60,9 +60,10 @@ class _Writeback:
         self._thread.start()
 
     def _run(self, interval_s: float) -> None:
+        sync = getattr(os, "fdatasync", os.fsync)  # macOS has no fdatasync
         while not self._stopped.wait(interval_s):
             try:
-                os.fdatasync(self._fd)
+                sync(self._fd)
             except OSError:
                 return
 

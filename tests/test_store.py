@@ -295,12 +295,12 @@ def test_the_shard_is_handed_to_the_disk_while_written_and_the_thread_ends_with_
     from rainbench.store import shard as shard_module
 
     synced = []
-    wrote_frame = threading.Event()
+    synced_once = threading.Event()
     real_fdatasync = os.fdatasync
 
     def fdatasync(fd):
         synced.append(os.readlink(f"/proc/self/fd/{fd}"))
-        wrote_frame.set()
+        synced_once.set()
         real_fdatasync(fd)
 
     monkeypatch.setattr(shard_module, "WRITEBACK_INTERVAL_S", 0.01)
@@ -315,7 +315,7 @@ def test_the_shard_is_handed_to_the_disk_while_written_and_the_thread_ends_with_
                      K=np.eye(3), threads=1) as writer:
         assert len(_writeback_threads()) == 1
         writer.write_frame(0, np.zeros((1, 24, 32, 3), np.uint8), labels, np.eye(4))
-        assert wrote_frame.wait(5.0)
+        assert synced_once.wait(5.0)
         if commit:
             writer.commit()
     assert _writeback_threads() == [] and len(os.listdir("/proc/self/fd")) == before
