@@ -179,6 +179,18 @@ def shard_attrs(config: GenerateConfig, layout: L.Layout) -> dict:
     }
 
 
+SENSOR_NOISE_STREAM = 0x5E45
+"""The camera's sensor noise of scene ``seed`` at clip frame ``f`` draws from
+``default_rng([seed, SENSOR_NOISE_STREAM, f])``: a property of the camera, so the rain seed does
+not change it (after dark the clean frame carries it). Scene streams use other ids
+(``mjcf.scene``, ``mjcf.layout``)."""
+
+
+def sensor_noise_generator(seed: int, frame: int) -> np.random.Generator:
+    """The generator of the sensor-noise field of scene ``seed``'s clip frame ``frame``."""
+    return np.random.default_rng([seed, SENSOR_NOISE_STREAM, frame])
+
+
 def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, global_frame: int,
                     pool: ThreadPoolExecutor | None, weathers: list[Weather],
                     layout: L.Layout, base_weather: Weather, statistics=None):
@@ -196,7 +208,6 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     they run there instead, all rates of the frame in one batch.
     """
     from rainbench.rain import weather as wx  # noqa: PLC0415
-    from rainbench.rain._seeding import STREAM_NOISE, child_generator  # noqa: PLC0415
 
     rates = config.rates
     num_rates, num_boxes = len(rates), len(frame.labels)
@@ -210,7 +221,7 @@ def _rain_for_frame(config: GenerateConfig, frame: FrameResult, K: np.ndarray, g
     clean = frame.rgb
     noise = None  # one sensor-noise field per frame, shared by every row that needs it
     if base_weather.gain > 1.0 or any(weather.gain > 1.0 for weather in weathers):
-        noise = wx.noise_field(child_generator(seeds, STREAM_NOISE), *clean.shape[:2])
+        noise = wx.noise_field(sensor_noise_generator(config.seed, global_frame), *clean.shape[:2])
     if base_weather.gain > 1.0:
         clean = wx.camera_response(clean, base_weather, noise)
         frame = dataclasses.replace(frame, rgb=clean)

@@ -18,9 +18,6 @@ STREAM_AIR = 2
 STREAM_SPRAY = 3
 """Stream id of the tyre-spray particles of a frame."""
 
-STREAM_NOISE = 4
-"""Stream id of the frame's sensor-noise field (one field, scaled by each rate's gain)."""
-
 
 def check_seed_sequence(seed_sequence: object) -> np.random.SeedSequence:
     """Return ``seed_sequence`` if it is a ``np.random.SeedSequence``; raise TypeError otherwise."""

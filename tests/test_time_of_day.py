@@ -444,6 +444,12 @@ def test_a_night_clip_stores_its_clean_image_with_the_cameras_noise(tmp_path):
             again = generate_shard(config, tmp_path / "again", threads=1)
             with h5py.File(again) as handle:
                 assert np.array_equal(handle["rgb"][0, 0], stored)  # seeded: the same bytes
+            # the noise is the camera's: another rain seed draws other rain over the same clean frame
+            other_rain = generate_shard(dataclasses.replace(config, rain_seed=7), tmp_path / "rain7", threads=1)
+            with h5py.File(other_rain) as handle:
+                assert np.array_equal(handle["rgb"][0, 0], stored)
+                with h5py.File(path) as first:
+                    assert not np.array_equal(handle["rgb"][1, 0], first["rgb"][1, 0])
 
 
 def test_lights_send_their_intensity_towards_a_viewer_as_documented():
