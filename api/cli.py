@@ -701,8 +701,9 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--rain-models", default=",".join(RAIN_MODELS),
                        help=f"comma-separated rain models (default: {','.join(RAIN_MODELS)})")
     paper.add_argument("--model", action="append", default=None,
-                       help="shipped model to evaluate (repeatable; default rainbench-yolo11n, plus "
-                       "rainbench-yolo11s on a GPU)")
+                       help="shipped model to evaluate (repeatable; replaces the defaults: "
+                       "rainbench-yolo11n and rainbench-yolo11n-weak, on a GPU also "
+                       "rainbench-yolo11s and the shipped rain-trained twins)")
     paper.add_argument("--weights", action="append", default=None, help="extra weights to evaluate (repeatable)")
     paper.add_argument("--data", default="data/paper", help="dataset root (default data/paper)")
     paper.add_argument("--out", default="results/paper", help="results directory (default results/paper)")

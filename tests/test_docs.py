@@ -65,3 +65,46 @@ def test_time_of_day_script_draws_day_dusk_and_night(monkeypatch):
     day, dusk, night = luma[:3]
     assert day > dusk > night  # the top row at 0 mm/h
     assert luma[3] < day  # rain darkens the day
+
+
+def _rain_parameter_rows() -> dict[str, str]:
+    """docs/rain.md's RainConfig table as {field: default cell}, a row naming several fields
+    split over their comma-separated defaults."""
+    text = (DOCS / "rain.md").read_text()
+    table = text[text.index("## Parameters (`RainConfig`)"):]
+    table = table[:table.index("\n## ")]
+    rows = {}
+    for line in table.splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        names = re.findall(r"`(\w+)`", cells[0]) if len(cells) >= 3 else []
+        if not names or cells[0] == "field":
+            continue
+        values = [value.strip() for value in cells[1].split(",")] if len(names) > 1 else [cells[1]]
+        assert len(values) == len(names), f"docs/rain.md row {cells[0]}: {len(names)} fields, defaults {cells[1]!r}"
+        rows.update(zip(names, values))
+    return rows
+
+
+def test_rain_parameter_table_lists_every_rain_config_field_with_its_default():
+    import dataclasses
+
+    from rainbench.rain import RainConfig
+
+    rows = _rain_parameter_rows()
+    fields = {field.name: field.default for field in dataclasses.fields(RainConfig)}
+    assert sorted(rows) == sorted(fields), "docs/rain.md's RainConfig table and RainConfig's fields differ"
+    for name, default in fields.items():
+        documented = rows[name].strip("`")
+        if isinstance(default, bool) or default is None or isinstance(default, str):
+            assert documented.strip('"') == str(default), (name, documented, default)
+        else:
+            assert float(documented) == float(default), (name, documented, default)
+
+
+def test_rain_api_imports_run_as_documented():
+    text = (DOCS / "rain.md").read_text()
+    block = text[text.index("## API"):]
+    block = block[block.index("```python") + len("```python"):block.index("```", block.index("```python") + 9)]
+    imports = re.findall(r"^from [\w.]+ import (?:\([^)]*\)|[^\n]*)", block, flags=re.MULTILINE)
+    assert imports, "docs/rain.md's API block has no import"
+    exec("\n".join(imports), {})  # an ImportError names the missing name
