@@ -114,11 +114,11 @@ if [[ " $steps " == *" paper "* && -f results/paper/report.md ]]; then
 fi
 # one process is GIL-bound (4.8 of 16 cores busy) and each worker with GPU statistics pays torch's
 # import and a CUDA context (4 s): a few pieces with the statistics on the CPU instead?
-step pieces-cpu 60 "$python" bench/dataset.py --skip weather,scaling,reader --workers 4 --device cpu \
+step pieces-cpu 60 "$python" bench/dataset.py --e2e-repeats 1 --skip weather,scaling,reader --workers 4 --device cpu \
     --json "$OUT/dataset_pieces4_cpu.json"
-step pieces-cpu 60 "$python" bench/dataset.py --skip weather,scaling,reader --workers 8 --device cpu \
+step pieces-cpu 60 "$python" bench/dataset.py --e2e-repeats 1 --skip weather,scaling,reader --workers 8 --device cpu \
     --json "$OUT/dataset_pieces8_cpu.json"
-step dataset 150 "$python" bench/dataset.py --skip scaling,reader --json "$OUT/dataset.json"
+step dataset 150 "$python" bench/dataset.py --e2e-repeats 1 --skip scaling,reader --json "$OUT/dataset.json"
 # the profiles' tables are in check.log ($OUT returns at most 8 files)
 step profile 60 "$python" bench/generate_profile.py --rain-model jeon2022
 step profile 45 "$python" bench/generate_profile.py --rain-model jeon2022 --device cpu
@@ -132,7 +132,7 @@ step profile 60 "$python" bench/generate_profile.py --workers 16  # the 16 piece
 step profile 45 env OPENCV_FOR_THREADS_NUM=1 "$python" bench/generate_profile.py --rain-model jeon2022
 step profile 45 env OPENCV_FOR_THREADS_NUM=1 "$python" bench/generate_profile.py --rain-model physical --frames 40
 step stats 40 "$python" bench/stats_device.py --frames 3
-step pieces 120 "$python" bench/dataset.py --skip scaling,reader --workers 16 --json "$OUT/dataset_pieces.json"
+step pieces 120 "$python" bench/dataset.py --e2e-repeats 1 --skip scaling,reader --workers 16 --json "$OUT/dataset_pieces.json"
 step scaling 200 "$python" bench/dataset.py --skip e2e,weather,reader --scaling-workers 16 \
     --scaling-frames 50 --scaling-rates 0:100:10 --json "$OUT/scaling.json"
 # the same with the statistics on the CPU: do 16 CUDA contexts on one GPU hold the workers back?
