@@ -16,6 +16,8 @@ import re
 from collections.abc import Sequence
 from pathlib import Path, PurePosixPath
 
+import numpy as np
+
 from .shard import ShardFormatError, open_checked
 
 MANIFEST = "manifest.json"
@@ -207,7 +209,9 @@ def verify_dataset(root: str | Path) -> list[str]:
                 offsets = handle["labels/offsets"].shape[0]
                 if rgb[:2] != (len(entry["rates"]), entry["frames"]) or offsets != rgb[1] + 1:
                     problems.append(f"{path}: shapes disagree with the manifest (rgb {rgb})")
-                elif [float(rate) for rate in handle["rates"][()]] != [float(rate) for rate in entry["rates"]]:
+                elif not np.array_equal(np.asarray(handle["rates"][()], np.float32),
+                                        np.asarray(entry["rates"], np.float64).astype(np.float32)):
+                    # a shard stores float32 rates; the manifest the rates as given (12.3, not 12.300000190734863)
                     problems.append(f"{path}: its rates {_rates_text(handle['rates'][()])} disagree "
                                     f"with the manifest's {_rates_text(entry['rates'])}")
         except ShardFormatError as error:

@@ -62,6 +62,21 @@ def _check_rate(spec: str, value: float, what: str) -> None:
         raise _fail(spec, f"{what} {value:g} exceeds {MAX_RATE_MM_H:g} mm/h; expected rates in [0, {MAX_RATE_MM_H:g}] mm/h")
 
 
+def _storage_problem(values: Sequence[float]) -> str | None:
+    """Why ascending distinct ``values`` cannot be a shard's ``/rates`` (float32), or None: two
+    that float32 does not tell apart, or a rate > 0 that it stores as 0 (a rainy row read back
+    as the clean one)."""
+    stored = np.asarray(values, dtype=np.float64).astype(np.float32)
+    for value, single in zip(values, stored):
+        if value > 0.0 and single == 0.0:
+            return f"rate {value:g} is stored as 0 (shards hold rates as float32); expected 0 or a rate above 1e-45 mm/h (the smallest float32)"
+    for index in range(len(values) - 1):
+        if stored[index] == stored[index + 1]:
+            return (f"rates {values[index]!r} and {values[index + 1]!r} are the same once stored as float32 "
+                    "(a shard's /rates); expected rates that differ in float32")
+    return None
+
+
 def parse_rates(spec: str) -> tuple[float, ...]:
     """Parse a rain-rate spec into an ascending tuple of rates in mm/h.
 
@@ -113,7 +128,7 @@ def parse_rates(spec: str) -> tuple[float, ...]:
         if any(lower >= upper for lower, upper in zip(values, values[1:])):
             raise _fail(spec, f"step {step:g} is finer than the {10.0 ** -_DECIMALS:g} mm/h "
                               "resolution of a range: its rates would repeat")
-        return values
+        return _storable(spec, values)
 
     if "," in text:
         values_list = [_parse_number(spec, part, f"item {index + 1}") for index, part in enumerate(text.split(","))]
@@ -125,11 +140,18 @@ def parse_rates(spec: str) -> tuple[float, ...]:
                 raise _fail(spec, f"rate {lower:g} is listed twice; expected distinct rates")
         if len(ordered) > MAX_RATE_COUNT:
             raise _fail(spec, f"lists {len(ordered)} rates; at most {MAX_RATE_COUNT} are allowed")
-        return tuple(ordered)
+        return _storable(spec, tuple(ordered))
 
     value = _parse_number(spec, text, "rate")
     _check_rate(spec, value, "rate")
-    return (value,)
+    return _storable(spec, (value,))
+
+
+def _storable(spec: str, values: tuple[float, ...]) -> tuple[float, ...]:
+    problem = _storage_problem(values)
+    if problem is not None:
+        raise _fail(spec, problem)
+    return values
 
 
 def check_rate_list(rates, what: str = "rates") -> tuple[float, ...]:
@@ -146,6 +168,9 @@ def check_rate_list(rates, what: str = "rates") -> tuple[float, ...]:
             or any(lower >= upper for lower, upper in zip(values, values[1:])):
         raise ValueError(f"{what}: expected ascending distinct values in [0, {MAX_RATE_MM_H:g}] "
                          f"mm/h, got {tuple(rates)!r:.80}")
+    problem = _storage_problem(values)
+    if problem is not None:
+        raise ValueError(f"{what}: {problem}")
     return values
 
 

@@ -74,6 +74,16 @@ def test_parse_rates_accepts(spec, expected):
     assert parse_rates(spec) == expected
 
 
+def test_a_rate_list_refuses_rates_that_float32_storage_would_merge():
+    from rainbench.store.rates import check_rate_list
+
+    assert check_rate_list([0.0, 12.3]) == (0.0, 12.3)  # kept as given; stored as float32 12.3
+    with pytest.raises(ValueError, match=r"^rates: rates 0\.1 and 0\.10000000001 are the same once stored as float32"):
+        check_rate_list([0.1, 0.10000000001])
+    with pytest.raises(ValueError, match=r"^rates: rate 1e-50 is stored as 0 "):
+        check_rate_list([1e-50])
+
+
 @pytest.mark.parametrize(
     ("spec", "reason"),
     [
@@ -95,6 +105,10 @@ def test_parse_rates_accepts(spec, expected):
         ("0:100", "exactly start:stop:step"),
         ("0:1000:0.5", "expands to 2001 rates"),
         ("line\nbreak", 'rate "line\\nbreak" is not a number'),
+        # shards store rates as float32: what it cannot tell apart, or stores as 0, is refused
+        ("0.1,0.10000000001", "rates 0.1 and 0.10000000001 are the same once stored as float32"),
+        ("0,1e-50", "rate 1e-50 is stored as 0 (shards hold rates as float32)"),
+        ("1e-50", "rate 1e-50 is stored as 0"),
     ],
 )
 def test_parse_rates_refuses_with_one_line(spec, reason):
