@@ -35,7 +35,13 @@ from .labels import LabelFilter
 MAX_SEED = 2**31 - 1
 """Largest scene or rain seed (``--seed``, ``--rain-seed``; scene k of a dataset uses seed + k)."""
 MAX_FRAMES = 100_000
-"""Most frames of one clip (``--frames``): 10 000 s of driving at 10 frames/s."""
+"""Most frames of one clip (``--frames``), at the highest frame rates: the clip's length in
+seconds is bounded by :data:`MAX_CLIP_SECONDS` too."""
+MAX_CLIP_SECONDS = 600.0
+"""Longest clip in seconds (clip frames / fps: 6 000 frames at 10 frames/s). A scene is laid out
+for its whole clip, in time that grows with the square of its length (measured on 2 cores: a
+10-minute clip's highway 55 s and 0.3 GB, its street 24 s; a 33-minute street 183 s); for more
+data, render more scenes."""
 MAX_SCENES = 100_000
 """Most scenes of one dataset (``--scenes``)."""
 MAX_SHARDS = 100_000
@@ -170,6 +176,19 @@ class ClipConfig:
         return RainConfig(model=self.rain_model, **self.rain_options)
 
 
+def _check_clip_seconds(clip_frames: int, fps: float, what: str) -> None:
+    """Refuse a clip longer than :data:`MAX_CLIP_SECONDS` (one line naming ``what`` gave its
+    length)."""
+    seconds = clip_frames / fps
+    if seconds > MAX_CLIP_SECONDS:
+        most = int(MAX_CLIP_SECONDS * fps)
+        at_this_rate = (f"{most} frames at {fps:g} frames/s" if most >= 1
+                        else f"not one frame at {fps:g} frames/s: raise the frame rate")
+        raise DatasetError(f"{what}: a clip of {clip_frames} frames at {fps:g} frames/s is {seconds:.6g} s; "
+                           f"expected at most {MAX_CLIP_SECONDS:g} s ({at_this_rate}): a scene is laid out "
+                           "for its whole clip; for more data, render more scenes (--scenes)")
+
+
 @dataclass(frozen=True, kw_only=True)
 class DatasetConfig(ClipConfig):
     """A dataset: ``scenes`` clips of ``frames`` frames, seeds ``seed .. seed + scenes - 1``,
@@ -200,6 +219,8 @@ class DatasetConfig(ClipConfig):
                 is_int(self.clip_frames) and self.clip_frames >= self.first_frame + self.frames):
             raise DatasetError(f"clip-frames: expected an integer >= first-frame + frames = "
                                f"{self.first_frame + self.frames}, got {self.clip_frames!r}")
+        _check_clip_seconds(self.clip_length, self.fps, "CLIP_FRAMES" if self.clip_frames is not None
+                            else "FIRST_FRAME + FRAMES" if self.first_frame else "FRAMES")
         if self.shard_count > MAX_SHARDS:
             raise DatasetError(f"SCENES x ceil(FRAMES / FRAMES_PER_SHARD) = {self.shard_count} "
                                f"shards; at most {MAX_SHARDS} (raise --frames-per-shard)")
@@ -269,6 +290,8 @@ class GenerateConfig(ClipConfig):
                 is_int(self.clip_frames) and self.clip_frames >= self.frame_offset + self.frames):
             raise DatasetError(f"clip_frames: expected >= frame_offset + frames = "
                                f"{self.frame_offset + self.frames}, got {self.clip_frames!r}")
+        _check_clip_seconds(self.clip_length, self.fps, "CLIP_FRAMES" if self.clip_frames is not None
+                            else "FIRST_FRAME + FRAMES" if self.frame_offset else "FRAMES")
 
     @property
     def follows_rate(self) -> bool:

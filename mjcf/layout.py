@@ -975,14 +975,22 @@ def _span(b: _Builder, road: Road, before: float = 40.0, after: float = 120.0) -
     reach = unit_distance(b.ego, b.duration) + max(u.speed for u in b.placed) * b.duration + 200
     grid = np.arange(-reach, reach, 1.0)
     centre = road_pose(road, grid)[:, :2]
+    rows = max(1, SPAN_BLOCK_DISTANCES // len(grid))  # positions a block: memory bounded
     lo = hi = 0.0
     for unit in b.placed:
         xy = unit_position(unit, b.times[::5])
-        squared = ((xy[:, 0, None] - centre[None, :, 0]) ** 2
-                   + (xy[:, 1, None] - centre[None, :, 1]) ** 2)
-        nearest = grid[squared.argmin(axis=1)]
-        lo, hi = min(lo, float(nearest.min())), max(hi, float(nearest.max()))
+        for start in range(0, len(xy), rows):
+            block = xy[start:start + rows]
+            squared = ((block[:, 0, None] - centre[None, :, 0]) ** 2
+                       + (block[:, 1, None] - centre[None, :, 1]) ** 2)
+            nearest = grid[squared.argmin(axis=1)]
+            lo, hi = min(lo, float(nearest.min())), max(hi, float(nearest.max()))
     return lo - before, hi + after
+
+
+SPAN_BLOCK_DISTANCES = 1 << 22
+"""Distances :func:`_span` computes at once (4 Mi float64: 32 MB a temporary): a long clip's
+positions x centreline grid in blocks, the same nearest points as all at once."""
 
 
 def _sample_street(b: _Builder) -> None:

@@ -405,3 +405,16 @@ def test_every_layout_places_the_paper_mix_in_short_and_long_clips(duration_s):
             else:
                 assert kinds.count("pedestrian") == config.num_pedestrians
                 assert kinds.count("car") >= config.num_cars
+
+
+@pytest.mark.parametrize("name", ["street", "curved", "highway"])
+def test_the_road_span_is_measured_in_blocks_with_the_same_layout(name, monkeypatch):
+    """The span of road a clip needs is measured in blocks of positions x centreline points
+    (bounded memory for long clips): blocks of one or two positions give the same layout."""
+    whole = repr(_layout(name, seed=3))
+    calls = []
+    span = L._span
+    monkeypatch.setattr(L, "_span", lambda *args, **kwargs: calls.append(1) or span(*args, **kwargs))
+    monkeypatch.setattr(L, "SPAN_BLOCK_DISTANCES", 997)
+    assert repr(_layout(name, seed=3)) == whole
+    assert calls  # the layout measures its span
