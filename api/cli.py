@@ -11,7 +11,7 @@ from pathlib import Path
 
 from rainbench import gl
 from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
-from rainbench.gen.config import (HFOV_DEG, MAX_FPS, MAX_FRAME_OFFSET, MAX_FRAMES, MAX_SCENES,
+from rainbench.gen.config import (HFOV_DEG, MAX_CLIP_SECONDS, MAX_FPS, MAX_FRAME_OFFSET, MAX_FRAMES, MAX_SCENES,
                                   MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig, stats_device_for)
 from rainbench.rain.config import RAIN_MODELS, RAIN_OPTIONS, RainConfig
 from rainbench.rain.weather import SKIES, TIMES_OF_DAY
@@ -244,8 +244,15 @@ def _finished_dataset(data: str | Path, allow_incomplete: bool, flag: str = "DAT
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from rainbench.store import unlisted_shards, verify_dataset
+    from rainbench.store import MANIFEST, unlisted_shards, verify_dataset
 
+    root = Path(args.out)
+    if not root.is_dir():
+        found = "a file" if root.exists() else "no such directory"
+        raise CliError(f"DATA: {root} is not a dataset directory ({found}; expected the directory "
+                       f"that rainbench generate wrote, with its {MANIFEST})")
+    if not (root / MANIFEST).exists():
+        raise CliError(f"DATA: {root} is not a dataset directory (no {MANIFEST})")
     problems = verify_dataset(args.out)
     for path in unlisted_shards(args.out):
         print(_printable(f"rainbench: warning: {path}: not listed in the manifest, so not part of "
@@ -282,6 +289,7 @@ def cmd_scene(args: argparse.Namespace) -> int:
     if (out / "scene.xml").exists() and not args.overwrite:
         raise CliError(f"--out: {out / 'scene.xml'} exists; use --overwrite to replace it "
                        "(and its textures)")
+    gl.check_environment(os.environ)  # before mujoco is imported: a MUJOCO_GL that cannot work
     from rainbench.gen.config import GenerateConfig
     from rainbench.mjcf import layout as L
     from rainbench.mjcf.scene import build_spec, export_scene
@@ -315,17 +323,27 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _videos_dir(data: str | Path) -> Path:
+    """Where ``preview --video`` writes without ``--out``: ``DATA/videos`` for a dataset
+    directory, the ``videos`` folder beside a shard (its dataset directory's) for one shard."""
+    data = Path(data)
+    return data / "videos" if data.is_dir() else data.parent / "videos"
+
+
 def cmd_preview(args: argparse.Namespace) -> int:
     if not args.video:
         for flag, given in (("--rates", args.rates is not None), ("--overwrite", args.overwrite)):
             if given:
                 raise CliError(f"{flag}: only used with --video (a montage shows every rate of "
                                "one frame)")
+    elif args.frame is not None:
+        raise CliError("--frame: only used without --video (a video shows every frame; --frame "
+                       "picks the montage's frame)")
     _finished_dataset(args.shard, args.allow_incomplete, "SHARD")
     if args.video:
         from rainbench.store.video import write_videos
 
-        out = _writable_dir(Path(args.out or Path(args.shard) / "videos"), "--out")
+        out = _writable_dir(Path(args.out) if args.out else _videos_dir(args.shard), "--out")
         for path in write_videos(args.shard, out, rates=_rate_list(args.rates),
                                  boxes=args.boxes, overwrite=args.overwrite):
             print(path)
@@ -338,7 +356,8 @@ def cmd_preview(args: argparse.Namespace) -> int:
     path = Path(args.shard)
     if path.is_dir():
         path = list_shards(path)[0]
-    name = f"{path.stem}_frame{args.frame:04d}_rates.png"
+    frame = 0 if args.frame is None else args.frame
+    name = f"{path.stem}_frame{frame:04d}_rates.png"
     out = Path(args.out) if args.out else path.with_name(name)
     if args.out and out.is_dir():
         out = out / name
@@ -346,44 +365,66 @@ def cmd_preview(args: argparse.Namespace) -> int:
         raise CliError(f"--out: expected a .png file name or a directory, got {out}")
     _writable_dir(out.parent, "--out")
     dataset = Dataset(path)
-    if not 0 <= args.frame < len(dataset):
-        raise CliError(f"--frame: expected 0..{len(dataset) - 1} for {path.name}, got {args.frame}")
-    image = dataset.images[args.frame]
+    if not 0 <= frame < len(dataset):
+        raise CliError(f"--frame: expected 0..{len(dataset) - 1} for {path.name}, got {frame}")
+    image = dataset.images[frame]
     with dataset.open(0) as handle:
         try:
             images = np.stack([dataset.read_rgb(handle, image, rate) for rate in dataset.rates])
-            labels = read_frame_labels(handle, args.frame)
-            ignore = read_frame_ignore(handle, args.frame)["bbox"]
+            labels = read_frame_labels(handle, frame)
+            ignore = read_frame_ignore(handle, frame)["bbox"]
         except OSError as error:
-            raise CliError(f"{path}: frame {args.frame} does not decode ({error})") from None
+            raise CliError(f"{path}: frame {frame} does not decode ({error})") from None
     rates = np.asarray(dataset.rates)
     boxes = (labels["bbox"], labels["class_id"]) if args.boxes else (None, None)
-    write_png(out, montage(images, rates, boxes=boxes[0], class_ids=boxes[1],
-                           ignore_boxes=ignore if args.boxes else None))
+    sheet = montage(images, rates, boxes=boxes[0], class_ids=boxes[1],
+                    ignore_boxes=ignore if args.boxes else None)
+    out.parent.mkdir(parents=True, exist_ok=True)  # a missing folder is made, as export and generate do
+    write_png(out, sheet)
     print(out)
     return 0
+
+
+EVAL_INFERENCE_DEFAULTS = {"batch": 32, "conf": 0.001, "iou": 0.7, "max_det": 300, "pt_backend": "batched"}
+"""``rainbench eval``'s inference settings whose flags default to None (so that a flag the user gave
+is known: with ``--predictions`` it is refused) and the values they stand for."""
+EVAL_INFERENCE_FLAGS = ("imgsz", "batch", "conf", "iou", "max_det", "class_map", "device", "pt_backend",
+                        "workers", "force", "trust_pickle")
+"""The ``rainbench eval`` flags (argparse dests) that only running detectors uses."""
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
     if bool(args.weights) == (args.predictions is not None):
         raise CliError("eval: expected exactly one of --weights W [--weights W2 ...] or --predictions DIR")
+    if args.predictions is not None:
+        for dest in EVAL_INFERENCE_FLAGS:
+            value = getattr(args, dest)
+            if value is not None and value is not False:
+                flag = "--" + dest.replace("_", "-")
+                raise CliError(f"{flag}: has no effect with --predictions (detections are read from "
+                               "its files, not inferred); leave it out, or evaluate with --weights")
+    inference = {name: EVAL_INFERENCE_DEFAULTS[name] if getattr(args, name) is None else getattr(args, name)
+                 for name in EVAL_INFERENCE_DEFAULTS}
     _finished_dataset(args.data, args.allow_incomplete, "--data")
     out = _writable_dir(Path(args.out), "--out")
     from rainbench.eval.pipeline import TargetFilter, run_eval
 
     outputs = run_eval(args.data, out, predictions_dir=args.predictions, weights=args.weights or (),
-                       imgsz=args.imgsz, batch=args.batch, conf=args.conf, iou=args.iou,
-                       max_det=args.max_det, report_conf=args.report_conf, n_boot=args.n_boot,
+                       imgsz=args.imgsz, batch=inference["batch"], conf=inference["conf"], iou=inference["iou"],
+                       max_det=inference["max_det"], report_conf=args.report_conf, n_boot=args.n_boot,
                        class_map=args.class_map, device=args.device, force=args.force,
                        progress=not args.quiet, trust_pickle=args.trust_pickle or None, classes=args.classes,
                        references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics,
-                       pt_backend=args.pt_backend, workers=args.workers, ignore_regions=args.ignore_regions,
+                       pt_backend=inference["pt_backend"], workers=args.workers, ignore_regions=args.ignore_regions,
                        targets=TargetFilter(args.min_height, args.min_visible, args.max_truncation))
     print(outputs.paths["report.md"])
     return 0
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    if Path(args.recipe).is_dir():
+        raise CliError(f"--recipe: {args.recipe} is a directory, not a file (expected a recipe .yaml "
+                       "file or a shipped recipe name)")
     _choose_gl(None)
     from rainbench.experiments.train import load_recipe, train
 
@@ -410,15 +451,44 @@ def cmd_paper(args: argparse.Namespace) -> int:
 
     models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
     # before anything is generated, each model under the flag it came with
-    check_models([("--model" if args.model else "--model (default)", model) for model in models]
-                 + [("--weights", weights) for weights in args.weights or ()])
+    specs = ([("--model" if args.model else "--model (default)", model) for model in models]
+             + [("--weights", weights) for weights in args.weights or ()])
+    _check_weights_files(specs, args.device, load=False)
+    check_models(specs)
     config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device, classes=args.classes,
                          references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics)
+    # each weights file loads as eval loads it (seconds each): after the cheap checks, before generating
+    _check_weights_files(specs, args.device, load=True)
     print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
                     force=args.force, progress=not args.quiet))
     return 0
+
+
+def _check_weights_files(specs: list[tuple[str, str]], device: str | None, load: bool) -> None:
+    """Refuse, before ``rainbench paper`` generates anything, a weights file that ``rainbench eval``
+    could not load, naming the flag it came with (``--model`` or ``--weights``). Without ``load``,
+    only a directory given as weights (cheap, before the other checks); with it, every local file
+    is loaded on ``device`` as ``eval`` loads it before inferring (shipped models are known to
+    load)."""
+    from rainbench.eval.backends import BackendError, load_detector
+    from rainbench.eval.weights import weights_location
+
+    for flag, spec in specs:
+        shipped, path, _ = weights_location(spec)
+        if shipped is not None:
+            continue
+        if not load and not path.is_dir():
+            continue
+        try:
+            detector = load_detector(spec, device=device)
+        except BackendError as error:
+            message = str(error)
+            if message.startswith("--weights") and flag != "--weights":
+                message = flag + message[len("--weights"):]
+            raise CliError(message) from None
+        del detector
 
 
 def _add_compare_arg(parser: argparse.ArgumentParser, default: str = "the model its name extends, else the first") -> None:
@@ -506,7 +576,8 @@ def _add_scene_args(parser: argparse.ArgumentParser) -> None:
                         help="base weather (default: the seed decides; the paper's clip: cloudy)")
     parser.add_argument("--frames", type=_positive_int("FRAMES", MAX_FRAMES), default=DatasetConfig.frames,
                         help=f"frames per scene, 1..{MAX_FRAMES} (default {DatasetConfig.frames}); "
-                             "a scene is planned for its clip's length")
+                             "a scene is planned for its clip's length, at most "
+                             f"{MAX_CLIP_SECONDS:g} s (frames / fps)")
     parser.add_argument("--fps", type=_number("FPS", 0, MAX_FPS, low_open=True), default=DatasetConfig.fps,
                         help=f"frames per second, (0, {MAX_FPS:g}] (default {DatasetConfig.fps:g})")
     parser.add_argument("--width", type=_positive_int("WIDTH", SIDE_PX[1], SIDE_PX[0]),
@@ -583,7 +654,7 @@ def build_parser() -> argparse.ArgumentParser:
     generate.add_argument("--quiet", action="store_true", help="no progress bar")
     generate.set_defaults(run=cmd_generate)
     verify = sub.add_parser("verify", help="re-hash a dataset against its manifest")
-    verify.add_argument("out", help="dataset directory (with manifest.json)")
+    verify.add_argument("out", metavar="DATA", help="dataset directory (with manifest.json)")
     verify.set_defaults(run=cmd_verify)
     stats = sub.add_parser("stats", help="objects, instances, box sizes, visibility per class of a dataset")
     stats.add_argument("data", help="dataset directory, or one shard")
@@ -603,13 +674,15 @@ def build_parser() -> argparse.ArgumentParser:
     scene.set_defaults(run=cmd_scene)
     preview = sub.add_parser("preview", help="PNG montage of one frame across all rain rates")
     preview.add_argument("shard", help="a shard, or a dataset directory (its first shard)")
-    preview.add_argument("--frame", type=int, default=0)
-    preview.add_argument("--out", default=None, help="PNG path (default: beside the shard)")
+    preview.add_argument("--frame", type=int, default=None,
+                         help="the montage's frame (default 0; not with --video)")
+    preview.add_argument("--out", default=None,
+                         help="PNG path or directory, made if missing (default: beside the shard)")
     preview.add_argument("--boxes", action="store_true",
                          help="draw the labels (class colours) and the ignore regions (grey)")
     preview.add_argument("--video", action="store_true",
                          help="one MP4 per rate over every frame instead (in --out, default "
-                              "DATA/videos)")
+                              "DATA/videos; for one shard, the videos folder beside it)")
     preview.add_argument("--rates", default=None, help="with --video: rates to write (RATES spec)")
     preview.add_argument("--overwrite", action="store_true", help="with --video: replace videos")
     preview.add_argument("--allow-incomplete", action="store_true",
@@ -641,11 +714,15 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--imgsz", type=_positive_int("IMGSZ", 8192, 32), default=None,
                           help="letterbox size (default: a shipped model's own, 960 for both shipped models; "
                                "640 for other models)")
-    evaluate.add_argument("--batch", type=_positive_int("BATCH", 4096), default=32)
-    evaluate.add_argument("--conf", type=_number("CONF", 0, 1), default=0.001,
-                          help="detector confidence floor")
-    evaluate.add_argument("--iou", type=_number("IOU", 0, 1), default=0.7, help="detector NMS IoU")
-    evaluate.add_argument("--max-det", type=_positive_int("MAX_DET", 100_000), default=300)
+    # inference flags default to None (EVAL_INFERENCE_DEFAULTS): refused with --predictions when given
+    evaluate.add_argument("--batch", type=_positive_int("BATCH", 4096), default=None,
+                          help=f"frames per detector call (default {EVAL_INFERENCE_DEFAULTS['batch']})")
+    evaluate.add_argument("--conf", type=_number("CONF", 0, 1), default=None,
+                          help=f"detector confidence floor (default {EVAL_INFERENCE_DEFAULTS['conf']:g})")
+    evaluate.add_argument("--iou", type=_number("IOU", 0, 1), default=None,
+                          help=f"detector NMS IoU (default {EVAL_INFERENCE_DEFAULTS['iou']:g})")
+    evaluate.add_argument("--max-det", type=_positive_int("MAX_DET", 100_000), default=None,
+                          help=f"detections per image (default {EVAL_INFERENCE_DEFAULTS['max_det']})")
     evaluate.add_argument("--report-conf", type=_number("REPORT_CONF", 0, 1), default=0.25,
                           help="fixed threshold of the *_at_conf metrics and the detection strip")
     evaluate.add_argument("--n-boot", type=_positive_int("N_BOOT", 1_000_000), default=1000,
@@ -657,7 +734,7 @@ def build_parser() -> argparse.ArgumentParser:
                           help="classes to score, names or ids, e.g. person,car,bus,truck (default: the "
                                "paper's person,bicycle,car,motorcycle; also bus, truck)")
     evaluate.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
-    evaluate.add_argument("--pt-backend", choices=("batched", "ultralytics"), default="batched",
+    evaluate.add_argument("--pt-backend", choices=("batched", "ultralytics"), default=None,
                           help="how a .pt runs: batched (torch in batches, letterbox and NMS on the device, "
                                "fp16 on CUDA; default) or ultralytics (its own predict, the reference); "
                                "shipped models run their ONNX copy on CPU either way")

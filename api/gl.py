@@ -26,6 +26,9 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "osmesa": ("OSMesa", "libosmesa6"),
 }
 AUTO_ORDER: tuple[str, ...] = ("egl", "osmesa")
+VALID_VALUES: tuple[str, ...] = (*BACKENDS, "glfw")
+"""The ``MUJOCO_GL`` values rainbench renders with: the offscreen backends, and ``glfw`` where a
+display is set. MuJoCo knows others (``glx``, ``disable``, ...) that do not render offscreen."""
 # Set by configure(): whether mujoco was already imported when rainbench chose the backend
 # (then MuJoCo did not see the choice, and renderer errors say so).
 state = SimpleNamespace(mujoco_imported_first=False)
@@ -78,6 +81,11 @@ def check_environment(
     working = [name for name in AUTO_ORDER if find_library(BACKENDS[name][0])]
     instead = (f"set MUJOCO_GL={working[0]} (installed here) or unset MUJOCO_GL" if working
                else "; ".join(f"install {BACKENDS[n][1]} for {n}" for n in AUTO_ORDER))
+    if current.strip().lower() not in VALID_VALUES:  # as MuJoCo reads it: case and spaces ignored
+        shown = repr(current) if len(current) <= 40 else repr(current[:37]) + "..."
+        raise GLBackendError(f"MUJOCO_GL: expected one of {', '.join(VALID_VALUES)} (glfw needs a "
+                             f"display), got {shown}; {instead}")
+    current = current.strip().lower()
     if current in BACKENDS and not find_library(BACKENDS[current][0]):
         raise GLBackendError(f"MUJOCO_GL={current}: the {BACKENDS[current][0]} library is not "
                              f"installed (package {BACKENDS[current][1]}); {instead}")
@@ -110,7 +118,15 @@ def __getattr__(name: str):
     never by ``import rainbench``."""
     if name == "mujoco":
         configure(os.environ)
-        import mujoco  # noqa: PLC0415
-
+        try:
+            import mujoco  # noqa: PLC0415
+        except (AttributeError, ImportError, RuntimeError, OSError) as error:
+            # A MUJOCO_GL that cannot work here fails deep in MuJoCo or PyOpenGL (and Python turns
+            # an AttributeError raised here into "cannot import name 'mujoco'"): say why in one
+            # line instead.
+            check_environment(os.environ)
+            reason = " ".join(str(error).split())
+            raise GLBackendError(f"MUJOCO_GL={os.environ.get('MUJOCO_GL', '')}: importing mujoco "
+                                 f"failed ({type(error).__name__}: {reason})") from None
         return mujoco
     raise AttributeError(f"module 'rainbench.gl' has no attribute {name!r}")

@@ -22,6 +22,12 @@ from rainbench import store
 from rainbench.gen import dataset as ds
 from rainbench.gen.config import DatasetConfig
 from rainbench.store.manifest import sha256_of
+from rainbench.eval.backends.ultralytics import _offline_ultralytics
+
+# torch (through torch._dynamo) loads triton, whose bundled LLVM segfaults when it is loaded after
+# Mesa rendered in this process: `paper` loads weights files after the module's datasets rendered.
+_offline_ultralytics()
+import torch._dynamo  # noqa: E402,F401
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = dict(scenes=1, frames=4, frames_per_shard=2, width=96, height=72, rates=(0.0, 50.0))
@@ -91,6 +97,15 @@ def _verify_problems(root, capsys):
     code = _cli(["verify", root])
     lines = capsys.readouterr().err.strip().splitlines()
     return code, [line for line in lines if line.startswith("rainbench: bad: ")]
+
+
+def test_rates_that_float32_does_not_hold_exactly_verify(tmp_path, capsys):
+    """A shard stores its rates as float32 and the manifest as given: 12.3 and 0.1 (no float32
+    holds them exactly) are the same rates in both."""
+    root = tmp_path / "decimals"
+    assert _cli([*GENERATE, "--frames", "1", "--rates", "0,0.1,12.3", "--out", str(root)]) == 0
+    capsys.readouterr()
+    assert _verify_problems(root, capsys) == (0, [])
 
 
 def test_verify_finds_a_complete_manifest_without_its_shards(small, tmp_path, capsys):
@@ -225,11 +240,14 @@ def test_an_empty_weights_name_is_named_as_such(small, tmp_path, capsys):
 
 
 def test_a_long_checkpoint_error_is_cut_at_a_word(small, tmp_path, capsys):
-    (tmp_path / "empty.pt").write_bytes(b"")
-    code = _cli(["eval", "--data", small, "--weights", tmp_path / "empty.pt", "--out", tmp_path / "eval"])
+    from rainbench.eval.weights import WEIGHTS_DIR
+
+    # a zip archive cut short: a checkpoint's first bytes, so ultralytics' own long advice
+    (tmp_path / "cut.pt").write_bytes((WEIGHTS_DIR / "rainbench-yolo11n.pt").read_bytes()[:300])
+    code = _cli(["eval", "--data", small, "--weights", tmp_path / "cut.pt", "--out", tmp_path / "eval"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
-    reason = re.fullmatch(r"rainbench: error: --weights: .*empty\.pt is not a loadable ultralytics "
+    reason = re.fullmatch(r"rainbench: error: --weights: .*cut\.pt is not a loadable ultralytics "
                           r"checkpoint \((.+)\)", err[0]).group(1)
     # whole words: a reason cut short ends with " ..." after a complete word of ultralytics' text
     assert len(reason) <= 204 and (not reason.endswith("...") or reason.endswith(" ..."))
@@ -392,3 +410,151 @@ def test_an_error_raised_in_a_dataloader_worker_is_reported_without_its_tracebac
     monkeypatch.setattr(cli, "cmd_train", train_on_corrupt)
     assert cli.main(["train"]) == 2
     assert capsys.readouterr().err == f"rainbench: error: {message}\n"
+
+
+# -- checked before any work, and named (a second sweep of the command line) --------------------
+
+TINY = ["--frames", "1", "--width", "16", "--height", "16", "--rates", "0", "--quiet"]
+NOT_A_CHECKPOINT = ("is not a loadable ultralytics checkpoint: expected a PyTorch checkpoint file (a zip "
+                    "archive written by torch.save, as ultralytics saves), got ")
+
+
+@pytest.mark.parametrize("flag, name, content, message", [
+    ("--weights", "text.pt", "hello, not a checkpoint\n", re.escape(NOT_A_CHECKPOINT + "a text file")),
+    ("--model", "text.pt", "hello, not a checkpoint\n", re.escape(NOT_A_CHECKPOINT + "a text file")),
+    ("--model", "empty.onnx", "", r"is not a loadable ONNX model \(.+\)"),
+    ("--weights", "folder.onnx", None, re.escape("is a directory, not a weights file (expected an ultralytics "
+                                                 ".pt, an .onnx export or a Darknet .cfg/.weights file, or a "
+                                                 "shipped model name)")),
+], ids=["weights-text", "model-text", "model-empty-onnx", "weights-directory"])
+def test_paper_loads_every_weights_file_before_generating_and_names_its_flag(tmp_path, capsys, flag, name,
+                                                                             content, message):
+    """``paper`` rendered every dataset before a weights file failed to load, and blamed
+    ``--weights`` for a file given by ``--model``."""
+    weights = tmp_path / name
+    if content is None:
+        weights.mkdir()
+    else:
+        weights.write_text(content)
+    code = _cli(["paper", *TINY, "--data", tmp_path / "data", "--out", tmp_path / "out", flag, weights])
+    _one_line_error(capsys, code, re.escape(f"{flag}: {weights} ") + message)
+    assert not (tmp_path / "data").exists() and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("trust", [[], ["--trust-pickle"]])
+@pytest.mark.parametrize("content, found", [(b"hello world\n", "a text file"), (b"", "an empty file"),
+                                            (b"\x89PNG\r\n\x1a\n" + bytes(16), "a PNG image"),
+                                            (bytes(range(7, 40)), "a file whose first bytes are 07 08 09 0a 0b 0c 0d 0e")],
+                         ids=["text", "empty", "png", "binary"])
+def test_a_file_that_is_no_checkpoint_says_what_was_expected_and_what_came(small, tmp_path, capsys, trust,
+                                                                          content, found):
+    weights = tmp_path / "model.pt"
+    weights.write_bytes(content)
+    code = _cli(["eval", "--data", small, "--weights", weights, "--out", tmp_path / "eval", *trust])
+    _one_line_error(capsys, code, re.escape(f"--weights: {weights} {NOT_A_CHECKPOINT}{found}"))
+    assert not (tmp_path / "eval").exists()
+
+
+def test_weights_and_a_recipe_that_are_directories_are_named_as_such(small, tmp_path, capsys):
+    folder = tmp_path / "model.pt"
+    folder.mkdir()
+    code = _cli(["eval", "--data", small, "--weights", folder, "--out", tmp_path / "eval"])
+    _one_line_error(capsys, code, re.escape(
+        f"--weights: {folder} is a directory, not a weights file (expected an ultralytics .pt, an .onnx "
+        "export or a Darknet .cfg/.weights file, or a shipped model name)"))
+    recipe = tmp_path / "x.yaml"
+    recipe.mkdir()
+    code = _cli(["train", "--recipe", recipe, "--out", tmp_path / "run"])
+    _one_line_error(capsys, code, re.escape(
+        f"--recipe: {recipe} is a directory, not a file (expected a recipe .yaml file or a shipped recipe name)"))
+    assert not (tmp_path / "eval").exists() and not (tmp_path / "run").exists()
+
+
+def _cli_with_gl(argv, value):
+    env = {key: item for key, item in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    env["MUJOCO_GL"] = value
+    return subprocess.run([sys.executable, "-m", "rainbench.cli", *map(str, argv)], capture_output=True,
+                          text=True, env=env, timeout=300)
+
+
+def _gl_instead():
+    import ctypes.util
+
+    return ("set MUJOCO_GL=egl (installed here) or unset MUJOCO_GL" if ctypes.util.find_library("EGL")
+            else "install libegl1 for egl; install libosmesa6 for osmesa")
+
+
+def test_scene_with_a_gl_backend_that_cannot_work_is_one_line(tmp_path):
+    """``scene`` imported mujoco with MUJOCO_GL=osmesa and no OSMesa: a traceback ending in
+    ``cannot import name 'mujoco' from 'rainbench.gl'``, exit 1."""
+    import ctypes.util
+
+    if ctypes.util.find_library("OSMesa") is not None:
+        pytest.skip("OSMesa is installed")
+    result = _cli_with_gl(["scene", "--width", "16", "--height", "16", "--out", tmp_path / "scene"], "osmesa")
+    assert (result.returncode, result.stderr.splitlines()) == (2, [
+        "rainbench: error: MUJOCO_GL=osmesa: the OSMesa library is not installed (package libosmesa6); "
+        + _gl_instead()])
+    assert not (tmp_path / "scene").exists()
+
+
+@pytest.mark.parametrize("command", [["scene"], ["generate", *TINY]])
+def test_an_unknown_mujoco_gl_lists_the_values_that_work(tmp_path, command):
+    result = _cli_with_gl([*command, "--out", tmp_path / "out"], "bogus")
+    assert (result.returncode, result.stderr.splitlines()) == (2, [
+        "rainbench: error: MUJOCO_GL: expected one of egl, osmesa, glfw (glfw needs a display), got 'bogus'; "
+        + _gl_instead()])
+    assert not (tmp_path / "out").exists()
+
+
+def test_preview_makes_a_missing_out_folder(small, tmp_path, capsys):
+    out = tmp_path / "new" / "deeper" / "montage.png"
+    assert _cli(["preview", small, "--out", out]) == 0
+    assert capsys.readouterr().out.strip() == str(out) and out.read_bytes()[:4] == b"\x89PNG"
+    assert [path.name for path in out.parent.iterdir()] == ["montage.png"]  # no temporary left
+
+
+def test_preview_video_of_one_shard_writes_beside_it(small, tmp_path, capsys):
+    data = tmp_path / "data"
+    shutil.copytree(small, data)
+    assert _cli(["preview", data / "scene000000_f00002.h5", "--video"]) == 0
+    assert capsys.readouterr().out.split() == [str(data / "videos" / "rate_0.mp4"),
+                                               str(data / "videos" / "rate_50.mp4")]
+
+
+@pytest.mark.parametrize("frame", ["5", "0"])
+def test_preview_video_refuses_frame(small, tmp_path, capsys, frame):
+    code = _cli(["preview", small, "--video", "--frame", frame, "--out", tmp_path / "videos"])
+    _one_line_error(capsys, code, re.escape(
+        "--frame: only used without --video (a video shows every frame; --frame picks the montage's frame)"))
+    assert not (tmp_path / "videos").exists()
+
+
+@pytest.mark.parametrize("target, found", [
+    ("nope", "no such directory; expected the directory that rainbench generate wrote, with its manifest.json"),
+    ("shard", "a file; expected the directory that rainbench generate wrote, with its manifest.json"),
+    ("folder", "no manifest.json")], ids=["missing", "shard", "folder"])
+def test_verify_refuses_what_is_not_a_dataset_directory(small, tmp_path, capsys, target, found):
+    """``verify /nope`` said ``rainbench: bad: /nope/manifest.json: missing``, exit 1, as if a
+    dataset had failed verification."""
+    path = {"nope": tmp_path / "nope", "shard": small / "scene000000_f00000.h5", "folder": tmp_path}[target]
+    _one_line_error(capsys, _cli(["verify", path]),
+                    re.escape(f"DATA: {path} is not a dataset directory ({found})"))
+
+
+EVAL_INFERENCE_ONLY = [["--conf", "0.9"], ["--iou", "0.5"], ["--imgsz", "640"], ["--batch", "32"],
+                       ["--max-det", "300"], ["--class-map", "car=2"], ["--device", "cpu"],
+                       ["--pt-backend", "batched"], ["--workers", "0"], ["--force"], ["--trust-pickle"]]
+
+
+@pytest.mark.parametrize("flags", EVAL_INFERENCE_ONLY, ids=[flags[0] for flags in EVAL_INFERENCE_ONLY])
+def test_eval_refuses_inference_flags_with_predictions(small, tmp_path, capsys, flags):
+    """They were accepted and ignored: detections are read from the files, nothing is inferred.
+    A flag given at its default value is refused too (it was given)."""
+    code = _cli(["eval", "--data", small, "--predictions", tmp_path / "preds", "--out", tmp_path / "eval",
+                 *flags])
+    _one_line_error(capsys, code, re.escape(
+        f"{flags[0]}: has no effect with --predictions (detections are read from its files, not inferred); "
+        "leave it out, or evaluate with --weights"))
+    assert not (tmp_path / "eval").exists()
+

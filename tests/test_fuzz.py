@@ -234,7 +234,7 @@ def test_eval_numeric_flags(monkeypatch, pairs):
     seen = []
     monkeypatch.setattr(pipeline, "run_eval", lambda *a, **k: seen.append(k) or
                         pipeline.EvalOutputs([], {"report.md": Path("report.md")}))
-    argv = ["eval", "--data", "d", "--predictions", "p"]
+    argv = ["eval", "--data", "d", "--weights", "w"]  # inference flags: refused with --predictions
     for flag, value in pairs:
         argv.append(f"{flag}={value}")
     with tempfile.TemporaryDirectory() as tmp:

@@ -139,12 +139,47 @@ def _load_yolo_safely(ultralytics: Any, path: Path) -> Any:
         tasks.torch_safe_load = unsafe_loader
 
 
+_CHECKPOINT_HEADS = (b"PK\x03\x04", b"\x80")
+"""How a file ``torch.load`` reads begins: a zip archive (``torch.save``'s format since torch 1.6,
+what ultralytics writes) or a pickle (protocol 2 or later: the legacy format)."""
+_OTHER_FORMATS = ((b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
+                  (b"\x89HDF", "an HDF5 file"), (b"\x1f\x8b", "a gzip file"), (b"GIF8", "a GIF image"))
+
+
+def _not_a_checkpoint(path: Path) -> str | None:
+    """What ``path`` is instead, when its first bytes show that it is not a PyTorch checkpoint
+    ("an empty file", "a text file", "a PNG image", ...); None when it may be one."""
+    with open(path, "rb") as handle:
+        head = handle.read(512)
+    if head.startswith(_CHECKPOINT_HEADS):
+        return None
+    if not head:
+        return "an empty file"
+    for magic, kind in _OTHER_FORMATS:
+        if head.startswith(magic):
+            return kind
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as error:  # a character cut at the 512th byte is still text
+        text = head[:error.start].decode("utf-8") if error.start >= len(head) - 3 else None
+    if text is not None and all(c.isprintable() or c in "\t\n\r\f\v" for c in text):
+        return "a text file"
+    return f"a file whose first bytes are {head[:8].hex(' ')}"
+
+
 def _load_ultralytics(path: Path, class_map: str | None, device: str | None, trust_pickle: bool | None,
                       classes: Sequence[int] = PAPER_CLASSES, name: str | None = None) -> UltralyticsDetector:
     """An :class:`UltralyticsDetector` for the checkpoint ``path``, read safely (full unpickler
     only when ``trust_pickle``; None: the :data:`TRUST_PICKLE_ENV` environment variable)."""
     if trust_pickle is None:
         trust_pickle = os.environ.get(TRUST_PICKLE_ENV, "") == "1"
+    try:
+        other = _not_a_checkpoint(path)
+    except OSError as error:
+        raise BackendError(f"--weights: {path} cannot be read ({error.strerror or error})") from None
+    if other is not None:
+        raise BackendError(f"--weights: {path} is not a loadable ultralytics checkpoint: expected a PyTorch "
+                           f"checkpoint file (a zip archive written by torch.save, as ultralytics saves), got {other}")
     ultralytics = _offline_ultralytics()
     try:
         try:
@@ -164,6 +199,8 @@ def _load_ultralytics(path: Path, class_map: str | None, device: str | None, tru
         raise
     except Exception as error:  # ultralytics raises TypeError, RuntimeError, pickle errors, ...
         reason = " ".join(str(error).split())
+        if not any(c.isalpha() for c in reason):  # a bare KeyError: 101 from the unpickler
+            reason = f"{type(error).__name__}: {reason}".rstrip(": ")
         if len(reason) > 200:  # ultralytics' advice runs on; keep its first sentence, whole words
             reason = reason[:200].rsplit(" ", 1)[0] + " ..."
         raise BackendError(f"--weights: {path} is not a loadable ultralytics checkpoint ({reason})") from None

@@ -128,6 +128,9 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
         if _on_cuda(device):
             return checkpoint, name
         return (_shipped_file(text, ".onnx") or cached_onnx(checkpoint)), name
+    if path.is_dir():
+        raise BackendError(f"--weights: {path} is a directory, not a weights file (expected an ultralytics .pt, "
+                           "an .onnx export or a Darknet .cfg/.weights file, or a shipped model name)")
     if not path.is_file():
         hint = ""
         if path.suffix == "":
