@@ -13,6 +13,51 @@ from typing import Any
 RAIN_MODELS = ("jeon2022", "physical")
 """Available rain models; ``jeon2022`` (the seed paper's eq. 5 with lens water) is the default."""
 
+RAIN_OPTION_MAX: dict[str, float] = {
+    # physical model: camera
+    "exposure_s": 0.1,  # 3x the longest auto-exposure (1/30 s at night), the frame time at 10 fps
+    "focus_distance_m": 10_000.0,  # 10 km: far past the hyperfocal distance, i.e. infinity
+    "f_number": 64.0,  # the smallest apertures made (large-format lenses)
+    "pixel_pitch_um": 1000.0,  # 1 mm: far past any sensor (1-25 um); tests use 600 um for blur
+    # physical model: drops drawn as streaks
+    "streak_z_near_m": 100.0,  # a 5 mm drop at 100 m is ~1 px even at the narrowest view
+    "streak_z_far_m": 1000.0,  # a drop at 1 km is sub-pixel at any view; extinction does the rest
+    "streak_min_diameter_mm": 10.0,  # rain drops break up above ~8 mm
+    "max_streak_candidates": 1_000_000,  # 120 MB of candidates; 1.0 GB peak at 800x600
+    # physical model: extinction
+    "sky_distance_m": 10_000.0,  # 10 km: above any rain cloud's base
+    # physical model: lens water
+    "lens_glass_distance_m": 0.5,  # a windscreen or housing window, not a glass metres away
+    "lens_sweep_speed_m_s": 100.0,  # 360 km/h, faster than any road vehicle
+    "lens_min_diameter_mm": 10.0,  # rain drops break up above ~8 mm
+    # lens water (px @800x600, seconds)
+    "lens_radius_min_px": 100.0,  # D = 15 mm at 3 cm: twice the largest adherent drops (8 mm)
+    "lens_radius_max_px": 100.0,
+    "lens_radius_exponent": 10.0,  # and >= -10: p(r) ~ r^-10 is already all r_min
+    "lens_view_field_px": 8192.0,  # the largest image side
+    "lens_view_blur_px": 8192.0,
+    "lens_defocus_px": 8192.0,
+    "lens_life_min_s": 3600.0,  # an hour
+    "lens_life_max_s": 3600.0,
+    "lens_slide_max_px_s": 8192.0,  # the largest image side in a second
+}
+"""Upper bound of every numeric :class:`RainConfig` field that has no other (the unit-interval
+fields, ``lens_aspect_min``, ``wind_slant_deg`` and ``airlight_rgb`` keep theirs;
+``lens_fade_s`` is at most half of ``lens_life_min_s``, so at most 1800 s). Far beyond any
+sensible value, they keep the renderer's arrays and loops bounded (docs/rain.md, "Parameters")."""
+
+MAX_LENS_DROPS_AT_REFERENCE = 1_000_000
+"""Most drops the physical model's cover glass may hold at 1000 mm/h in the reference view
+(800x600, fx = fy = 400 px, i.e. 90 degrees): ``physical.lens_drop_count`` grows with the product
+of lens_drop_fraction, lens_sweep_speed_m_s, lens_glass_distance_m^2 and the mean lens life, which
+the per-field bounds alone leave at up to ~2 billion drops (measured at 800x600: 1 000 000
+default-size drops draw in 9 s with a 3.1 GB peak; larger drops cost more per drop)."""
+
+
+def _bound(value: float) -> str:
+    """A bound as the message shows it: ``10000``, ``0.1``, ``-10``."""
+    return str(int(value)) if float(value).is_integer() else repr(value)
+
 
 @dataclasses.dataclass(frozen=True)
 class RainConfig:
@@ -137,6 +182,8 @@ class RainConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"RainConfig.{name} must be a finite number > 0, got {value!r}")
+            if name in RAIN_OPTION_MAX and value > RAIN_OPTION_MAX[name]:
+                raise ValueError(f"RainConfig.{name} must be a finite number in (0, {_bound(RAIN_OPTION_MAX[name])}], got {value!r}")
         unit_interval = ("lens_rim_darkening", "lens_drop_fraction", "lens_opacity", "lens_slide_fraction", "streak_sky_weight")
         for name in unit_interval:
             value = getattr(self, name)
@@ -146,6 +193,8 @@ class RainConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 raise ValueError(f"RainConfig.{name} must be a finite number >= 0, got {value!r}")
+            if name in RAIN_OPTION_MAX and value > RAIN_OPTION_MAX[name]:
+                raise ValueError(f"RainConfig.{name} must be a finite number in [0, {_bound(RAIN_OPTION_MAX[name])}], got {value!r}")
         if self.lens_life_max_s < self.lens_life_min_s:
             raise ValueError(
                 f"RainConfig.lens_life_max_s must be >= lens_life_min_s, got min {self.lens_life_min_s!r} and max {self.lens_life_max_s!r}"
@@ -156,6 +205,9 @@ class RainConfig:
             raise ValueError(f"RainConfig.lens_aspect_min must be in (0, 1], got {self.lens_aspect_min!r}")
         if not isinstance(self.lens_radius_exponent, (int, float)) or not math.isfinite(self.lens_radius_exponent):
             raise ValueError(f"RainConfig.lens_radius_exponent must be a finite number, got {self.lens_radius_exponent!r}")
+        exponent_max = RAIN_OPTION_MAX["lens_radius_exponent"]
+        if not -exponent_max <= self.lens_radius_exponent <= exponent_max:
+            raise ValueError(f"RainConfig.lens_radius_exponent must be a finite number in [{_bound(-exponent_max)}, {_bound(exponent_max)}], got {self.lens_radius_exponent!r}")
         if not isinstance(self.wind_slant_deg, (int, float)) or not -60.0 <= self.wind_slant_deg <= 60.0:
             raise ValueError(f"RainConfig.wind_slant_deg must be in [-60, 60] degrees, got {self.wind_slant_deg!r}")
         if self.streak_z_far_m <= self.streak_z_near_m:
@@ -168,6 +220,10 @@ class RainConfig:
             )
         if isinstance(self.max_streak_candidates, bool) or not isinstance(self.max_streak_candidates, int) or self.max_streak_candidates < 1:
             raise ValueError(f"RainConfig.max_streak_candidates must be an int >= 1, got {self.max_streak_candidates!r}")
+        if self.max_streak_candidates > RAIN_OPTION_MAX["max_streak_candidates"]:
+            raise ValueError(
+                f"RainConfig.max_streak_candidates must be an int in [1, {_bound(RAIN_OPTION_MAX['max_streak_candidates'])}], got {self.max_streak_candidates!r}"
+            )
         if not isinstance(self.lens_drops, bool):
             raise ValueError(f"RainConfig.lens_drops must be a bool, got {self.lens_drops!r}")
         if self.airlight_rgb is not None:
@@ -178,6 +234,19 @@ class RainConfig:
             if len(airlight) != 3 or not all(isinstance(c, (int, float)) and 0.0 <= c <= 255.0 for c in airlight):
                 raise ValueError(f"RainConfig.airlight_rgb must be None or three numbers in [0, 255], got {self.airlight_rgb!r}")
             object.__setattr__(self, "airlight_rgb", tuple(float(c) for c in airlight))
+        if self.model == "physical" and self.lens_drops:
+            import numpy as np
+
+            from rainbench.rain import physical  # imports this module: imported here
+
+            reference_K = np.array([[400.0, 0.0, 400.0], [0.0, 400.0, 300.0], [0.0, 0.0, 1.0]])
+            held = physical.lens_drop_count(physical.MAX_RATE_MM_H, config=self, K=reference_K, height=600, width=800)
+            if held > MAX_LENS_DROPS_AT_REFERENCE:
+                raise ValueError(
+                    f"RainConfig.lens_sweep_speed_m_s, lens_glass_distance_m, lens_life_min_s, lens_life_max_s, lens_drop_fraction "
+                    f"and lens_min_diameter_mm must keep the drops on the glass at {physical.MAX_RATE_MM_H:g} mm/h "
+                    f"(800x600, 90 degrees) at most {MAX_LENS_DROPS_AT_REFERENCE}, got {held} (or set lens_drops=false)"
+                )
 
     def to_dict(self) -> dict[str, Any]:
         """All fields as a JSON-ready dict (tuples become lists)."""
