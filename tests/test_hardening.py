@@ -644,7 +644,7 @@ def test_frames_is_bounded_up_front(tmp_path, capsys, value):
 def test_too_many_shards_are_refused_up_front():
     with pytest.raises(ds.DatasetError, match=r"SCENES x ceil\(FRAMES / FRAMES_PER_SHARD\) = "
                                               r"10000000 shards; at most 100000"):
-        DatasetConfig(scenes=100, frames=100_000, frames_per_shard=1)
+        DatasetConfig(scenes=100, frames=100_000, fps=1000.0, frames_per_shard=1)  # a 100 s clip
 
 
 def test_deeply_nested_predictions_name_the_file(tmp_path):
