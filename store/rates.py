@@ -89,7 +89,8 @@ def parse_rates(spec: str) -> tuple[float, ...]:
     * ``"r"`` -- a single rate.
 
     Every rate must be finite and in ``[0, 1000]`` mm/h; a range needs ``step > 0`` and
-    ``stop >= start``; at most 1001 rates.
+    ``stop >= start``; at most 1001 rates; the rates must stay distinct, and a rate > 0 above 0,
+    in float32 (a shard's ``/rates``).
 
     Args:
         spec: the text to parse.
