@@ -18,6 +18,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
+from .rates import check_rate_list
 from .shard import ShardFormatError, open_checked
 
 MANIFEST = "manifest.json"
@@ -191,6 +192,7 @@ def verify_dataset(root: str | Path) -> list[str]:
     if not manifest.get("complete"):
         problems.append(f"{root / MANIFEST}: the dataset is incomplete (run the same command "
                         "again to finish it)")
+    problems += _config_problems(root / MANIFEST, manifest["config"])
     problems += _coverage_problems(root / MANIFEST, manifest)
     for entry in manifest["shards"]:
         path = root / entry["path"]
@@ -241,6 +243,40 @@ def _expected_shards(config: dict) -> dict[tuple[int, int], int] | None:
 
 MAX_EXPECTED_SHARDS = 1_000_000
 """Most shards :func:`verify_dataset` enumerates from a manifest's config (beyond: not checked)."""
+
+
+def _is_positive_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+
+
+_CONFIG_NUMBERS = (
+    ("seed", lambda v: is_int(v) and v >= 0, "an integer >= 0"),
+    ("rain_seed", lambda v: is_int(v) and v >= 0, "an integer >= 0"),
+    ("scenes", lambda v: is_int(v) and v >= 1, "an integer >= 1"),
+    ("frames", lambda v: is_int(v) and v >= 1, "an integer >= 1"),
+    ("frames_per_shard", lambda v: is_int(v) and v >= 1, "an integer >= 1"),
+    ("first_frame", lambda v: is_int(v) and v >= 0, "an integer >= 0"),
+    ("clip_frames", lambda v: is_int(v) and v >= 1, "an integer >= 1"),
+    ("width", lambda v: is_int(v) and v >= 1, "an integer >= 1"),
+    ("height", lambda v: is_int(v) and v >= 1, "an integer >= 1"),
+    ("fps", _is_positive_number, "a finite number > 0"),
+    ("hfov_deg", _is_positive_number, "a finite number > 0"),
+)
+"""The numbers of a manifest's ``config`` that :func:`verify_dataset` checks where present (a
+manifest written by rainbench has them; other tools' may lack some)."""
+
+
+def _config_problems(manifest_path: Path, config: dict) -> list[str]:
+    """The manifest config's numbers that no dataset has (a hand-edited ``"fps": NaN``), and a
+    rate list that is not one."""
+    problems = [f"{manifest_path}: config.{key} must be {expected}, got {_show(config[key])}"
+                for key, valid, expected in _CONFIG_NUMBERS if key in config and not valid(config[key])]
+    if "rates" in config:
+        try:
+            check_rate_list(config["rates"], "config.rates")
+        except ValueError as error:
+            problems.append(f"{manifest_path}: {error}")
+    return problems
 
 
 def _coverage_problems(manifest_path: Path, manifest: dict) -> list[str]:

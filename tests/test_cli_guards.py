@@ -108,6 +108,21 @@ def test_rates_that_float32_does_not_hold_exactly_verify(tmp_path, capsys):
     assert _verify_problems(root, capsys) == (0, [])
 
 
+def test_verify_finds_config_numbers_no_dataset_has(small, tmp_path, capsys):
+    """A hand-edited config (its shards unchanged) is named, each number on its own line."""
+    def edit(manifest):
+        manifest["config"].update(fps=float("nan"), frames_per_shard=1e30, rates=[50.0, 0.0])
+
+    root = _edited(small, tmp_path / "numbers", edit)
+    code, problems = _verify_problems(root, capsys)
+    manifest = root / store.MANIFEST
+    assert code == 1 and problems[:3] == [
+        f"rainbench: bad: {manifest}: config.frames_per_shard must be an integer >= 1, got 1e+30",
+        f"rainbench: bad: {manifest}: config.fps must be a finite number > 0, got nan",
+        f"rainbench: bad: {manifest}: config.rates: expected ascending distinct values in [0, 1000] "
+        "mm/h, got (50.0, 0.0)"]
+
+
 def test_verify_finds_a_complete_manifest_without_its_shards(small, tmp_path, capsys):
     root = _edited(small, tmp_path / "empty", lambda manifest: manifest.update(shards=[]))
     code, problems = _verify_problems(root, capsys)
