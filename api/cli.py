@@ -453,33 +453,29 @@ def cmd_paper(args: argparse.Namespace) -> int:
     # before anything is generated, each model under the flag it came with
     specs = ([("--model" if args.model else "--model (default)", model) for model in models]
              + [("--weights", weights) for weights in args.weights or ()])
-    _check_weights_files(specs, args.device, load=False)
     check_models(specs)
     config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device, classes=args.classes,
                          references=tuple(_compare_pair(text) for text in args.compare or ()), metrics=args.metrics)
     # each weights file loads as eval loads it (seconds each): after the cheap checks, before generating
-    _check_weights_files(specs, args.device, load=True)
+    _check_weights_files(specs, args.device)
     print(run_paper(config, out, _writable_dir(Path(args.data), "--data"), workers=args.workers,
                     force=args.force, progress=not args.quiet))
     return 0
 
 
-def _check_weights_files(specs: list[tuple[str, str]], device: str | None, load: bool) -> None:
+def _check_weights_files(specs: list[tuple[str, str]], device: str | None) -> None:
     """Refuse, before ``rainbench paper`` generates anything, a weights file that ``rainbench eval``
-    could not load, naming the flag it came with (``--model`` or ``--weights``). Without ``load``,
-    only a directory given as weights (cheap, before the other checks); with it, every local file
+    could not load, naming the flag it came with (``--model`` or ``--weights``): every local file
     is loaded on ``device`` as ``eval`` loads it before inferring (shipped models are known to
     load)."""
     from rainbench.eval.backends import BackendError, load_detector
     from rainbench.eval.weights import weights_location
 
     for flag, spec in specs:
-        shipped, path, _ = weights_location(spec)
+        shipped, _, _ = weights_location(spec)
         if shipped is not None:
-            continue
-        if not load and not path.is_dir():
             continue
         try:
             detector = load_detector(spec, device=device)

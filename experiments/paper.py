@@ -148,12 +148,14 @@ def check_models(specs: Sequence[tuple[str, str | Path]]) -> None:
     (:func:`rainbench.eval.weights.resolve_weights`' rule, without building anything), and the
     model names (a shipped name, else the file's stem) must be unique, as ``run_eval`` requires.
     The error is one line naming the flag and the model."""
-    from rainbench.eval.weights import shipped_models, weights_location
+    from rainbench.eval.weights import IS_A_DIRECTORY, shipped_models, weights_location
 
     seen: dict[str, str] = {}
     for flag, spec in specs:
         text = str(spec)
         checkpoint, path, name = weights_location(text)
+        if checkpoint is None and path.is_dir():
+            raise EvalError(f"{flag}: {path} {IS_A_DIRECTORY}")
         if checkpoint is None and not path.is_file():
             if path.suffix == "":
                 raise EvalError(f"{flag}: {text!r} is neither a shipped model "

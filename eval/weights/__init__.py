@@ -110,6 +110,11 @@ def weights_location(spec: str | Path) -> tuple[Path | None, Path, str]:
     return checkpoint, path, text if checkpoint is not None else path.stem
 
 
+IS_A_DIRECTORY = ("is a directory, not a weights file (expected an ultralytics .pt, an .onnx export or a "
+                  "Darknet .cfg/.weights file, or a shipped model name)")
+"""What a weights argument that names a directory is told (``eval``, and ``paper`` before it generates)."""
+
+
 def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, str]:
     """``(file, model name)`` for a weights spec: a shipped model's name, or a local file.
 
@@ -129,8 +134,7 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
             return checkpoint, name
         return (_shipped_file(text, ".onnx") or cached_onnx(checkpoint)), name
     if path.is_dir():
-        raise BackendError(f"--weights: {path} is a directory, not a weights file (expected an ultralytics .pt, "
-                           "an .onnx export or a Darknet .cfg/.weights file, or a shipped model name)")
+        raise BackendError(f"--weights: {path} {IS_A_DIRECTORY}")
     if not path.is_file():
         hint = ""
         if path.suffix == "":
