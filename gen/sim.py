@@ -6,6 +6,11 @@ gait, a standing sway for people who stand (before they start or after they arri
 pose of the rider's bicycle or motorcycle style, and the raised arm of umbrella carriers. Between frames the simulation advances with ``mj_step`` at the model
 timestep, with the kinematic targets written before every step; before a frame is rendered the
 exact state at the frame time is written and ``mj_forward`` recomputes every pose.
+
+Every degree of freedom is written (mocap poses, every joint's angle, zero velocities), so the
+state at a time does not depend on the steps that led there: ``advance(t, t)`` poses a scene at
+``t`` exactly as stepping from 0 s would, and a clip's piece starts at its first frame
+(``tests/test_sim.py`` checks both).
 """
 
 from __future__ import annotations
