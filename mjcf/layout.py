@@ -975,22 +975,67 @@ def _span(b: _Builder, road: Road, before: float = 40.0, after: float = 120.0) -
     reach = unit_distance(b.ego, b.duration) + max(u.speed for u in b.placed) * b.duration + 200
     grid = np.arange(-reach, reach, 1.0)
     centre = road_pose(road, grid)[:, :2]
-    rows = max(1, SPAN_BLOCK_DISTANCES // len(grid))  # positions a block: memory bounded
     lo = hi = 0.0
     for unit in b.placed:
-        xy = unit_position(unit, b.times[::5])
-        for start in range(0, len(xy), rows):
-            block = xy[start:start + rows]
-            squared = ((block[:, 0, None] - centre[None, :, 0]) ** 2
-                       + (block[:, 1, None] - centre[None, :, 1]) ** 2)
-            nearest = grid[squared.argmin(axis=1)]
-            lo, hi = min(lo, float(nearest.min())), max(hi, float(nearest.max()))
+        nearest = grid[nearest_points(centre, unit_position(unit, b.times[::5]))]
+        lo, hi = min(lo, float(nearest.min())), max(hi, float(nearest.max()))
     return lo - before, hi + after
 
 
-SPAN_BLOCK_DISTANCES = 1 << 22
-"""Distances :func:`_span` computes at once (4 Mi float64: 32 MB a temporary): a long clip's
-positions x centreline grid in blocks, the same nearest points as all at once."""
+NEAREST_BLOCK = 256
+"""Points of a polyline :func:`nearest_points` bounds by one box."""
+NEAREST_BUDGET = 1 << 22
+"""Distances :func:`nearest_points` computes at once (4 Mi float64: 32 MB a temporary)."""
+
+
+def nearest_points(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """For each of ``queries`` (Q, 2), the index into ``points`` (P, 2) of its nearest point,
+    the first on a tie: ``argmin`` of the squared distances ``(qx - px) ** 2 + (qy - py) ** 2``,
+    the same float64 values, without the (Q, P) matrix. Points are taken in blocks of
+    :data:`NEAREST_BLOCK` with a bounding box each; a block whose box is farther from a query than
+    the first point of some block is never the nearest (floating point rounds monotonically, so
+    the box's distance is a lower bound of every computed distance inside it) and is skipped.
+    Time about Q x (P / 256 + 256 x the blocks left); for points along a road, a few blocks each.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    queries = np.asarray(queries, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 2 or len(points) == 0:
+        raise ValueError(f"points: expected (P, 2) with P >= 1, got {points.shape}")
+    if queries.ndim != 2 or queries.shape[1] != 2:
+        raise ValueError(f"queries: expected (Q, 2), got {queries.shape}")
+    blocks = -(-len(points) // NEAREST_BLOCK)
+    padded = np.full((blocks * NEAREST_BLOCK, 2), np.inf)  # +inf: never the nearest
+    padded[:len(points)] = points
+    padded = padded.reshape(blocks, NEAREST_BLOCK, 2)
+    low = padded.min(axis=1)  # (K, 2)
+    high = padded.max(axis=1)  # +inf in a padded last block: a looser bound, still a bound
+    first = padded[:, 0]  # (K, 2), finite
+    result = np.empty(len(queries), dtype=np.int64)
+    rows = max(1, NEAREST_BUDGET // blocks)
+    for start in range(0, len(queries), rows):
+        q = queries[start:start + rows]
+        gap_x = np.maximum(np.maximum(low[None, :, 0] - q[:, 0, None], q[:, 0, None] - high[None, :, 0]), 0.0)
+        gap_y = np.maximum(np.maximum(low[None, :, 1] - q[:, 1, None], q[:, 1, None] - high[None, :, 1]), 0.0)
+        bound = gap_x ** 2 + gap_y ** 2  # (q, K) lower bounds
+        reached = ((q[:, 0, None] - first[None, :, 0]) ** 2
+                   + (q[:, 1, None] - first[None, :, 1]) ** 2).min(axis=1)  # distances that occur
+        query, block = np.nonzero(bound <= reached[:, None])  # by query, then block: index order
+        best = np.empty(len(query))
+        where = np.empty(len(query), dtype=np.int64)
+        step = max(1, NEAREST_BUDGET // NEAREST_BLOCK)
+        for low_pair in range(0, len(query), step):
+            pairs = slice(low_pair, low_pair + step)
+            inside = padded[block[pairs]]  # (pairs, 256, 2)
+            squared = ((q[query[pairs], 0, None] - inside[:, :, 0]) ** 2
+                       + (q[query[pairs], 1, None] - inside[:, :, 1]) ** 2)
+            where[pairs] = block[pairs] * NEAREST_BLOCK + squared.argmin(axis=1)
+            best[pairs] = squared.min(axis=1)
+        starts = np.flatnonzero(np.r_[True, query[1:] != query[:-1]])
+        smallest = np.minimum.reduceat(best, starts)
+        winners = np.flatnonzero(best == smallest[query])
+        _, firsts = np.unique(query[winners], return_index=True)  # each query's first winner
+        result[start:start + len(q)] = where[winners[firsts]]
+    return result
 
 
 def _sample_street(b: _Builder) -> None:

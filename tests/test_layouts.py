@@ -407,14 +407,36 @@ def test_every_layout_places_the_paper_mix_in_short_and_long_clips(duration_s):
                 assert kinds.count("car") >= config.num_cars
 
 
-@pytest.mark.parametrize("name", ["street", "curved", "highway"])
-def test_the_road_span_is_measured_in_blocks_with_the_same_layout(name, monkeypatch):
-    """The span of road a clip needs is measured in blocks of positions x centreline points
-    (bounded memory for long clips): blocks of one or two positions give the same layout."""
-    whole = repr(_layout(name, seed=3))
+def _brute_nearest(points, queries):
+    return ((queries[:, 0, None] - points[None, :, 0]) ** 2
+            + (queries[:, 1, None] - points[None, :, 1]) ** 2).argmin(axis=1)
+
+
+@pytest.mark.parametrize("name", list(L.LAYOUTS))
+def test_the_road_span_uses_the_nearest_centreline_points(name, monkeypatch):
+    """The span of road a clip needs projects every unit onto its nearest centreline point with
+    a pruned search: the plain argmin over every centreline point gives the same layout."""
+    pruned = repr(_layout(name, seed=3))
     calls = []
-    span = L._span
-    monkeypatch.setattr(L, "_span", lambda *args, **kwargs: calls.append(1) or span(*args, **kwargs))
-    monkeypatch.setattr(L, "SPAN_BLOCK_DISTANCES", 997)
-    assert repr(_layout(name, seed=3)) == whole
+    monkeypatch.setattr(L, "nearest_points", lambda *args: calls.append(1) or _brute_nearest(*args))
+    assert repr(_layout(name, seed=3)) == pruned
     assert calls  # the layout measures its span
+
+
+def test_nearest_points_is_the_argmin_ties_included():
+    rng = np.random.default_rng(0)
+    for trial in range(60):
+        count = int(rng.integers(1, 1500))
+        if trial % 2:  # integer grids: many equal distances, the first point wins
+            points = rng.integers(-5, 5, size=(count, 2)).astype(float)
+            queries = rng.integers(-7, 7, size=(100, 2)).astype(float)
+        else:  # a winding polyline and queries up to ~50 m off it
+            heading = np.cumsum(rng.normal(0.0, 0.05, count))
+            points = np.stack([np.cumsum(np.cos(heading)), np.cumsum(np.sin(heading))], axis=1)
+            queries = points[rng.integers(0, count, 100)] + rng.normal(0.0, 20.0, (100, 2))
+        assert np.array_equal(L.nearest_points(points, queries), _brute_nearest(points, queries))
+    assert L.nearest_points(np.zeros((3, 2)), np.zeros((0, 2))).shape == (0,)
+    with pytest.raises(ValueError, match=r"points: expected \(P, 2\) with P >= 1, got \(0, 2\)"):
+        L.nearest_points(np.zeros((0, 2)), np.zeros((1, 2)))
+    with pytest.raises(ValueError, match=r"queries: expected \(Q, 2\), got \(4,\)"):
+        L.nearest_points(np.zeros((3, 2)), np.zeros(4))
