@@ -164,6 +164,8 @@ class FrameRenderer:
         self._gl_context = None
         self._mjr_context = None
         self._label_context = None
+        self._rig: WeatherRig | None = None  # close() may run before they are set
+        self._weather: Weather | None = None
         padded_w, padded_h, self._margin_x, self._margin_y = padded_size(width, height)
         if padded_w > model.vis.global_.offwidth or padded_h > model.vis.global_.offheight:
             raise ValueError(
@@ -191,6 +193,11 @@ class FrameRenderer:
         # geoms that can be left out when wholly behind the camera: all but planes (unbounded)
         # and geoms without a bounding sphere
         self._cullable = (model.geom_type != mujoco.mjtGeom.mjGEOM_PLANE) & (model.geom_rbound > 0)
+        # geoms that can be left out when beyond every pass's reach (beyond_reach): those, less
+        # any that can be a mirror (MuJoCo mirrors the first reflective geom it is given)
+        mirrors = np.append(np.flatnonzero(model.mat_reflectance > 0),
+                            mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, "asphalt"))
+        self._far_cullable = self._cullable & ~np.isin(model.geom_matid, mirrors[mirrors >= 0])
         self._label_scene_ready = False
         self._geom_records: dict[int, np.ndarray | None] = {}  # per scene, see _scene_geoms
         self._option = mujoco.MjvOption()
@@ -207,6 +214,15 @@ class FrameRenderer:
         extent = model.stat.extent
         self._near = np.float32(model.vis.map.znear * extent)
         self._far = np.float32(model.vis.map.zfar * extent)
+        # the farthest a drawn point can be from the camera: the far plane at the corners of the
+        # widest frustum a pass uses (the padded canvas: wider and taller than the image)
+        tan_y = math.tan(math.radians(model.cam_fovy[self.camera_id]) / 2) * max(1.0, padded_h / height)
+        tan_x = tan_y * max(width / height, padded_w / padded_h)
+        self._visible_reach = float(self._far) * math.sqrt(1.0 + tan_x * tan_x + tan_y * tan_y)
+        # the farthest a shadow caster can be from a directional light: the corner of its shadow
+        # map's box (+-shadowclip across, near..far along the light, as mjr_render draws it)
+        clip = model.vis.map.shadowclip * extent
+        self._shadow_reach = math.sqrt(2.0 * clip * clip + float(self._far) ** 2)
         self.backend = os.environ.get("MUJOCO_GL", "")
         try:
             self._gl_context = mujoco.GLContext(padded_w, padded_h)
@@ -243,7 +259,6 @@ class FrameRenderer:
         self._mirror_weights: dict[tuple, np.ndarray] = {}
         self._mirror_weights_lock = threading.Lock()
         self._frame_cache: tuple[np.ndarray | None, _FrameCache] = (None, _FrameCache())
-        self._weather: Weather | None = None
         self._set_weather(base_weather)
 
     # -- context management ------------------------------------------------------------------
@@ -254,6 +269,12 @@ class FrameRenderer:
         self.close()
 
     def close(self) -> None:
+        """Free the GL contexts, and put the model back in the base weather: the weathers are
+        written into the model, and a later renderer of it starts from what it finds (a clip
+        rendered again on the same ``SceneSetup`` gives the same bytes)."""
+        if self._rig is not None and self._weather is not None and self._weather != self.base_weather:
+            self._rig.apply(self.base_weather, None)
+            self._weather = self.base_weather
         if self._gl_context is not None:
             self._gl_context.make_current()
         if self._label_context is not None and self._label_context is not self._mjr_context:
@@ -292,8 +313,7 @@ class FrameRenderer:
         self._set_weather(self.base_weather)
         if self._rig is not None:
             self._rig.select_lights(data, self.camera_id)
-        mujoco.mjv_updateScene(self.model, data, self._option, None, self._camera,
-                               mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+        self._update_scene(data, self._option, self._scene)
         self._update_label_scene(data)
 
     def render_weather(self, data: mujoco.MjData, weather: Weather,
@@ -492,8 +512,7 @@ class FrameRenderer:
         (same field of view), then resized to H x W (a softer, cheaper image) unless not
         ``resize``."""
         self._rig.select_lights(data, self.camera_id)
-        mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
-                               mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+        self._update_scene(data, option, self._scene)
         if mirror_geom >= 0:
             geom_type = mujoco.mjtObj.mjOBJ_GEOM
             for index in range(self._scene.ngeom):
@@ -583,14 +602,49 @@ class FrameRenderer:
         ahead = (data.geom_xpos - data.cam_xpos[self.camera_id]) @ forward
         return self._cullable & (ahead < -self.model.geom_rbound)
 
+    def beyond_reach(self, data: mujoco.MjData) -> np.ndarray:
+        """(ngeom,) bool: geoms that no pass can draw a pixel of in the state ``data``. A geom's
+        bounding sphere (``geom_rbound`` about ``geom_xpos``) must lie farther from the camera
+        than any drawn point (the far plane at the widest frustum's corners), also once
+        mirrored in the road's mirror (level, below the camera: a mirror image is at most
+        ``2 (|z| + |camera z| + COVERED_DROP_M)`` nearer), and, while a light casts shadows,
+        farther than the light's shadow-map box reaches. Planes, geoms without a bounding
+        sphere and those that can be a mirror never are. A 10-minute clip's scene runs along
+        15 km of road, of which a frame can draw 2 to 3; a 20 s clip's has none beyond reach."""
+        camera = data.cam_xpos[self.camera_id]
+        gap = np.linalg.norm(data.geom_xpos - camera, axis=1) - self.model.geom_rbound
+        reach = self._visible_reach + 2.0 * (np.abs(data.geom_xpos[:, 2]) + abs(float(camera[2]))
+                                             + COVERED_DROP_M)
+        casting = (self.model.light_castshadow != 0) & (self.model.light_active != 0)
+        if casting.any():
+            if (self.model.light_type[casting] != mujoco.mjtLightType.mjLIGHT_DIRECTIONAL).any():
+                return np.zeros(self.model.ngeom, bool)  # a spot light's map: not bounded here
+            light = float(np.linalg.norm(data.light_xpos[casting] - camera, axis=1).max())
+            reach = np.maximum(reach, light + self._shadow_reach)
+        return self._far_cullable & (gap > reach)
+
+    def _update_scene(self, data: mujoco.MjData, option: mujoco.MjvOption,
+                      scene: mujoco.MjvScene) -> None:
+        """``mjv_updateScene`` of ``data`` into ``scene`` less the geoms beyond reach
+        (:meth:`beyond_reach`): the same pixels, without llvmpipe's vertex work for a long
+        clip's far scenery."""
+        far = self.beyond_reach(data)
+        if not far.any():
+            mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
+                                   mujoco.mjtCatBit.mjCAT_ALL, scene)
+            return
+        groups = self.model.geom_group.copy()
+        groups[far] = HIDDEN_GROUP
+        self._update_scene_in_groups(data, option, scene, groups)
+
     def _update_label_scene(self, data: mujoco.MjData) -> None:
         """Build the segmentation pass's scene of ``data`` (0.1 ms): the scene of
-        :meth:`update` less the geoms behind the camera (:meth:`behind_camera`). They cannot
-        change a pixel of that pass (it draws no shadows, reflections or sky) but cost
-        llvmpipe their vertices: the paper clip's segmentation 10-20 % faster
-        (bench/RESULTS.md)."""
+        :meth:`update` less the geoms behind the camera (:meth:`behind_camera`) or beyond reach
+        (:meth:`beyond_reach`). They cannot change a pixel of that pass (it draws no shadows,
+        reflections or sky) but cost llvmpipe their vertices: the paper clip's segmentation
+        10-20 % faster (bench/RESULTS.md)."""
         groups = self.model.geom_group.copy()
-        groups[self.behind_camera(data)] = HIDDEN_GROUP
+        groups[self.behind_camera(data) | self.beyond_reach(data)] = HIDDEN_GROUP
         self._update_scene_in_groups(data, self._option, self._label_scene, groups)
         self._label_scene_ready = True
 
