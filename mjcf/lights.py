@@ -197,10 +197,14 @@ def _add_spot(body, name: str, pos, direction, *, cutoff: float, exponent: float
                    ambient=[0.0, 0.0, 0.0], castshadow=False, active=active, range=SPOT_RANGE_M)
 
 
-def lamp_heads(spec: mujoco.MjSpec) -> list[tuple[float, float, float]]:
+def lamp_heads(spec: mujoco.MjSpec, scenery_geoms: Sequence | None = None
+               ) -> list[tuple[float, float, float]]:
     """World positions (x, y, z) of the street lamp heads of a road scene: the world-body geoms
-    matching :data:`STREET_LAMP_NAME`, in spec order."""
-    return [tuple(float(v) for v in geom.pos) for geom in spec.worldbody.geoms
+    matching :data:`STREET_LAMP_NAME`, in spec order. ``scenery_geoms``: the world geoms to
+    look among, in spec order (default: every one, read from the spec; MuJoCo's list of a
+    30 000-geom world body takes seconds to read, so ``build_spec`` passes what it added)."""
+    geoms = spec.worldbody.geoms if scenery_geoms is None else scenery_geoms
+    return [tuple(float(v) for v in geom.pos) for geom in geoms
             if STREET_LAMP_NAME.match(geom.name)]
 
 
@@ -225,7 +229,10 @@ def _vehicle_lamp_geoms(spec: mujoco.MjSpec, parked_bodies: Sequence[str]) -> tu
             raise ValueError(f"parked_bodies: expected bodies of the spec, got {body_name!r}")
         unlit.update(g.name for g in body.find_all(mujoco.mjtObj.mjOBJ_GEOM))
     heads, tails = [], []
-    for geom in spec.geoms:
+    # actors are bodies of their own: their geoms are read body by body, not from the spec's
+    # list of every geom (seconds for a long clip's scenery)
+    geoms = [g for body in spec.worldbody.bodies for g in body.find_all(mujoco.mjtObj.mjOBJ_GEOM)]
+    for geom in geoms:
         if geom.name in unlit or not geom.name.startswith("actor"):
             continue
         if "/headlight" in geom.name:
@@ -252,9 +259,10 @@ def add_dark_vehicle_lamps(spec: mujoco.MjSpec, parked_bodies: Sequence[str] = (
             geom.material = material
 
 
-def _plane_receivers(spec: mujoco.MjSpec) -> None:
-    """Replace the road and sidewalk boxes (:data:`RECEIVER_MATERIALS`) by planes at their tops."""
-    for geom in spec.worldbody.geoms:
+def _plane_receivers(scenery_geoms: Sequence) -> None:
+    """Replace the road and sidewalk boxes (:data:`RECEIVER_MATERIALS`) among ``scenery_geoms``
+    by planes at their tops."""
+    for geom in scenery_geoms:
         if geom.type != mujoco.mjtGeom.mjGEOM_BOX or geom.material not in RECEIVER_MATERIALS:
             continue
         half_x, half_y, half_z = (float(v) for v in geom.size)
@@ -271,7 +279,8 @@ def _plane_receivers(spec: mujoco.MjSpec) -> None:
 def add_time_of_day_lights(spec: mujoco.MjSpec, time_of_day: str, *, ego_body: str = "ego",
                            vehicle_bodies: Sequence[str] = (),
                            street_lamps: Sequence[tuple[float, float, float]] = (),
-                           sky: str = "cloudy", parked_bodies: Sequence[str] = ()) -> None:
+                           sky: str = "cloudy", parked_bodies: Sequence[str] = (),
+                           scenery_geoms: Sequence | None = None) -> None:
     """Add the lights of ``time_of_day`` to ``spec`` (a built road scene), in place.
 
     Args:
@@ -289,6 +298,9 @@ def add_time_of_day_lights(spec: mujoco.MjSpec, time_of_day: str, *, ego_body: s
             exported scene.xml shows; the renderer rewrites them for every weather).
         parked_bodies: vehicles that stand all clip (parked, broken down): their lamps stay off
             (no beam, no emissive material).
+        scenery_geoms: the world geoms among which the street lamp heads and the road and
+            sidewalk boxes are found (default: every world geom, read from the spec; see
+            :func:`lamp_heads`).
     """
     time_of_day = check_time_of_day(time_of_day)
     if time_of_day == "day":
@@ -370,8 +382,9 @@ def add_time_of_day_lights(spec: mujoco.MjSpec, time_of_day: str, *, ego_body: s
     for geom in tails:
         geom.material = taillamp
         geom.rgba = list(TAILLAMP_RGBA)
-    for geom in spec.geoms:
+    scenery = spec.worldbody.geoms if scenery_geoms is None else scenery_geoms
+    for geom in scenery:
         if STREET_LAMP_NAME.match(geom.name):
             geom.material = street_lamp
             geom.rgba = list(STREET_LAMP_RGBA)
-    _plane_receivers(spec)
+    _plane_receivers(scenery)

@@ -159,8 +159,7 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     x_half, y_half = (x1 - x0) / 2, (y1 - y0) / 2
     _static_box(world, "scenery/ground", [x_half + 200, y_half + 200, 0.05], [x_mid, y_mid, -0.07],
                 material="grass")
-    for prop in layout.props:
-        _add_prop(world, prop)
+    scenery = [_add_prop(world, prop) for prop in layout.props]  # in spec order
     # The rain-cloud deck: an emissive ceiling that stands for the sky in the wet road's mirror
     # (MuJoCo's mirror pass does not draw the skybox).
     spec.add_material(name="cloud_deck", rgba=[0.5, 0.5, 0.5, 1.0], emission=1.0, specular=0.0)
@@ -229,8 +228,8 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     if layout.time_of_day == "day":
         lights.add_dark_vehicle_lamps(spec, parked_bodies=parked)
     lights.add_time_of_day_lights(
-        spec, layout.time_of_day, sky=layout.sky, street_lamps=lights.lamp_heads(spec),
-        vehicle_bodies=moving, parked_bodies=parked)
+        spec, layout.time_of_day, sky=layout.sky, street_lamps=lights.lamp_heads(spec, scenery),
+        vehicle_bodies=moving, parked_bodies=parked, scenery_geoms=scenery)
     return spec
 
 
@@ -239,17 +238,17 @@ _PROP_SHAPES = {"box": GEOM.mjGEOM_BOX, "cylinder": GEOM.mjGEOM_CYLINDER,
 
 
 
-def _add_prop(world, prop: L.Prop) -> None:
-    """One static scenery geom ``scenery/{prop.name}``."""
+def _add_prop(world, prop: L.Prop):
+    """One static scenery geom ``scenery/{prop.name}``; returns it (an ``MjsGeom``)."""
     if prop.shape not in _PROP_SHAPES:
         raise ValueError(f"prop {prop.name}: expected a shape in {', '.join(_PROP_SHAPES)}, "
                          f"got {prop.shape!r}")
     kwargs = {"material": prop.material} if prop.material else {}
     if prop.rgba is not None or not prop.material:
         kwargs["rgba"] = list(prop.rgba or PLAIN_GREY)
-    world.add_geom(name=f"scenery/{prop.name}", type=_PROP_SHAPES[prop.shape],
-                   size=list(prop.size), pos=list(prop.pos), quat=list(prop.quat),
-                   contype=0, conaffinity=0, **kwargs)
+    return world.add_geom(name=f"scenery/{prop.name}", type=_PROP_SHAPES[prop.shape],
+                          size=list(prop.size), pos=list(prop.pos), quat=list(prop.quat),
+                          contype=0, conaffinity=0, **kwargs)
 
 
 def ride_style(unit: L.Unit) -> str:
