@@ -37,11 +37,13 @@ MAX_SEED = 2**31 - 1
 MAX_FRAMES = 100_000
 """Most frames of one clip (``--frames``), at the highest frame rates: the clip's length in
 seconds is bounded by :data:`MAX_CLIP_SECONDS` too."""
-MAX_CLIP_SECONDS = 600.0
-"""Longest clip in seconds (clip frames / fps: 6 000 frames at 10 frames/s). A scene is laid out
-for its whole clip, in time that grows with the square of its length (measured on 2 cores: a
-10-minute clip's highway 55 s and 0.3 GB, its street 24 s; a 33-minute street 183 s); for more
-data, render more scenes."""
+MAX_CLIP_SECONDS = 3600.0
+"""Longest clip in seconds (clip frames / fps: 36 000 frames at 10 frames/s). A scene is laid out
+for its whole clip, and MuJoCo's spec takes time growing with the square of its geoms to build
+(each ``add_geom``); a frame then costs what it costs in a short clip (far scenery is left out
+of the passes). Measured on 2 cores, the highway (the most road per second): 10 minutes 11.5 s
+and 0.4 GB, 30 minutes 50 s and 0.6 GB, an hour 227 s and 1.7 GB, in every worker that renders
+a piece of it; for more data, render more scenes."""
 MAX_SCENES = 100_000
 """Most scenes of one dataset (``--scenes``)."""
 MAX_SHARDS = 100_000
