@@ -38,6 +38,9 @@ a quarter of the pixels."""
 COVERED_DROP_M = 1.0
 """How far the road's other slabs are lowered in the mirror render, under the one stretched
 mirror geom (level with it they would draw over its reflection)."""
+CULL_MARGIN_M = 0.5
+"""Slack beyond a geom's bounding sphere before :meth:`FrameRenderer.hidden_geoms` leaves it out
+of a pass (rounding in the GL pipeline never reaches it)."""
 
 
 class PendingImage:
@@ -193,8 +196,8 @@ class FrameRenderer:
         # geoms that can be left out when wholly behind the camera: all but planes (unbounded)
         # and geoms without a bounding sphere
         self._cullable = (model.geom_type != mujoco.mjtGeom.mjGEOM_PLANE) & (model.geom_rbound > 0)
-        # geoms that can be left out when beyond every pass's reach (beyond_reach): those, less
-        # any that can be a mirror (MuJoCo mirrors the first reflective geom it is given)
+        # geoms that can be left out of a pass that draws shadows and mirrors (hidden_geoms):
+        # those, less any that can be a mirror (MuJoCo mirrors the first reflective geom it is given)
         mirrors = np.append(np.flatnonzero(model.mat_reflectance > 0),
                             mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, "asphalt"))
         self._far_cullable = self._cullable & ~np.isin(model.geom_matid, mirrors[mirrors >= 0])
@@ -214,15 +217,11 @@ class FrameRenderer:
         extent = model.stat.extent
         self._near = np.float32(model.vis.map.znear * extent)
         self._far = np.float32(model.vis.map.zfar * extent)
-        # the farthest a drawn point can be from the camera: the far plane at the corners of the
-        # widest frustum a pass uses (the padded canvas: wider and taller than the image)
-        tan_y = math.tan(math.radians(model.cam_fovy[self.camera_id]) / 2) * max(1.0, padded_h / height)
-        tan_x = tan_y * max(width / height, padded_w / padded_h)
-        self._visible_reach = float(self._far) * math.sqrt(1.0 + tan_x * tan_x + tan_y * tan_y)
-        # the farthest a shadow caster can be from a directional light: the corner of its shadow
-        # map's box (+-shadowclip across, near..far along the light, as mjr_render draws it)
-        clip = model.vis.map.shadowclip * extent
-        self._shadow_reach = math.sqrt(2.0 * clip * clip + float(self._far) ** 2)
+        # the view frustum every pass but the actor-alone ones draws (their padded canvas shows
+        # the actors only): half-angle tangents, widened to the padded canvas's aspect too
+        self._tan_y = math.tan(math.radians(model.cam_fovy[self.camera_id]) / 2)
+        self._tan_x = self._tan_y * max(width / height, padded_w / padded_h)
+        self._shadow_clip = float(model.vis.map.shadowclip * extent)
         self.backend = os.environ.get("MUJOCO_GL", "")
         try:
             self._gl_context = mujoco.GLContext(padded_w, padded_h)
@@ -512,7 +511,8 @@ class FrameRenderer:
         (same field of view), then resized to H x W (a softer, cheaper image) unless not
         ``resize``."""
         self._rig.select_lights(data, self.camera_id)
-        self._update_scene(data, option, self._scene)
+        self._update_scene(data, option, self._scene,
+                           self._mirror_plane(data, mirror_geom, mirror_cover) if mirror_geom >= 0 else None)
         if mirror_geom >= 0:
             geom_type = mujoco.mjtObj.mjOBJ_GEOM
             for index in range(self._scene.ngeom):
@@ -543,6 +543,20 @@ class FrameRenderer:
             return np.flipud(small).copy()
         return cv2.resize(np.flipud(small), (self.width, self.height),
                           interpolation=cv2.INTER_LINEAR)
+
+    def _mirror_plane(self, data: mujoco.MjData, geom: int, cover: np.ndarray | None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """(point, unit normal) of the plane MuJoCo mirrors in when road geom ``geom`` is the
+        mirror, placed at ``cover`` (see :meth:`_render_rgb`) when given: a box's top face, a
+        plane itself (``mjr_render``'s reflection)."""
+        normal = data.geom_xmat[geom].reshape(3, 3)[:, 2].copy()
+        box = self.model.geom_type[geom] == mujoco.mjtGeom.mjGEOM_BOX
+        size_z = float(self.model.geom_size[geom, 2]) if box else 0.0
+        if cover is None:
+            centre = data.geom_xpos[geom].astype(np.float64)
+        else:
+            centre = np.array([cover[0], cover[1], cover[2] - size_z])
+        return centre + size_z * normal, normal
 
     def render_rgb(self) -> np.ndarray:
         """RGB (H, W, 3) uint8 of the scene built by :meth:`update` (multisampled)."""
@@ -602,49 +616,79 @@ class FrameRenderer:
         ahead = (data.geom_xpos - data.cam_xpos[self.camera_id]) @ forward
         return self._cullable & (ahead < -self.model.geom_rbound)
 
-    def beyond_reach(self, data: mujoco.MjData) -> np.ndarray:
-        """(ngeom,) bool: geoms that no pass can draw a pixel of in the state ``data``. A geom's
-        bounding sphere (``geom_rbound`` about ``geom_xpos``) must lie farther from the camera
-        than any drawn point (the far plane at the widest frustum's corners), also once
-        mirrored in the road's mirror (level, below the camera: a mirror image is at most
-        ``2 (|z| + |camera z| + COVERED_DROP_M)`` nearer), and, while a light casts shadows,
-        farther than the light's shadow-map box reaches. Planes, geoms without a bounding
-        sphere and those that can be a mirror never are. A 10-minute clip's scene runs along
-        15 km of road, of which a frame can draw 2 to 3; a 20 s clip's has none beyond reach."""
+    def _outside_view(self, centres: np.ndarray, radius: np.ndarray, camera: np.ndarray,
+                      axes: np.ndarray) -> np.ndarray:
+        """(N,) bool: spheres (``centres`` (N, 3) world metres, ``radius`` (N,)) wholly outside
+        the view frustum of a camera at ``camera`` (3,) with axes ``axes`` (3, 3) (columns x, y,
+        z; it looks along -z): behind its near plane, beyond its far plane, or beyond a side
+        plane, by :data:`CULL_MARGIN_M` more than the radius."""
+        local = (centres - camera) @ axes
+        x, y, depth = local[:, 0], local[:, 1], -local[:, 2]
+        reach = radius + CULL_MARGIN_M
+        outside = (depth + reach < self._near) | (depth - reach > self._far)
+        for tangent, across in ((self._tan_x, x), (self._tan_y, y)):
+            scale = 1.0 / math.sqrt(1.0 + tangent * tangent)  # a side plane's distance per unit
+            outside |= ((np.abs(across) - tangent * depth) * scale > reach)
+        return outside
+
+    def hidden_geoms(self, data: mujoco.MjData, mirror: tuple[np.ndarray, np.ndarray] | None = None
+                     ) -> np.ndarray:
+        """(ngeom,) bool: geoms no pixel of a pass can come from in the state ``data``: the
+        bounding sphere (``geom_rbound`` about ``geom_xpos``) is outside the view frustum
+        (:meth:`_outside_view`), its mirror image too when the pass draws the road's ``mirror``
+        (a point and a unit normal of the mirror plane, (3,) each, as MuJoCo reflects), and
+        outside the shadow-map box of every light that casts shadows (a directional light's:
+        +-shadowclip across its axis, near..far along it, from its position). Planes, geoms
+        without a bounding sphere and those that can be a mirror never are. Leaving them out of
+        a pass changes no pixel (tested) and spares llvmpipe their vertices."""
         camera = data.cam_xpos[self.camera_id]
-        gap = np.linalg.norm(data.geom_xpos - camera, axis=1) - self.model.geom_rbound
-        reach = self._visible_reach + 2.0 * (np.abs(data.geom_xpos[:, 2]) + abs(float(camera[2]))
-                                             + COVERED_DROP_M)
-        casting = (self.model.light_castshadow != 0) & (self.model.light_active != 0)
-        if casting.any():
-            if (self.model.light_type[casting] != mujoco.mjtLightType.mjLIGHT_DIRECTIONAL).any():
+        axes = data.cam_xmat[self.camera_id].reshape(3, 3)
+        centres, radius = data.geom_xpos, self.model.geom_rbound
+        hidden = self._far_cullable & self._outside_view(centres, radius, camera, axes)
+        if mirror is not None:
+            point, normal = mirror
+            images = centres - 2.0 * ((centres - point) @ normal)[:, None] * normal
+            hidden &= self._outside_view(images, radius, camera, axes)
+        casting = np.flatnonzero((self.model.light_castshadow != 0) & (self.model.light_active != 0))
+        for light in casting:
+            if self.model.light_type[light] != mujoco.mjtLightType.mjLIGHT_DIRECTIONAL:
                 return np.zeros(self.model.ngeom, bool)  # a spot light's map: not bounded here
-            light = float(np.linalg.norm(data.light_xpos[casting] - camera, axis=1).max())
-            reach = np.maximum(reach, light + self._shadow_reach)
-        return self._far_cullable & (gap > reach)
+            direction = data.light_xdir[light] / max(float(np.linalg.norm(data.light_xdir[light])), 1e-12)
+            offset = centres - data.light_xpos[light]
+            along = offset @ direction
+            across = np.linalg.norm(offset - along[:, None] * direction, axis=1)
+            reach = radius + CULL_MARGIN_M
+            in_box = ((along + reach >= self._near) & (along - reach <= self._far)
+                      & (across - reach <= math.sqrt(2.0) * self._shadow_clip))
+            hidden &= ~in_box
+        return hidden
 
     def _update_scene(self, data: mujoco.MjData, option: mujoco.MjvOption,
-                      scene: mujoco.MjvScene) -> None:
-        """``mjv_updateScene`` of ``data`` into ``scene`` less the geoms beyond reach
-        (:meth:`beyond_reach`): the same pixels, without llvmpipe's vertex work for a long
-        clip's far scenery."""
-        far = self.beyond_reach(data)
-        if not far.any():
+                      scene: mujoco.MjvScene, mirror: tuple[np.ndarray, np.ndarray] | None = None
+                      ) -> None:
+        """``mjv_updateScene`` of ``data`` into ``scene`` less the geoms no pixel can come from
+        (:meth:`hidden_geoms`, with the road's ``mirror`` when the pass draws it)."""
+        hidden = self.hidden_geoms(data, mirror)
+        if not hidden.any():
             mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
                                    mujoco.mjtCatBit.mjCAT_ALL, scene)
             return
         groups = self.model.geom_group.copy()
-        groups[far] = HIDDEN_GROUP
+        groups[hidden] = HIDDEN_GROUP
         self._update_scene_in_groups(data, option, scene, groups)
 
     def _update_label_scene(self, data: mujoco.MjData) -> None:
         """Build the segmentation pass's scene of ``data`` (0.1 ms): the scene of
-        :meth:`update` less the geoms behind the camera (:meth:`behind_camera`) or beyond reach
-        (:meth:`beyond_reach`). They cannot change a pixel of that pass (it draws no shadows,
-        reflections or sky) but cost llvmpipe their vertices: the paper clip's segmentation
-        10-20 % faster (bench/RESULTS.md)."""
+        :meth:`update` less the geoms behind the camera (:meth:`behind_camera`) or outside its
+        view (:meth:`_outside_view`). They cannot change a pixel of that pass (it draws no
+        shadows, reflections or sky) but cost llvmpipe their vertices: the paper clip's
+        segmentation 10-20 % faster (bench/RESULTS.md)."""
+        camera = data.cam_xpos[self.camera_id]
+        axes = data.cam_xmat[self.camera_id].reshape(3, 3)
+        outside = self._cullable & self._outside_view(data.geom_xpos, self.model.geom_rbound,
+                                                      camera, axes)
         groups = self.model.geom_group.copy()
-        groups[self.behind_camera(data) | self.beyond_reach(data)] = HIDDEN_GROUP
+        groups[self.behind_camera(data) | outside] = HIDDEN_GROUP
         self._update_scene_in_groups(data, self._option, self._label_scene, groups)
         self._label_scene_ready = True
 

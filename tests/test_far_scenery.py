@@ -1,5 +1,6 @@
-"""A long clip's far scenery is left out of every pass (FrameRenderer.beyond_reach) without
-changing a byte; a renderer leaves its model in the base weather."""
+"""Geoms no pixel can come from (out of view, of the mirror's view and of the sun's shadow box:
+FrameRenderer.hidden_geoms) are left out of every pass without changing a byte; a renderer
+leaves its model in the base weather."""
 
 import numpy as np
 import pytest
@@ -18,41 +19,50 @@ def _frames(config, setup, weathers):
     return out
 
 
-@pytest.mark.parametrize("sky, time_of_day", [("clear", "day"), ("cloudy", "night")])
-def test_far_scenery_is_left_out_with_the_same_bytes(monkeypatch, sky, time_of_day):
-    """The last frame of a 5-minute highway clip (7 km of road, thousands of geoms more than
-    2 km away): the sun's shadows, the wet road's mirror and the puddles (physical rain, the
-    weather following the rate), the lamps at night; every image is the same with the far
-    geoms drawn."""
-    config = GenerateConfig(frames=1, frame_offset=2999, seed=3, layout="highway", sky=sky,
-                            time_of_day=time_of_day, width=160, height=120,
-                            rates=(0.0, 25.0, 100.0), rain_model="physical")
+def _same_with_every_geom_drawn(monkeypatch, config):
+    """Render ``config`` leaving out the hidden geoms, then drawing every geom: the same images;
+    returns the fewest geoms left out of a pass."""
     setup = build_scene(config)
     weathers = sweep_weathers(config, setup.layout)
     left_out = []
-    reach = gr.FrameRenderer.beyond_reach
-    monkeypatch.setattr(gr.FrameRenderer, "beyond_reach",
-                        lambda self, data: left_out.append(int(reach(self, data).sum()))
-                        or reach(self, data))
+    hidden = gr.FrameRenderer.hidden_geoms
+    monkeypatch.setattr(gr.FrameRenderer, "hidden_geoms",
+                        lambda self, *args: left_out.append(int(hidden(self, *args).sum()))
+                        or hidden(self, *args))
     culled = _frames(config, setup, weathers)
-    assert min(left_out) > setup.model.ngeom // 2  # most of the scene is far away
-    monkeypatch.setattr(gr.FrameRenderer, "beyond_reach",
-                        lambda self, data: np.zeros(self.model.ngeom, bool))
+    monkeypatch.setattr(gr.FrameRenderer, "hidden_geoms",
+                        lambda self, *args: np.zeros(self.model.ngeom, bool))
     drawn = _frames(config, setup, weathers)
-    for ours, theirs in zip(culled[0], drawn[0]):
-        assert np.array_equal(ours, theirs, equal_nan=True)
+    for ours, theirs in zip(culled, drawn):
+        for image, reference in zip(ours, theirs):
+            assert np.array_equal(image, reference, equal_nan=True)
+    return min(left_out), setup.model.ngeom
 
 
-def test_nothing_is_beyond_reach_in_the_paper_clip(monkeypatch):
-    """A 20 s clip's scene is within reach everywhere: its passes are what they always were."""
-    config = GenerateConfig(frames=1, frame_offset=199, width=160, height=120,
-                            rates=(0.0,), rain_model="jeon2022")
-    seen = []
-    reach = gr.FrameRenderer.beyond_reach
-    monkeypatch.setattr(gr.FrameRenderer, "beyond_reach",
-                        lambda self, data: seen.append(reach(self, data).any()) or reach(self, data))
-    _frames(config, build_scene(config), ())
-    assert seen and not any(seen)
+@pytest.mark.parametrize("sky, time_of_day", [("clear", "day"), ("cloudy", "night")])
+def test_far_scenery_is_left_out_with_the_same_bytes(monkeypatch, sky, time_of_day):
+    """The last frame of a 5-minute highway clip (7 km of road): the sun's shadows, the wet
+    road's mirror and the puddles (physical rain, the weather following the rate), the lamps at
+    night; most geoms are left out of every pass and every image is the same."""
+    config = GenerateConfig(frames=1, frame_offset=2999, seed=3, layout="highway", sky=sky,
+                            time_of_day=time_of_day, width=160, height=120,
+                            rates=(0.0, 25.0, 100.0), rain_model="physical")
+    fewest, ngeom = _same_with_every_geom_drawn(monkeypatch, config)
+    assert fewest > 0.8 * ngeom
+
+
+@pytest.mark.parametrize("layout, time_of_day", [("street", "day"), ("intersection", "dusk"),
+                                                  ("residential", "day")])
+def test_geoms_out_of_view_are_left_out_with_the_same_bytes(monkeypatch, layout, time_of_day):
+    """Frames of 20 s clips under a clear sky (the sun casts shadows; at dusk a low sun, long
+    shadows, the lamps), physical rain with the weather following the rate: the geoms behind
+    the camera and beside its view, outside the sun's shadow box and out of the mirror's view,
+    are left out of every pass, and every image is the same."""
+    config = GenerateConfig(frames=2, frame_offset=99, seed=2, layout=layout, sky="clear",
+                            time_of_day=time_of_day, width=160, height=120,
+                            rates=(0.0, 30.0, 100.0), rain_model="physical")
+    fewest, _ = _same_with_every_geom_drawn(monkeypatch, config)
+    assert fewest > 0
 
 
 def test_a_clip_rendered_again_on_the_same_scene_is_the_same():

@@ -127,11 +127,12 @@ def test_geoms_behind_the_camera_are_left_out_of_the_segmentation_without_changi
         behind = renderer.behind_camera(data)
         assert {int(table[g]) for g in np.flatnonzero(behind)} == {1}  # the plane is never behind
         renderer.update(data)
-        assert renderer._label_scene.ngeom == renderer._scene.ngeom - 1
+        assert renderer._label_scene.ngeom == model.ngeom - 1
         culled = renderer.render_instances_depth()
         renderer._cullable[:] = False  # every geom drawn, as before the culling
+        renderer._far_cullable[:] = False
         renderer.update(data)
-        assert renderer._label_scene.ngeom == renderer._scene.ngeom
+        assert renderer._label_scene.ngeom == renderer._scene.ngeom == model.ngeom
         full = renderer.render_instances_depth()
     for got, expected in zip(culled, full):
         np.testing.assert_array_equal(got, expected)
