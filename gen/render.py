@@ -217,10 +217,9 @@ class FrameRenderer:
         extent = model.stat.extent
         self._near = np.float32(model.vis.map.znear * extent)
         self._far = np.float32(model.vis.map.zfar * extent)
-        # the view frustum every pass but the actor-alone ones draws (their padded canvas shows
-        # the actors only): half-angle tangents, widened to the padded canvas's aspect too
+        # the view frustum's vertical half-angle tangent; the horizontal one is this times the
+        # aspect of the rectangle a pass renders (mjr_render's projection)
         self._tan_y = math.tan(math.radians(model.cam_fovy[self.camera_id]) / 2)
-        self._tan_x = self._tan_y * max(width / height, padded_w / padded_h)
         self._shadow_clip = float(model.vis.map.shadowclip * extent)
         self.backend = os.environ.get("MUJOCO_GL", "")
         try:
@@ -511,8 +510,11 @@ class FrameRenderer:
         (same field of view), then resized to H x W (a softer, cheaper image) unless not
         ``resize``."""
         self._rig.select_lights(data, self.camera_id)
-        self._update_scene(data, option, self._scene,
-                           self._mirror_plane(data, mirror_geom, mirror_cover) if mirror_geom >= 0 else None)
+        width, height = self.width, self.height
+        if scale < 1.0:
+            width, height = max(1, round(self.width * scale)), max(1, round(self.height * scale))
+        mirror = self._mirror_plane(data, mirror_geom, mirror_cover) if mirror_geom >= 0 else None
+        self._update_scene(data, option, self._scene, mirror, aspect=width / height)
         if mirror_geom >= 0:
             geom_type = mujoco.mjtObj.mjOBJ_GEOM
             for index in range(self._scene.ngeom):
@@ -533,8 +535,6 @@ class FrameRenderer:
             mujoco.mjr_render(self._rect, self._scene, context)
             mujoco.mjr_readPixels(self._rgb, None, self._rect, context)
             return np.flipud(self._rgb).copy()
-        width = max(1, round(self.width * scale))
-        height = max(1, round(self.height * scale))
         rect = mujoco.MjrRect(0, 0, width, height)
         small = np.empty((height, width, 3), np.uint8)
         mujoco.mjr_render(rect, self._scene, context)
@@ -617,38 +617,42 @@ class FrameRenderer:
         return self._cullable & (ahead < -self.model.geom_rbound)
 
     def _outside_view(self, centres: np.ndarray, radius: np.ndarray, camera: np.ndarray,
-                      axes: np.ndarray) -> np.ndarray:
+                      axes: np.ndarray, aspect: float) -> np.ndarray:
         """(N,) bool: spheres (``centres`` (N, 3) world metres, ``radius`` (N,)) wholly outside
         the view frustum of a camera at ``camera`` (3,) with axes ``axes`` (3, 3) (columns x, y,
-        z; it looks along -z): behind its near plane, beyond its far plane, or beyond a side
-        plane, by :data:`CULL_MARGIN_M` more than the radius."""
+        z; it looks along -z) rendering a rectangle of width / height ``aspect``: behind its
+        near plane, beyond its far plane, or beyond a side plane, by :data:`CULL_MARGIN_M` more
+        than the radius."""
         local = (centres - camera) @ axes
         x, y, depth = local[:, 0], local[:, 1], -local[:, 2]
         reach = radius + CULL_MARGIN_M
         outside = (depth + reach < self._near) | (depth - reach > self._far)
-        for tangent, across in ((self._tan_x, x), (self._tan_y, y)):
+        for tangent, across in ((self._tan_y * aspect, x), (self._tan_y, y)):
             scale = 1.0 / math.sqrt(1.0 + tangent * tangent)  # a side plane's distance per unit
             outside |= ((np.abs(across) - tangent * depth) * scale > reach)
         return outside
 
-    def hidden_geoms(self, data: mujoco.MjData, mirror: tuple[np.ndarray, np.ndarray] | None = None
-                     ) -> np.ndarray:
+    def hidden_geoms(self, data: mujoco.MjData, mirror: tuple[np.ndarray, np.ndarray] | None = None,
+                     aspect: float | None = None) -> np.ndarray:
         """(ngeom,) bool: geoms no pixel of a pass can come from in the state ``data``: the
-        bounding sphere (``geom_rbound`` about ``geom_xpos``) is outside the view frustum
-        (:meth:`_outside_view`), its mirror image too when the pass draws the road's ``mirror``
+        bounding sphere (``geom_rbound`` about ``geom_xpos``) is outside the view frustum of a
+        pass rendering a rectangle of width / height ``aspect`` (default the image's; a pass at
+        a reduced scale rounds its size) (:meth:`_outside_view`), its mirror image too when the
+        pass draws the road's ``mirror``
         (a point and a unit normal of the mirror plane, (3,) each, as MuJoCo reflects), and
         outside the shadow-map box of every light that casts shadows (a directional light's:
         +-shadowclip across its axis, near..far along it, from its position). Planes, geoms
         without a bounding sphere and those that can be a mirror never are. Leaving them out of
         a pass changes no pixel (tested) and spares llvmpipe their vertices."""
+        aspect = self.width / self.height if aspect is None else aspect
         camera = data.cam_xpos[self.camera_id]
         axes = data.cam_xmat[self.camera_id].reshape(3, 3)
         centres, radius = data.geom_xpos, self.model.geom_rbound
-        hidden = self._far_cullable & self._outside_view(centres, radius, camera, axes)
+        hidden = self._far_cullable & self._outside_view(centres, radius, camera, axes, aspect)
         if mirror is not None:
             point, normal = mirror
             images = centres - 2.0 * ((centres - point) @ normal)[:, None] * normal
-            hidden &= self._outside_view(images, radius, camera, axes)
+            hidden &= self._outside_view(images, radius, camera, axes, aspect)
         casting = np.flatnonzero((self.model.light_castshadow != 0) & (self.model.light_active != 0))
         for light in casting:
             if self.model.light_type[light] != mujoco.mjtLightType.mjLIGHT_DIRECTIONAL:
@@ -664,11 +668,12 @@ class FrameRenderer:
         return hidden
 
     def _update_scene(self, data: mujoco.MjData, option: mujoco.MjvOption,
-                      scene: mujoco.MjvScene, mirror: tuple[np.ndarray, np.ndarray] | None = None
-                      ) -> None:
+                      scene: mujoco.MjvScene, mirror: tuple[np.ndarray, np.ndarray] | None = None,
+                      aspect: float | None = None) -> None:
         """``mjv_updateScene`` of ``data`` into ``scene`` less the geoms no pixel can come from
-        (:meth:`hidden_geoms`, with the road's ``mirror`` when the pass draws it)."""
-        hidden = self.hidden_geoms(data, mirror)
+        (:meth:`hidden_geoms`, with the road's ``mirror`` when the pass draws it, for a pass
+        rendering at ``aspect``)."""
+        hidden = self.hidden_geoms(data, mirror, aspect)
         if not hidden.any():
             mujoco.mjv_updateScene(self.model, data, option, None, self._camera,
                                    mujoco.mjtCatBit.mjCAT_ALL, scene)
@@ -686,7 +691,7 @@ class FrameRenderer:
         camera = data.cam_xpos[self.camera_id]
         axes = data.cam_xmat[self.camera_id].reshape(3, 3)
         outside = self._cullable & self._outside_view(data.geom_xpos, self.model.geom_rbound,
-                                                      camera, axes)
+                                                      camera, axes, self.width / self.height)
         groups = self.model.geom_group.copy()
         groups[self.behind_camera(data) | outside] = HIDDEN_GROUP
         self._update_scene_in_groups(data, self._option, self._label_scene, groups)

@@ -34,7 +34,7 @@ def test_stepping_to_a_time_poses_the_scene_as_posing_it_there(name):
 
 def test_a_piece_steps_only_between_its_own_frames(monkeypatch):
     """A piece from clip frame 150 steps 5 times (0.1 s at the 0.02 s timestep) between each of
-    its frames and not at all before its first (760 steps before the piece started there)."""
+    its frames and not at all before its first (it stepped 750 times to get there before)."""
     steps = []
     step = mujoco.mj_step
     monkeypatch.setattr(mujoco, "mj_step", lambda model, data: steps.append(1) or step(model, data))
