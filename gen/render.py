@@ -634,16 +634,16 @@ class FrameRenderer:
 
     def hidden_geoms(self, data: mujoco.MjData, mirror: tuple[np.ndarray, np.ndarray] | None = None,
                      aspect: float | None = None) -> np.ndarray:
-        """(ngeom,) bool: geoms no pixel of a pass can come from in the state ``data``: the
+        """(ngeom,) bool: geoms no pixel of a pass can come from in the state ``data``. A geom's
         bounding sphere (``geom_rbound`` about ``geom_xpos``) is outside the view frustum of a
         pass rendering a rectangle of width / height ``aspect`` (default the image's; a pass at
-        a reduced scale rounds its size) (:meth:`_outside_view`), its mirror image too when the
-        pass draws the road's ``mirror``
-        (a point and a unit normal of the mirror plane, (3,) each, as MuJoCo reflects), and
-        outside the shadow-map box of every light that casts shadows (a directional light's:
-        +-shadowclip across its axis, near..far along it, from its position). Planes, geoms
-        without a bounding sphere and those that can be a mirror never are. Leaving them out of
-        a pass changes no pixel (tested) and spares llvmpipe their vertices."""
+        a reduced scale rounds its size: :meth:`_outside_view`); its mirror image is too when
+        the pass draws the road's ``mirror`` (a point and a unit normal of the mirror plane, (3,)
+        each, as MuJoCo reflects); and it is outside the shadow-map box of every light that
+        casts shadows (a directional light's: +-shadowclip across its axis, near..far along it,
+        from its position). Planes, geoms without a bounding sphere and those that can be a
+        mirror never are. Leaving them out of a pass changes no pixel (tested) and spares
+        llvmpipe their vertices."""
         aspect = self.width / self.height if aspect is None else aspect
         camera = data.cam_xpos[self.camera_id]
         axes = data.cam_xmat[self.camera_id].reshape(3, 3)
