@@ -32,6 +32,7 @@ upsampled bilinearly before they are blended over the full-resolution image.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import cv2
@@ -221,7 +222,11 @@ class LensDrops:
 
     def head(self, count: int) -> LensDrops:
         """The first ``count`` drops (the drops of a lower rate)."""
-        return LensDrops(*(getattr(self, f.name)[:count] for f in dataclasses.fields(self)))
+        return self.range(0, count)
+
+    def range(self, low: int, high: int) -> LensDrops:
+        """Drops ``low <= index < high`` (views of these arrays)."""
+        return LensDrops(*(getattr(self, f.name)[low:high] for f in dataclasses.fields(self)))
 
     def as_array(self) -> np.ndarray:
         """(N, 8) float64 array of the fields in declaration order (for comparisons in tests)."""
@@ -432,6 +437,88 @@ class LensRaster:
             object.__setattr__(self, "weight", (self.alpha_units * self.shade_units).astype(np.float64))
 
 
+def _reach_px(drops: LensDrops, config: RainConfig, height: int, width: int) -> np.ndarray:
+    """(N,) float64: how far from its centre each drop's blurred footprint reaches, in pixels."""
+    return drops.radius_px + config.lens_defocus_px * image_scale(height, width)
+
+
+def _half_extent(reach: np.ndarray, factor: int) -> np.ndarray:
+    """(N,) int64 half side, in cells, of the square of cells a drop of this reach can touch:
+    a cell centre at offset o from the drop's cell is within the reach only if ``|o| < reach / k
+    + 0.5``."""
+    return np.ceil(reach / factor + 0.5).astype(np.int64) - 1
+
+
+def _stencil(half_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Cell offsets (x, y), int64 arrays of shape (S,), that a drop of half extent ``half_size``
+    can touch: the square without the corners that no such drop reaches (a cell centre is at
+    least ``k (|o| - 0.5)+`` from the drop centre along each axis, and ``reach / k < half_size +
+    0.5``). Row-major order; read only (small ones are shared)."""
+    return _small_stencil(half_size) if half_size <= _SHARED_STENCIL_MAX else _build_stencil(half_size)
+
+
+_SHARED_STENCIL_MAX = 64  # stencils up to 129 x 129 cells are cached (at most 65 of them, 4.4 MB)
+
+
+def _build_stencil(half_size: int) -> tuple[np.ndarray, np.ndarray]:
+    offsets = np.arange(-half_size, half_size + 1, dtype=np.int64)
+    offset_x = np.tile(offsets, offsets.shape[0])
+    offset_y = np.repeat(offsets, offsets.shape[0])
+    gap_x = np.maximum(np.abs(offset_x) - 0.5, 0.0)
+    gap_y = np.maximum(np.abs(offset_y) - 0.5, 0.0)
+    corner = gap_x * gap_x + gap_y * gap_y < (half_size + 0.5) ** 2
+    offset_x, offset_y = offset_x[corner], offset_y[corner]
+    offset_x.flags.writeable = False
+    offset_y.flags.writeable = False
+    return offset_x, offset_y
+
+
+_small_stencil = functools.lru_cache(maxsize=None)(_build_stencil)
+
+
+def _stencil_size(half_size: int) -> int:
+    """``_stencil(half_size)[0].shape[0]`` without building it: for each row, the offsets whose
+    squared gap is under the circle's (quarter-integers, so the comparison is exact)."""
+    offsets = np.arange(-half_size, half_size + 1, dtype=np.int64)
+    gap = np.maximum(np.abs(offsets) - 0.5, 0.0)
+    squared = np.sort(gap * gap)
+    return int(np.searchsorted(squared, (half_size + 0.5) ** 2 - squared, side="left").sum())
+
+
+def lens_entry_bound(drops: LensDrops, *, config: RainConfig, height: int, width: int) -> np.ndarray:
+    """(N,) int64: at most how many raster entries (cells) each drop can have in
+    :func:`rasterize_lens_drops`, whatever its position and shape (its stencil's size).
+
+    Bounds the work and memory of rasterising drops before doing it: a raster of drops with
+    bound sum B holds at most B entries and its largest per-cell temporary has B elements."""
+    half = _half_extent(_reach_px(drops, config, height, width), lens_grid_factor(config, height, width))
+    unique, inverse = np.unique(half, return_inverse=True)
+    sizes = np.array([_stencil_size(int(h)) for h in unique], dtype=np.int64)
+    return sizes[inverse.reshape(-1)]
+
+
+def lens_drop_chunks(bounds: np.ndarray, budget: int) -> list[tuple[int, int]]:
+    """Consecutive drop ranges ``(low, high)`` covering ``0..len(bounds)`` whose entry bounds
+    (from :func:`lens_entry_bound`) sum to at most ``budget`` each; a drop whose own bound
+    exceeds the budget is a range alone. Empty for no drops.
+
+    Args:
+        bounds: (N,) int64 per-drop entry bounds, >= 0.
+        budget: entries per range, >= 1.
+    """
+    if budget < 1:
+        raise ValueError(f"budget must be >= 1 entry, got {budget}")
+    cumulative = np.cumsum(bounds)
+    chunks: list[tuple[int, int]] = []
+    low = 0
+    while low < bounds.shape[0]:
+        before = int(cumulative[low - 1]) if low else 0
+        high = max(int(np.searchsorted(cumulative, before + budget, side="right")), low + 1)
+        chunks.append((low, high))
+        low = high
+    return chunks
+
+
 def rasterize_lens_drops(drops: LensDrops, *, config: RainConfig, height: int, width: int) -> LensRaster:
     """Footprints of lens drops on the drawing grid: opacity, rim shade and view position.
 
@@ -470,10 +557,10 @@ def rasterize_lens_drops(drops: LensDrops, *, config: RainConfig, height: int, w
     # per-drop values in float64; per-cell arithmetic in float32 (elementwise, so a cell's value
     # does not depend on which other drops are drawn)
     radius = drops.radius_px
-    reach = radius + blur
+    reach = _reach_px(drops, config, height, width)
     # cells whose centre can be within the reach: |(j + 0.5) k - x| < reach, so the offset
     # o = j - floor(x / k) has |o| < reach / k + 0.5
-    half = np.ceil(reach / factor + 0.5).astype(np.int64) - 1
+    half = _half_extent(reach, factor)
     cell_x = np.floor(drops.x_px / factor)
     cell_y = np.floor(drops.y_px / factor)
     # offset of the drop centre from the centre of its cell, in pixels
@@ -496,15 +583,7 @@ def rasterize_lens_drops(drops: LensDrops, *, config: RainConfig, height: int, w
     pieces: list[tuple[np.ndarray, ...]] = []
     for half_size in np.unique(half[visible]):
         index = np.flatnonzero((half == half_size) & visible)
-        offsets = np.arange(-half_size, half_size + 1, dtype=np.int64)
-        offset_x = np.tile(offsets, offsets.shape[0])
-        offset_y = np.repeat(offsets, offsets.shape[0])
-        # drop the corners that no drop of this group can reach: a cell centre is at least
-        # k (|o| - 0.5)+ from the drop centre along each axis, and reach / k < half + 0.5
-        gap_x = np.maximum(np.abs(offset_x) - 0.5, 0.0)
-        gap_y = np.maximum(np.abs(offset_y) - 0.5, 0.0)
-        corner = gap_x * gap_x + gap_y * gap_y < (half_size + 0.5) ** 2
-        offset_x, offset_y = offset_x[corner], offset_y[corner]
+        offset_x, offset_y = _stencil(int(half_size))
         cells = offset_x.shape[0]
         dx = shift_x[index][:, None] + (offset_x * factor).astype(np.float32)[None, :]
         dy = shift_y[index][:, None] + (offset_y * factor).astype(np.float32)[None, :]

@@ -19,7 +19,7 @@ import numpy as np
 from rainbench.rain import lens as lens_mod
 from rainbench.rain import physical as phys
 from rainbench.rain._seeding import check_seed_sequence
-from rainbench.rain.config import RAIN_MODELS, RainConfig
+from rainbench.rain.config import RainConfig
 from rainbench.store.rates import MAX_RATE_MM_H
 
 
@@ -286,24 +286,68 @@ def _clean_frame(rgb: np.ndarray) -> RainFrame:
     return RainFrame(rgb.copy(), np.zeros(rgb.shape[:2], dtype=np.float32), 0)
 
 
-class _LensAccumulator:
-    """Lens water of one frame for a sweep: the drops rasterised once for the largest count."""
+LENS_RASTER_BUDGET = 1 << 21
+"""Lens-drop raster entries (bounded by :func:`lens_mod.lens_entry_bound`) rasterised at once.
+More drops are drawn in consecutive runs, so the rasteriser's temporaries (about 200 bytes an
+entry) stay near 0.4 GB whatever the options and image size; the sums are exact, so the pixels
+are the same however the drops are split. The defaults fit one run at 800x600 up to 1000 mm/h
+and at 1920x1080 up to 100 mm/h."""
 
-    def __init__(self, max_count: int, config: RainConfig, height: int, width: int, lens_clock: lens_mod.LensClock) -> None:
-        drops = lens_mod.sample_lens_drops(max_count, config=config, height=height, width=width, lens_clock=lens_clock)
-        self.raster = lens_mod.rasterize_lens_drops(drops, config=config, height=height, width=width)
-        self.config = config
+LENS_RASTER_KEEP = 1 << 23
+"""Lens-drop raster entries kept between the rates of a sweep that draws the drops again for
+each rate (the physical model's, and lens water over each rate's own scene): 48 bytes an entry,
+0.4 GB. Runs are kept from the first drop on (every rate draws those); later runs are rasterised
+again each time a rate draws them."""
+
+
+class _LensAccumulator:
+    """Lens water of one frame for a sweep: the drops sampled once for the largest count, and
+    rasterised in runs of at most :data:`LENS_RASTER_BUDGET` entries (bounded memory; the same
+    sums). The last run drawn is reused; with ``keep_runs`` (a sweep that draws the drops again
+    for every rate) runs are also kept while :data:`LENS_RASTER_KEEP` allows."""
+
+    def __init__(self, max_count: int, config: RainConfig, height: int, width: int, lens_clock: lens_mod.LensClock,
+                 keep_runs: bool) -> None:
+        self.drops = lens_mod.sample_lens_drops(max_count, config=config, height=height, width=width, lens_clock=lens_clock)
+        self.config, self.height, self.width = config, height, width
+        bounds = lens_mod.lens_entry_bound(self.drops, config=config, height=height, width=width)
+        self.runs = lens_mod.lens_drop_chunks(bounds, LENS_RASTER_BUDGET)
+        self.keep_runs = keep_runs
+        self.kept: dict[int, lens_mod.LensRaster] = {}
+        self.kept_entries = 0
+        self.last: tuple[int, lens_mod.LensRaster] | None = None
+        self.grid = lens_mod.lens_view_shape(config, height, width) + (lens_mod.lens_grid_factor(config, height, width),)
         self.workspace: dict = {}  # scratch buffers of apply_lens for this sweep
+
+    def _raster(self, run: int) -> lens_mod.LensRaster:
+        if run in self.kept:
+            return self.kept[run]
+        if self.last is not None and self.last[0] == run:
+            return self.last[1]
+        low, high = self.runs[run]
+        raster = lens_mod.rasterize_lens_drops(self.drops.range(low, high), config=self.config, height=self.height, width=self.width)
+        # runs are kept in order from the first, so every kept run is one each rate draws
+        if self.keep_runs and len(self.kept) == run and self.kept_entries + raster.pixel.shape[0] <= LENS_RASTER_KEEP:
+            self.kept[run] = raster
+            self.kept_entries += raster.pixel.shape[0]
+        else:
+            self.last = (run, raster)
+        return raster
 
     def empty_sums(self) -> lens_mod.LensSums:
         """Zero sums on the drawing grid."""
-        return lens_mod.LensSums.zeros(self.raster.view_height, self.raster.view_width, self.raster.factor)
+        return lens_mod.LensSums.zeros(*self.grid)
 
     def add(self, sums: lens_mod.LensSums, view: np.ndarray, low: int, high: int) -> None:
         """Add the exact sums over drops ``low <= index < high`` (colours seen in ``view``, the
         channel planes of :func:`lens_mod.planar_view`)."""
-        entries = slice(*np.searchsorted(self.raster.drop, [low, high]))  # entries are ordered by drop
-        sums.add(self.raster, view, entries)
+        for run, (run_low, run_high) in enumerate(self.runs):
+            if run_high <= low or run_low >= high:
+                continue
+            raster = self._raster(run)
+            # entries are ordered by drop (indices within the run): a drop range is a slice
+            entries = slice(*np.searchsorted(raster.drop, [max(low, run_low) - run_low, min(high, run_high) - run_low]))
+            sums.add(raster, view, entries)
 
     def composite(self, base: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
         """``base`` under the first ``count`` drops, each showing the view of ``base``."""
@@ -317,7 +361,7 @@ def _jeon_sweep(rgb: np.ndarray, ascending: list[float], config: RainConfig, len
     counts = [lens_mod.jeon2022_drop_count(rate, height, width) for rate in ascending]
     if max(counts) == 0:
         return [_clean_frame(rgb) for _ in ascending]
-    accumulator = _LensAccumulator(max(counts), config, height, width, lens_clock)
+    accumulator = _LensAccumulator(max(counts), config, height, width, lens_clock, keep_runs=False)
     view = lens_mod.planar_view(lens_mod.lens_view(rgb, config))
     sums = accumulator.empty_sums()
     drawn = 0
@@ -346,7 +390,7 @@ def _jeon_scenes(scene_of: dict[float, np.ndarray], ascending: list[float], conf
     counts = [lens_mod.jeon2022_drop_count(rate, height, width) for rate in ascending]
     if max(counts) == 0:
         return [_clean_frame(scene_of[rate]) for rate in ascending]
-    accumulator = _LensAccumulator(max(counts), config, height, width, lens_clock)
+    accumulator = _LensAccumulator(max(counts), config, height, width, lens_clock, keep_runs=True)
     frames = []
     for rate, count in zip(ascending, counts):
         if count == 0:
@@ -398,7 +442,7 @@ def _physical_sweep(
     shared_terms = blend_terms(rgb, config.airlight_rgb) if scene_of is None and airlight_of is None else None
 
     lens_counts = [_lens_count(rate, config, K, height, width) for rate in ascending]
-    lens_accumulator = _LensAccumulator(max(lens_counts), config, height, width, lens_clock) if max(lens_counts) > 0 else None
+    lens_accumulator = _LensAccumulator(max(lens_counts), config, height, width, lens_clock, keep_runs=True) if max(lens_counts) > 0 else None
 
     frames = []
     drawn = 0
