@@ -325,6 +325,27 @@ def blur_layer(blur_sigma_px: np.ndarray) -> np.ndarray:
     return np.where(sigma < MIN_BLUR_SIGMA_PX, 0, level + 1)
 
 
+def _streak_geometry(drops: AirDrops) -> tuple[np.ndarray, ...]:
+    """Per drop: (extent px, dir_x, dir_y, vertical_major, n_along, n_across) of its streak."""
+    length = drops.streak_length_px
+    extent = length + drops.diameter_px
+    safe_length = np.where(length > 0, length, 1.0)
+    dir_x = np.where(length > 0, drops.drift_px / safe_length, 0.0)
+    dir_y = np.where(length > 0, drops.fall_px / safe_length, 1.0)
+    vertical_major = np.abs(dir_y) >= np.abs(dir_x)
+    major = np.maximum(np.abs(dir_x), np.abs(dir_y))
+    n_along = np.maximum(np.ceil(extent * major), 1.0).astype(np.int64)
+    n_across = np.maximum(np.ceil(drops.diameter_px), 1.0).astype(np.int64)
+    return extent, dir_x, dir_y, vertical_major, n_along, n_across
+
+
+def streak_sample_counts(drops: AirDrops) -> np.ndarray:
+    """(N,) int64: the samples :func:`rasterize_streaks` takes of each drop (each splats into
+    at most 2 pixels), to bound its work and memory before drawing: about 200 bytes a sample."""
+    _, _, _, _, n_along, n_across = _streak_geometry(drops)
+    return n_along * n_across
+
+
 def rasterize_streaks(drops: AirDrops, depth: np.ndarray) -> StreakRaster:
     """Streak footprints with occlusion by the depth render.
 
@@ -353,16 +374,8 @@ def rasterize_streaks(drops: AirDrops, depth: np.ndarray) -> StreakRaster:
     if count == 0:
         empty = np.zeros(0, dtype=np.int64)
         return StreakRaster(empty, empty, np.zeros(0, dtype=np.float64), empty, np.zeros(0, dtype=bool))
-    length = drops.streak_length_px
     diameter = drops.diameter_px
-    extent = length + diameter
-    safe_length = np.where(length > 0, length, 1.0)
-    dir_x = np.where(length > 0, drops.drift_px / safe_length, 0.0)
-    dir_y = np.where(length > 0, drops.fall_px / safe_length, 1.0)
-    vertical_major = np.abs(dir_y) >= np.abs(dir_x)
-    major = np.maximum(np.abs(dir_x), np.abs(dir_y))
-    n_along = np.maximum(np.ceil(extent * major), 1.0).astype(np.int64)
-    n_across = np.maximum(np.ceil(diameter), 1.0).astype(np.int64)
+    extent, dir_x, dir_y, vertical_major, n_along, n_across = _streak_geometry(drops)
     per_drop = n_along * n_across
     total = int(per_drop.sum())
     drop = np.repeat(np.arange(count, dtype=np.int64), per_drop)

@@ -300,6 +300,14 @@ each rate (the physical model's, and lens water over each rate's own scene): 48 
 again each time a rate draws them."""
 
 
+STREAK_SAMPLE_BUDGET = 1 << 22
+"""Streak samples (:func:`phys.streak_sample_counts`) rasterised at once, about 250 bytes each
+(1 GB at the budget). Beyond it (long exposures on large images: 1/30 s at 3840x2160 and 1000
+mm/h takes 24 million) the streaks are drawn in runs into dense per-layer sums
+(:class:`_StreakRuns`), the same numbers. The defaults fit one raster up to 1000 mm/h at
+3840x2160."""
+
+
 class _LensAccumulator:
     """Lens water of one frame for a sweep: the drops sampled once for the largest count, and
     rasterised in runs of at most :data:`LENS_RASTER_BUDGET` entries (bounded memory; the same
@@ -422,9 +430,12 @@ def _physical_sweep(
     candidates = phys.sample_air_candidates(config=config, K=K, height=height, width=width, seed_sequence=seed_sequence)
     air = candidates.at_rate(top_rate)
     air = air.select(np.argsort(air.threshold_rate_mm_h, kind="stable"))
-    raster = phys.rasterize_streaks(air, depth)
-    element_threshold = air.threshold_rate_mm_h[raster.drop]  # ascending
-    streaks = _StreakAccumulator(raster, height, width)
+    samples = phys.streak_sample_counts(air)
+    streaks: _StreakAccumulator | _StreakRuns
+    if int(samples.sum()) <= STREAK_SAMPLE_BUDGET:
+        streaks = _StreakAccumulator(phys.rasterize_streaks(air, depth), air, height, width)
+    else:
+        streaks = _StreakRuns(air, depth, samples)
 
     # extinction and airlight, channel-planar float32 for fast per-rate blending
     path_m = phys.ray_length_m(depth, K, config.sky_distance_m)
@@ -445,7 +456,6 @@ def _physical_sweep(
     lens_accumulator = _LensAccumulator(max(lens_counts), config, height, width, lens_clock, keep_runs=True) if max(lens_counts) > 0 else None
 
     frames = []
-    drawn = 0
     for rate, lens_count in zip(ascending, lens_counts):
         scene = scene_of[rate] if scene_of is not None else rgb
         if rate == 0:
@@ -453,9 +463,7 @@ def _physical_sweep(
             continue
         airlight, scene_minus_air, radiance_minus_air = shared_terms or blend_terms(
             scene, airlight_of[rate] if airlight_of is not None else config.airlight_rgb)
-        upto = int(np.searchsorted(element_threshold, rate, side="right"))
-        streaks.add(drawn, upto)
-        drawn = upto
+        streaks.add_rate(rate)
         streak_opacity = streaks.opacity()
 
         # I' = A + (I - A) T (1 - E) + (S - A) E: extinction/airlight, then streaks over it
@@ -469,7 +477,7 @@ def _physical_sweep(
             channels.append(cv2.convertScaleAbs(plane, alpha=1.0, beta=float(airlight[channel])))
         rainy = cv2.merge(channels)
         coverage = streak_opacity
-        drop_count = int(np.count_nonzero(raster.visible & (air.threshold_rate_mm_h <= rate)))
+        drop_count = streaks.visible_count()
 
         if lens_accumulator is not None and lens_count > 0:
             rainy, lens_coverage = lens_accumulator.composite(rainy, lens_count)  # drops show the rainy scene
@@ -480,16 +488,21 @@ def _physical_sweep(
 
 
 class _StreakAccumulator:
-    """Exact per-pixel streak sums, grown run by run of raster entries.
+    """Exact per-pixel streak sums of the drops ``air`` (ordered by threshold rate), grown rate
+    by rate from one raster of them all.
 
     Sums are integer-valued float64 (exact in any order). The unblurred layer is kept as a
     float32 image updated only where a run touched it, which equals recomputing it from the sums.
     Blurred layers (defocus) are re-blurred from their sums at every rate.
     """
 
-    def __init__(self, raster: phys.StreakRaster, height: int, width: int) -> None:
+    def __init__(self, raster: phys.StreakRaster, air: phys.AirDrops, height: int, width: int) -> None:
         self.height, self.width = height, width
         self.raster = raster
+        self.air = air
+        self.element_threshold = air.threshold_rate_mm_h[raster.drop]  # ascending
+        self.drawn = 0  # raster entries added
+        self.rate = -1.0
         self.pixels, inverse = lens_mod.compress_pixels(raster.pixel, height * width)
         n_unique = self.pixels.shape[0]
         self.layers = np.flatnonzero(np.bincount(raster.layer, minlength=len(phys.BLUR_LEVELS_PX) + 1))
@@ -499,8 +512,12 @@ class _StreakAccumulator:
         self.sums = np.zeros((self.layers.shape[0], n_unique), dtype=np.float64)
         self.sharp = np.zeros(height * width, dtype=np.float32)
 
-    def add(self, low: int, high: int) -> None:
-        """Add raster entries ``low:high``."""
+    def add_rate(self, rate: float) -> None:
+        """Add the drops of threshold rate <= ``rate`` not yet added (rates ascending)."""
+        self.rate = rate
+        upto = int(np.searchsorted(self.element_threshold, rate, side="right"))
+        low, high = self.drawn, upto
+        self.drawn = max(self.drawn, upto)
         if high <= low:
             return
         keys = self.keys[low:high]
@@ -513,15 +530,74 @@ class _StreakAccumulator:
             index = np.flatnonzero(touched)
             self.sharp[self.pixels[index]] = (self.sums[0, index] * (1.0 / phys.WEIGHT_UNITS)).astype(np.float32)
 
+    def visible_count(self) -> int:
+        """Drops added so far with at least one pixel drawn."""
+        return int(np.count_nonzero(self.raster.visible & (self.air.threshold_rate_mm_h <= self.rate)))
+
     def opacity(self) -> np.ndarray:
         """(H, W) float32 streak opacity in [0, 1]: sharp layer plus blurred layers, clipped."""
         opacity = self.sharp.copy()
         for row, layer in enumerate(self.layers):
             if layer == 0 or not self.sums[row].any():
                 continue
-            buffer = np.zeros(self.height * self.width, dtype=np.float32)
-            buffer[self.pixels] = (self.sums[row] * (1.0 / phys.WEIGHT_UNITS)).astype(np.float32)
-            sigma = float(phys.BLUR_LEVELS_PX[layer - 1])
-            opacity += cv2.GaussianBlur(buffer.reshape(self.height, self.width), (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_CONSTANT).reshape(-1)
+            opacity += _blurred_layer(self.sums[row], self.pixels, layer, self.height, self.width)
+        np.minimum(opacity, np.float32(1.0), out=opacity)
+        return opacity.reshape(self.height, self.width)
+
+
+def _blurred_layer(sums: np.ndarray, pixels: np.ndarray | None, layer: int, height: int, width: int) -> np.ndarray:
+    """(H * W,) float32: blur layer ``layer``'s opacity sums (at ``pixels``, or dense when None)
+    blurred by its Gaussian."""
+    if pixels is None:
+        buffer = (sums * (1.0 / phys.WEIGHT_UNITS)).astype(np.float32)
+    else:
+        buffer = np.zeros(height * width, dtype=np.float32)
+        buffer[pixels] = (sums * (1.0 / phys.WEIGHT_UNITS)).astype(np.float32)
+    sigma = float(phys.BLUR_LEVELS_PX[layer - 1])
+    return cv2.GaussianBlur(buffer.reshape(height, width), (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_CONSTANT).reshape(-1)
+
+
+class _StreakRuns:
+    """The sums of :class:`_StreakAccumulator` when the drops take more than
+    :data:`STREAK_SAMPLE_BUDGET` samples: each rate rasterises its new drops in runs of at most
+    that many samples and adds them to dense per-layer sums (one (H * W,) float64 row per blur
+    layer the drops use), so memory is bounded by the image, not by the streaks' length. The same
+    numbers: the sums are exact integers and a drop's splats depend on it and the depth alone."""
+
+    def __init__(self, air: phys.AirDrops, depth: np.ndarray, samples: np.ndarray) -> None:
+        self.height, self.width = depth.shape
+        self.air, self.depth, self.samples = air, depth, samples
+        self.threshold = air.threshold_rate_mm_h  # ascending
+        self.layers = np.unique(phys.blur_layer(air.blur_sigma_px))
+        self.sums = np.zeros((self.layers.shape[0], self.height * self.width), dtype=np.float64)
+        self.visible = np.zeros(len(air), dtype=bool)
+        self.drawn = 0  # drops added
+
+    def add_rate(self, rate: float) -> None:
+        """Add the drops of threshold rate <= ``rate`` not yet added (rates ascending)."""
+        upto = max(int(np.searchsorted(self.threshold, rate, side="right")), self.drawn)
+        pixels = self.height * self.width
+        for low, high in lens_mod.lens_drop_chunks(self.samples[self.drawn:upto], STREAK_SAMPLE_BUDGET):
+            low, high = low + self.drawn, high + self.drawn
+            raster = phys.rasterize_streaks(self.air.select(slice(low, high)), self.depth)
+            self.visible[low:high] = raster.visible
+            slot = np.searchsorted(self.layers, raster.layer)
+            for row in np.unique(slot):
+                mine = slot == row
+                self.sums[row] += np.bincount(raster.pixel[mine], raster.weight_units[mine], minlength=pixels)
+        self.drawn = upto
+
+    def visible_count(self) -> int:
+        """Drops added so far with at least one pixel drawn."""
+        return int(np.count_nonzero(self.visible[:self.drawn]))
+
+    def opacity(self) -> np.ndarray:
+        """(H, W) float32 streak opacity in [0, 1], as :meth:`_StreakAccumulator.opacity`."""
+        opacity = np.zeros(self.height * self.width, dtype=np.float32)
+        for row, layer in enumerate(self.layers):
+            if layer == 0:
+                opacity = (self.sums[row] * (1.0 / phys.WEIGHT_UNITS)).astype(np.float32)
+            elif self.sums[row].any():
+                opacity += _blurred_layer(self.sums[row], None, int(layer), self.height, self.width)
         np.minimum(opacity, np.float32(1.0), out=opacity)
         return opacity.reshape(self.height, self.width)
