@@ -72,6 +72,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -98,6 +99,10 @@ labels, so the model has 4 classes."""
 TRAIN_SEED_START = 1_000_000
 """Seeds of training and validation scenes are >= this; evaluation seeds are below it."""
 RECIPES_DIR = Path(__file__).resolve().parent / "recipes"
+RECIPE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+"""What a recipe's ``name`` may be: a plain file name (it names ``OUT/<name>.pt`` and the default
+``OUT``, ``runs/<name>``), so a recipe never writes outside its ``OUT``."""
+
 RECIPE_KEYS = {"name", "architecture", "train_data", "val_data", "train", "cpu", "eval_imgsz",
                "classes", "reader", "rain_curriculum", "random_rain", "init_weights", "wise_alpha"}
 READERS = ("shards", "export")
@@ -254,6 +259,10 @@ def load_recipe(recipe: str | Path) -> Recipe:
             where = key if number == 0 else f"{key}.restarts[{number}]"
             _check_train_arguments(arguments, f"{source}: `{where}")
             _stage_tiles(arguments, f"{source}: `{where}")
+    name = raw["name"]
+    if not (isinstance(name, str) and RECIPE_NAME.fullmatch(name)):
+        raise TrainError(f"{source}: `name` must be a file name of letters, digits, '.', '_' and '-' "
+                         f"(it names OUT/<name>.pt and the default OUT runs/<name>), got {name!r}")
     check_architecture(raw["architecture"], source)
     eval_imgsz = raw.get("eval_imgsz", DEFAULT_IMGSZ)
     if not (is_int(eval_imgsz) and eval_imgsz >= 32):
@@ -302,7 +311,7 @@ def load_recipe(recipe: str | Path) -> Recipe:
     val_data = _dataset_config(raw["val_data"], "val_data", source)
     if _seed_range(train_data) & _seed_range(val_data):
         raise TrainError(f"{source}: train_data and val_data seeds overlap; validation scenes must be unseen")
-    return Recipe(name=str(raw["name"]), architecture=str(raw["architecture"]), train_data=train_data,
+    return Recipe(name=name, architecture=str(raw["architecture"]), train_data=train_data,
                   val_data=val_data, train_args=dict(train_args), cpu_args=dict(cpu_args), source=source,
                   eval_imgsz=eval_imgsz, classes=classes, reader=reader, curriculum=curriculum,
                   random_rain=random_rain, init_weights=init_weights, wise_alpha=wise_alpha)
@@ -384,6 +393,30 @@ def check_architecture(architecture: Any, source: str) -> str:
         raise TrainError(f"{source}: `architecture`: {found} is not an ultralytics model yaml (it needs `backbone` "
                          "and `head`)")
     return text
+
+
+def check_first_model(recipe: Recipe, ultralytics: Any) -> None:
+    """Build the first stage's model as :func:`train` does (``YOLO(architecture)``, then
+    ``init_weights`` loaded into it) and check that it is a detection model, so that a file that
+    is not a checkpoint, or a classification or pose model, fails before the data is generated.
+    A :class:`TrainError` names the recipe and the key."""
+    model = _load_or_refuse(recipe, "architecture", recipe.architecture, lambda: ultralytics.YOLO(recipe.architecture))
+    if getattr(model, "task", None) != "detect":
+        raise TrainError(f"{recipe.source}: `architecture`: {recipe.architecture} is a "
+                         f"{getattr(model, 'task', 'unknown')!r} model; expected a detection model")
+    if recipe.init_weights is not None:
+        _load_or_refuse(recipe, "init_weights", recipe.init_weights, lambda: model.load(str(recipe.init_weights)))
+
+
+def _load_or_refuse(recipe: Recipe, key: str, value: Any, load: Callable[[], Any]) -> Any:
+    """``load()``, or a :class:`TrainError` naming the recipe's ``key`` and what ultralytics said."""
+    try:
+        return load()
+    except Exception as error:  # ultralytics raises TypeError, RuntimeError, KeyError, pickle errors
+        reason = " ".join(str(error).split()) or type(error).__name__
+        if len(reason) > 200:  # ultralytics' advice runs on; keep its start, whole words
+            reason = reason[:200].rsplit(" ", 1)[0] + " ..."
+        raise TrainError(f"{recipe.source}: `{key}`: {value} does not load as an ultralytics model ({reason})") from None
 
 
 def check_device(device: str | None) -> str | None:
@@ -557,6 +590,7 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     # everything that would fail only once training starts fails here, before anything is written
     device = check_device(device)
     check_architecture(recipe.architecture, recipe.source)
+    check_first_model(recipe, ultralytics)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cuda = torch.cuda.is_available() if device is None else device != "cpu"

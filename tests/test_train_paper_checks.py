@@ -3,6 +3,7 @@ architecture, init_weights and train() arguments, the device, the models and the
 Each case is a one-line error naming what is at fault, exit status 2, and no file written."""
 
 import dataclasses
+import re
 from pathlib import Path
 
 import pytest
@@ -99,6 +100,50 @@ def test_train_checks_a_recipe_object_before_writing(tmp_path):
     with pytest.raises(train.TrainError, match=r"`architecture`: 'nonexistent.yaml' is not an ultralytics"):
         train.train(recipe, out, device="cpu")
     _nothing_written(out)
+
+
+@pytest.mark.parametrize("field, make, message", [
+    ("architecture", lambda d: _write(d / "random.pt", bytes(range(256)) * 8),
+     r"`architecture`: \S+random\.pt does not load as an ultralytics model \(.*not a loadable checkpoint.*\)"),
+    ("architecture", lambda d: "yolo11n-cls.yaml",
+     r"`architecture`: yolo11n-cls\.yaml is a 'classify' model; expected a detection model"),
+    ("init_weights", lambda d: _write(d / "random.pt", bytes(range(256)) * 8),
+     r"`init_weights`: \S+random\.pt does not load as an ultralytics model \(.*not a loadable checkpoint.*\)"),
+    ("init_weights", lambda d: _torch_save(d / "dict.pt", {"a": 1}),
+     r"`init_weights`: \S+dict\.pt does not load as an ultralytics model \(.+\)"),
+])
+def test_train_builds_its_first_model_before_generating(tmp_path, capsys, field, make, message):
+    """A file that is not a checkpoint (or a model that is not a detector) as `architecture` or
+    `init_weights` passed the name checks, then failed with a traceback after the data was made."""
+    value = make(tmp_path)
+    old = "architecture: yolo11n.yaml"
+    recipe = _recipe(tmp_path, old, f"architecture: {value}" if field == "architecture" else f"{old}\ninit_weights: {value}")
+    out = tmp_path / "tr"
+    code, stdout, err = _run(capsys, "train", "--recipe", recipe, "--out", out, "--device", "cpu")
+    assert code == 2 and stdout == "" and err.count("\n") == 1
+    assert re.fullmatch(r"rainbench: error: " + re.escape(str(recipe)) + ": " + message + "\n", err), err
+    _nothing_written(out)
+
+
+@pytest.mark.parametrize("name", ["/tmp/elsewhere", "sub/model", "../up", ".hidden", "", "a b", "x" * 129])
+def test_a_recipe_name_is_a_plain_file_name(tmp_path, name):
+    """The name becomes OUT/<name>.pt and the default OUT runs/<name>: an absolute name wrote the
+    model outside OUT, one with a slash failed after training."""
+    recipe = _recipe(tmp_path, "name: tiny-yolo", f"name: '{name}'")
+    with pytest.raises(train.TrainError, match=r"^" + re.escape(f"{recipe}: `name` must be a file name of letters, "
+                                                                 "digits, '.', '_' and '-'") + r".*got '.*'$"):
+        train.load_recipe(recipe)
+    assert train.load_recipe(_recipe(tmp_path, "name: tiny-yolo", "name: My_model-2.1")).name == "My_model-2.1"
+
+
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+def _torch_save(path: Path, value) -> Path:
+    torch.save(value, path)
+    return path
 
 
 @pytest.mark.parametrize("device, message", [
