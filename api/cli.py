@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import os
 import select
+import signal
 import sys
+import threading
 import tempfile
 from pathlib import Path
 
@@ -21,6 +23,23 @@ EXIT_USAGE = 2
 
 class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (a job scheduler's time limit, a closed terminal), raised in the main
+    thread as Ctrl-C's KeyboardInterrupt is, so that a terminated run stops its workers and cleans
+    up the same way; the exit status is 128 + the signal's number."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+TERMINATING_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+
+def _raise_terminated(signum: int, frame) -> None:
+    raise Terminated(signum)
 
 
 def _shown(text) -> str:
@@ -226,12 +245,18 @@ def _finished_dataset(data: str | Path, allow_incomplete: bool, flag: str = "DAT
     """Refuse a dataset directory whose manifest says it is incomplete (an interrupted or running
     ``rainbench generate``): results from it would cover only its finished shards while looking
     whole. With ``allow_incomplete`` it is read, with a one-line warning."""
-    from rainbench.store.manifest import read_manifest
+    from rainbench.store.manifest import MANIFEST, coverage_problems, read_manifest
 
     if not Path(data).is_dir():
         return  # one shard file: no manifest to say
     manifest = read_manifest(data)
-    if manifest is None or manifest["complete"]:
+    if manifest is None:
+        return
+    if manifest["complete"]:
+        # a manifest edited by hand (or by another tool) may say complete and list fewer shards
+        problems = coverage_problems(Path(data) / MANIFEST, manifest)
+        if problems:
+            raise CliError(f"{flag}: {problems[0]} (rainbench verify {data} lists every problem)")
         return
     listed = len(manifest["shards"])
     if not allow_incomplete:
@@ -831,6 +856,17 @@ def worker_error_message(error: BaseException) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        handlers = {signum: signal.signal(signum, _raise_terminated) for signum in TERMINATING_SIGNALS}
+    try:
+        return _run(args)
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return args.run(args)
     except (CliError, ValueError, gl.GLBackendError, OSError, RuntimeError) as error:
@@ -842,14 +878,18 @@ def main(argv: list[str] | None = None) -> int:
         message = " ".join(worker_error_message(error).split())
         print(f"rainbench: error: {message}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        if args.command == "generate":
-            print(f"rainbench: interrupted; the workers are stopped, {Path(args.out) / 'manifest.json'} "
-                  "lists the complete shards and nothing partial is under a final name; run the "
-                  "same command again to resume", file=sys.stderr)
+    except KeyboardInterrupt as interrupt:
+        how = f"terminated by {interrupt.args[0]}" if isinstance(interrupt, Terminated) else "interrupted"
+        manifest = Path(args.out) / "manifest.json" if args.command == "generate" else None
+        if manifest is not None and manifest.is_file():
+            print(f"rainbench: {how}; the workers are stopped, {manifest} lists the complete shards and nothing "
+                  "partial is under a final name; run the same command again to resume", file=sys.stderr)
+        elif manifest is not None:
+            print(f"rainbench: {how} before a shard was finished; nothing of the run is kept: run the same command "
+                  "again to start it", file=sys.stderr)
         else:
-            print("rainbench: interrupted", file=sys.stderr)
-        return 130
+            print(f"rainbench: {how}", file=sys.stderr)
+        return 128 + interrupt.signum if isinstance(interrupt, Terminated) else 130
 
 
 if __name__ == "__main__":

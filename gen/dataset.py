@@ -40,6 +40,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from rainbench import __version__
@@ -76,13 +77,20 @@ def _die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="rainbench-parent-watch", daemon=True).start()
 
 
+PARENT_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""Signals a local worker ignores: sent to the whole process group (Ctrl-C, a scheduler stopping
+the job), the parent gets them, stops the workers and cleans up."""
+
+
 def _init_worker(progress_queue, render_threads: int | None, threads: int,
                  parent_pid: int | None = None) -> None:
     global _progress_queue
     if parent_pid is not None:
         _die_with_parent(parent_pid)
-    # Ctrl-C goes to the whole process group: the parent handles it and stops the workers.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # Ctrl-C (and a SIGTERM or SIGHUP sent to the whole process group) goes to every process:
+    # the parent handles it and stops the workers.
+    for signum in PARENT_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
     _progress_queue = progress_queue
     if render_threads is not None:
         os.environ["LP_NUM_THREADS"] = str(render_threads)
@@ -130,8 +138,11 @@ def _locked(root: Path):
     else:
         raise DatasetError(f"OUT: cannot lock {path} (it keeps being replaced)")
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
+        except OSError as error:
+            raise DatasetError(f"OUT: cannot write the lock file {path} ({error.strerror})") from None
         yield
     finally:
         with contextlib.suppress(OSError):
@@ -353,7 +364,7 @@ def _run_local_pool(tasks, pending, root, workers, render_threads, threads, reco
             # Workers are started with SIGINT blocked (the mask is inherited through fork and exec)
             # so that a Ctrl-C while they start cannot kill one with a traceback; the parent gets
             # it as soon as its mask is restored, and stops them.
-            mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            mask = signal.pthread_sigmask(signal.SIG_BLOCK, set(PARENT_SIGNALS))
             try:
                 for index, number, piece, folder in jobs:
                     futures[pool.submit(_generate_task, piece, str(folder), threads)] = (index, number)
@@ -364,7 +375,15 @@ def _run_local_pool(tasks, pending, root, workers, render_threads, threads, reco
                 done, remaining = wait(remaining, timeout=0.2, return_when=FIRST_COMPLETED)
                 _drain(progress_queue, progress)
                 for future in done:
-                    piece_done(*futures[future], Path(future.result()))
+                    try:
+                        result = future.result()
+                    except BrokenProcessPool:
+                        index, number = futures[future]
+                        raise DatasetError(
+                            f"{shard_name(tasks[index].seed, tasks[index].frame_offset)}: a worker process died while "
+                            f"rendering it (killed by a signal: out of memory? fewer --workers, or a smaller image, "
+                            f"need less)") from None
+                    piece_done(*futures[future], Path(result))
         except BaseException:
             _stop_workers(pool)
             raise

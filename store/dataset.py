@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .manifest import DatasetError, list_shards
+from .manifest import DatasetError, entry_problem, list_shards, manifest_entries
 from .rates import MissingRate, rate_decimal, rate_rows
 from .shard import open_checked, open_shard, read_frame_ignore, read_frame_labels, read_rgb, rgb_checksum
 
@@ -90,10 +90,16 @@ class Dataset:
         self._rows: list[list[int]] = []
         self._sizes: list[tuple[int, int]] = []
         first: np.ndarray | None = None
+        entries = manifest_entries(data)
         for number, path in enumerate(self.shards):
             with open_checked(path) as handle:  # refuses NaN boxes, inconsistent offsets
+                disagreement = entry_problem(path, entries[path], handle) if path in entries else None
+                if disagreement is not None:
+                    raise DatasetError(disagreement)
                 stored = handle["rates"][()]
                 frames = int(handle["labels/offsets"].shape[0]) - 1
+                if path in entries and frames != entries[path]["frames"]:
+                    raise DatasetError(f"{path}: {frames} frames, its manifest says {entries[path]['frames']}")
                 self._sizes.append((int(handle.attrs["height"]), int(handle.attrs["width"])))
             if rates is None:
                 if first is None:

@@ -109,12 +109,13 @@ def _stage_owner_alive(stage: Path) -> bool:
 def _staged(out_dir: Path, overwrite: bool, targets: Sequence[str]):
     """Yield a staging folder inside ``out_dir``; when the block succeeds, move each of
     ``targets`` (paths relative to the staging folder, in order) to the same place in
-    ``out_dir``, replacing what is there. On failure nothing is moved and the staging folder is
-    removed (and ``out_dir`` too if this export created it). A non-empty ``out_dir`` is refused
-    unless ``overwrite``."""
+    ``out_dir``, replacing what is there (:func:`_swap_in`: all of them or, after a failure or an
+    interrupt, none). On failure nothing is moved and the staging folder is removed (and
+    ``out_dir`` and the parents this export created, when empty). A non-empty ``out_dir`` is
+    refused unless ``overwrite``."""
     if out_dir.exists() and not out_dir.is_dir():
         raise ExportError(f"OUT: {out_dir} exists and is not a directory")
-    created = not out_dir.exists()
+    created = [folder for folder in (out_dir, *out_dir.parents) if not folder.exists()]
     if not created:
         for stage in out_dir.glob(f"{_STAGE_PREFIX}*"):
             if _stage_owner_alive(stage):
@@ -124,24 +125,52 @@ def _staged(out_dir: Path, overwrite: bool, targets: Sequence[str]):
         if any(out_dir.iterdir()) and not overwrite:
             raise ExportError(f"OUT: {out_dir} is not empty; use --overwrite or choose another "
                               "directory")
+        for relative in targets:  # a file where a target's folder goes would stop the swap half way
+            for folder in reversed((out_dir / relative).relative_to(out_dir).parents[:-1]):
+                if (out_dir / folder).exists() and not (out_dir / folder).is_dir():
+                    raise ExportError(f"OUT: {out_dir / folder} is a file where the export puts a folder; "
+                                      "remove it or choose another directory")
     out_dir.mkdir(parents=True, exist_ok=True)
     stage = out_dir / f"{_STAGE_PREFIX}{os.getpid()}"
     stage.mkdir()
     try:
         yield stage
-        for relative in targets:
-            final = out_dir / relative
-            if final.is_dir() and not final.is_symlink():
-                shutil.rmtree(final)
-            elif final.exists() or final.is_symlink():
-                final.unlink()
-            final.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(stage / relative, final)
+        _swap_in(stage, out_dir, targets)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
-        if created:
+        for folder in created:  # deepest first; only when empty: a failed export into a new directory
             with contextlib.suppress(OSError):
-                out_dir.rmdir()  # only when empty: a failed export into a new directory
+                folder.rmdir()
+
+
+def _swap_in(stage: Path, out_dir: Path, targets: Sequence[str]) -> None:
+    """Move ``targets`` from ``stage`` into ``out_dir``. What a target replaces is first moved
+    aside (into the staging folder: renames in one file system), so that an error or an
+    interrupt part way removes the targets already moved in and puts back what they replaced:
+    ``out_dir`` then holds the previous export, never a mix of two."""
+    aside = stage / ".replaced"
+    moved_in: list[str] = []
+    moved_aside: list[str] = []
+    try:
+        for relative in targets:
+            final = out_dir / relative
+            if final.exists() or final.is_symlink():
+                (aside / relative).parent.mkdir(parents=True, exist_ok=True)
+                os.replace(final, aside / relative)
+                moved_aside.append(relative)
+            final.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / relative, final)
+            moved_in.append(relative)
+    except BaseException:
+        for relative in reversed(moved_in):
+            final = out_dir / relative
+            if final.is_dir() and not final.is_symlink():
+                shutil.rmtree(final, ignore_errors=True)
+            else:
+                final.unlink(missing_ok=True)
+        for relative in reversed(moved_aside):
+            os.replace(aside / relative, out_dir / relative)
+        raise
 
 
 def _check_image_format(image_format: str) -> str:

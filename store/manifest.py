@@ -19,7 +19,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from .rates import check_rate_list
-from .shard import ShardFormatError, open_checked
+from .shard import ShardFormatError, open_checked, shard_name
 
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "rainbench.manifest"
@@ -61,12 +61,18 @@ def shard_entry(path: Path, root: Path, *, scene_seed: int, frame_offset: int, f
 
 
 def _atomic_write_json(path: Path, payload: dict) -> None:
+    """Write ``path`` through a temporary file renamed over it; an OSError (a full disk) removes
+    the temporary file and is a :class:`DatasetError` naming ``path``."""
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as handle:
-        json.dump(payload, handle, indent=1, sort_keys=True)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w") as handle:
+            json.dump(payload, handle, indent=1, sort_keys=True)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except OSError as error:
+        tmp.unlink(missing_ok=True)
+        raise DatasetError(f"{path}: cannot write it ({error.strerror or error})") from None
 
 
 def write_manifest(root: Path, config: dict, entries: list[dict], complete: bool) -> Path:
@@ -157,6 +163,30 @@ def check_manifest(manifest, path: str | Path) -> dict:
     return manifest
 
 
+def manifest_entries(data: str | Path | Sequence[str | Path]) -> dict[Path, dict]:
+    """The manifest entry of each shard of dataset directory ``data`` by path (as
+    :func:`list_shards` gives them); empty for shard files or a directory without a manifest."""
+    if isinstance(data, (list, tuple)) or not Path(data).is_dir():
+        return {}
+    manifest = read_manifest(Path(data))
+    return {} if manifest is None else {Path(data) / entry["path"]: entry for entry in manifest["shards"]}
+
+
+def entry_problem(path: Path, entry: dict, handle) -> str | None:
+    """What a shard file disagrees with in its manifest entry, checked without hashing it (a
+    shard replaced, swapped or rewritten since the manifest was written): its size, scene and
+    first frame; None when they agree. ``handle`` is the open shard."""
+    size = path.stat().st_size
+    if size != entry["bytes"]:
+        return (f"{path}: {size} bytes, its manifest says {entry['bytes']} (changed since it was written: "
+                "rainbench verify checks the dataset)")
+    stored = tuple(int(handle.attrs.get(key, -1)) for key in ("scene_seed", "frame_offset"))
+    if stored != (entry["scene_seed"], entry["frame_offset"]):
+        return (f"{path}: holds scene {stored[0]} from frame {stored[1]}, its manifest says scene "
+                f"{entry['scene_seed']} from frame {entry['frame_offset']}")
+    return None
+
+
 def list_shards(data: str | Path | Sequence[str | Path]) -> list[Path]:
     """Shard paths of a dataset directory (manifest order; sorted names without a manifest),
     of one shard file, or of a list of shard files (kept in the given order)."""
@@ -193,7 +223,7 @@ def verify_dataset(root: str | Path) -> list[str]:
         problems.append(f"{root / MANIFEST}: the dataset is incomplete (run the same command "
                         "again to finish it)")
     problems += _config_problems(root / MANIFEST, manifest["config"])
-    problems += _coverage_problems(root / MANIFEST, manifest)
+    problems += coverage_problems(root / MANIFEST, manifest)
     for entry in manifest["shards"]:
         path = root / entry["path"]
         if not path.is_file():
@@ -209,7 +239,10 @@ def verify_dataset(root: str | Path) -> list[str]:
             with open_checked(path) as handle:
                 rgb = handle["rgb"].shape
                 offsets = handle["labels/offsets"].shape[0]
-                if rgb[:2] != (len(entry["rates"]), entry["frames"]) or offsets != rgb[1] + 1:
+                disagreement = entry_problem(path, entry, handle)
+                if disagreement is not None:
+                    problems.append(disagreement)
+                elif rgb[:2] != (len(entry["rates"]), entry["frames"]) or offsets != rgb[1] + 1:
                     problems.append(f"{path}: shapes disagree with the manifest (rgb {rgb})")
                 elif not np.array_equal(np.asarray(handle["rates"][()], np.float32),
                                         np.asarray(entry["rates"], np.float64).astype(np.float32)):
@@ -279,7 +312,7 @@ def _config_problems(manifest_path: Path, config: dict) -> list[str]:
     return problems
 
 
-def _coverage_problems(manifest_path: Path, manifest: dict) -> list[str]:
+def coverage_problems(manifest_path: Path, manifest: dict) -> list[str]:
     """Manifest entries that the config does not describe (another scene, frame range or rate
     list), and, for a manifest that says it is complete, the config's shards it lacks."""
     config = manifest["config"]
@@ -290,11 +323,18 @@ def _coverage_problems(manifest_path: Path, manifest: dict) -> list[str]:
     rates_known = isinstance(rates, list) and all(
         isinstance(rate, (int, float)) and not isinstance(rate, bool) for rate in rates)
     problems, listed = [], set()
+    previous = None
     for number, entry in enumerate(manifest["shards"]):
         where = f"{manifest_path}: shards[{number}] ({entry['path']})"
         key = (entry["scene_seed"], entry["frame_offset"])
         listed.add(key)
-        if expected.get(key) != entry["frames"]:
+        if previous is not None and key <= previous:
+            problems.append(f"{where}: scene {key[0]} from frame {key[1]} is listed after scene {previous[0]} from "
+                            f"frame {previous[1]} (shards are listed in dataset order: an image's index depends on it)")
+        previous = key
+        if entry["path"] != shard_name(*key):
+            problems.append(f"{where}: the shard of scene {key[0]} from frame {key[1]} is named {shard_name(*key)}")
+        elif expected.get(key) != entry["frames"]:
             problems.append(f"{where}: scene {key[0]}, frames {key[1]}..{key[1] + entry['frames'] - 1} "
                             "is not a shard of the manifest's config")
         elif rates_known and [float(rate) for rate in entry["rates"]] != [float(rate) for rate in rates]:
@@ -310,9 +350,10 @@ def _coverage_problems(manifest_path: Path, manifest: dict) -> list[str]:
 
 def unlisted_shards(root: str | Path) -> list[Path]:
     """``.h5`` files under dataset ``root`` that its manifest does not list (so not part of the
-    dataset: ``rainbench verify`` warns about them). Hidden temporary files are not counted."""
+    dataset: ``rainbench verify`` warns about them). Hidden temporary files and what hidden folders
+    hold (a killed run's ``.pieces.tmp-PID``) are not counted."""
     root = Path(root)
     manifest = read_manifest(root)
     listed = {root / entry["path"] for entry in manifest["shards"]} if manifest else set()
     return sorted(path for path in root.rglob("*.h5")
-                  if not path.name.startswith(".") and path not in listed)
+                  if not any(part.startswith(".") for part in path.relative_to(root).parts) and path not in listed)

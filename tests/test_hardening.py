@@ -27,6 +27,7 @@ from rainbench.store import export as ex
 from rainbench import gl
 from rainbench.gen.generate import build_scene, generate_shard
 from rainbench.gen.render import FrameRenderer, padded_size
+from rainbench.store.manifest import write_manifest
 from rainbench.store.shard import ShardFormatError
 from rainbench.mjcf.scene import build_spec
 from cli_errors import cli_status, one_line_error
@@ -195,8 +196,12 @@ def test_kill_9_of_a_two_worker_run_kills_its_workers_and_the_rerun_resumes(refe
     assert not list(out.glob(".*"))  # no temporary file, no lock file left
 
 
+@pytest.mark.parametrize("stop", ["ctrl-c", "sigterm"])
 def test_ctrl_c_stops_the_workers_tells_the_truth_and_the_rerun_resumes(reference, tmp_path,
-                                                                        capsys):
+                                                                        capsys, stop):
+    """Ctrl-C (SIGINT to the whole process group), or SIGTERM to the parent alone (`kill PID`, a
+    job scheduler's time limit: it killed the run silently, leaving its lock, temporary shards and
+    a shard missing from the manifest)."""
     out = tmp_path / "k3"
     process = _start(out, *SLOW)
     try:
@@ -206,13 +211,24 @@ def test_ctrl_c_stops_the_workers_tells_the_truth_and_the_rerun_resumes(referenc
         _one_line_error(capsys, code, re.escape(f"OUT: {out} is being written by another rainbench "
                                                 f"generate (pid {process.pid}); wait for it to "
                                                 "finish or choose another OUT"))
-        os.killpg(process.pid, signal.SIGINT)  # Ctrl-C: the whole process group
+        if stop == "ctrl-c":
+            os.killpg(process.pid, signal.SIGINT)  # Ctrl-C: the whole process group
+        else:
+            process.send_signal(signal.SIGTERM)
         _, err = process.communicate(timeout=120)
-        assert process.returncode == 130
-        assert err.strip().splitlines() == [
-            f"rainbench: interrupted; the workers are stopped, {out / 'manifest.json'} lists the "
-            "complete shards and nothing partial is under a final name; run the same command "
-            "again to resume"]
+        assert process.returncode == (130 if stop == "ctrl-c" else 128 + signal.SIGTERM)
+        how = "interrupted" if stop == "ctrl-c" else "terminated by SIGTERM"
+        if (out / store.MANIFEST).exists():
+            assert err.strip().splitlines() == [
+                f"rainbench: {how}; the workers are stopped, {out / 'manifest.json'} lists the "
+                "complete shards and nothing partial is under a final name; run the same command "
+                "again to resume"]
+        else:  # stopped in its first shard: the manifest it wrote first is removed, as it came
+            assert err.strip().splitlines() == [
+                f"rainbench: {how} before a shard was finished; nothing of the run is kept: run the "
+                "same command again to start it"]
+            assert not any(out.iterdir())
+        assert not (out / ".rainbench-generate.lock").exists()
         assert _wait_group_gone(process.pid, timeout=10) == []
         finals = sorted(p.name for p in out.glob("scene*.h5"))
         time.sleep(2)
@@ -226,6 +242,29 @@ def test_ctrl_c_stops_the_workers_tells_the_truth_and_the_rerun_resumes(referenc
             os.killpg(process.pid, signal.SIGKILL)
     assert cli.main(GEN + ["--out", str(out), "--workers", "2"]) == 0
     assert _hashes(out) == reference
+
+
+def test_a_worker_killed_on_its_own_is_one_line_naming_its_shard(tmp_path):
+    """The kernel's out-of-memory killer takes one worker: the parent said only "A process in the
+    process pool was terminated abruptly while the future was running or pending"."""
+    out = tmp_path / "oom"
+    process = _start(out, *SLOW)
+    try:
+        _wait_for_temporary(process, out)
+        workers = [pid for pid in _live_group(process.pid) if pid != process.pid
+                   and b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes()]
+        assert workers
+        os.kill(workers[0], signal.SIGKILL)
+        _, err = process.communicate(timeout=120)
+        assert process.returncode == 2
+        assert re.fullmatch(r"rainbench: error: scene000000_f000(00|16|32)\.h5: a worker process died while rendering "
+                            r"it \(killed by a signal: out of memory\? fewer --workers, or a smaller image, need less\)\n",
+                            err), err
+        assert _wait_group_gone(process.pid, timeout=10) == []
+        assert not list(out.glob(".*tmp*"))
+    finally:
+        if _live_group(process.pid):
+            os.killpg(process.pid, signal.SIGKILL)
 
 
 def test_the_manifest_exists_before_the_first_shard(tmp_path):
@@ -627,6 +666,138 @@ def test_verify_warns_about_shards_outside_the_manifest(small, tmp_path, capsys)
         f"rainbench: warning: {out / name}: not listed in the manifest, so not part of the "
         "dataset (ignored)" for name in ("extra.h5", "old/scene000000_f00000.h5")]
     assert store.unlisted_shards(small) == []
+
+
+def _rewrite_manifest(root, edit) -> None:
+    path = root / store.MANIFEST
+    manifest = json.loads(path.read_text())
+    edit(manifest)
+    path.write_text(json.dumps(manifest))
+
+
+def test_readers_check_each_shard_against_its_manifest_entry(small, tmp_path):
+    """Shards swapped, or rewritten since the manifest was written: exports, stats and the
+    readers served the wrong frames (or changed labels) under the listed names; only verify
+    (which hashes) noticed."""
+    out = _copy_tree(small, tmp_path / "swapped")
+    first, second = out / "scene000000_f00000.h5", out / "scene000000_f00002.h5"
+    first.rename(out / "x.h5")
+    second.rename(first)
+    (out / "x.h5").rename(second)
+    with pytest.raises(store.DatasetError, match=r"^" + re.escape(str(first)) + r": (\d+ bytes, its manifest says \d+ "
+                       r"\(changed since it was written: rainbench verify checks the dataset\)|holds scene 0 from "
+                       r"frame 2, its manifest says scene 0 from frame 0)$"):
+        store.Dataset(out)
+    out = _copy_tree(small, tmp_path / "offsets")
+    _rewrite_manifest(out, lambda m: m["shards"][1].update(frame_offset=5))
+    with pytest.raises(store.DatasetError, match=r"^" + re.escape(f"{out / 'scene000000_f00002.h5'}: holds scene 0 "
+                                                                   "from frame 2, its manifest says scene 0 from frame 5") + "$"):
+        store.Dataset(out)
+    out = _copy_tree(small, tmp_path / "frames")
+    _rewrite_manifest(out, lambda m: m["shards"][0].update(frames=3))
+    with pytest.raises(store.DatasetError, match=r"^" + re.escape(f"{out / 'scene000000_f00000.h5'}: 2 frames, its "
+                                                                   "manifest says 3") + "$"):
+        store.Dataset(out)
+    assert len(store.Dataset(small)) == 4  # the untouched dataset reads
+
+
+def test_verify_checks_the_order_names_and_contents_of_manifest_entries(small, tmp_path, capsys):
+    """Entries reordered (every image id moves) or with swapped offsets: verify said ok."""
+    out = _copy_tree(small, tmp_path / "order")
+    _rewrite_manifest(out, lambda m: m["shards"].reverse())
+    assert cli.main(["verify", str(out)]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"rainbench: bad: {out / store.MANIFEST}: shards[1] (scene000000_f00000.h5): scene 0 from frame 0 is listed "
+        "after scene 0 from frame 2 (shards are listed in dataset order: an image's index depends on it)"]
+    out = _copy_tree(small, tmp_path / "offsets")
+
+    def swap_offsets(manifest):
+        first, second = manifest["shards"]
+        first["frame_offset"], second["frame_offset"] = second["frame_offset"], first["frame_offset"]
+
+    _rewrite_manifest(out, swap_offsets)
+    assert cli.main(["verify", str(out)]) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert f"rainbench: bad: {out / store.MANIFEST}: shards[0] (scene000000_f00000.h5): the shard of scene 0 from " \
+           "frame 2 is named scene000000_f00002.h5" in lines
+    assert f"rainbench: bad: {out / 'scene000000_f00000.h5'}: holds scene 0 from frame 0, its manifest says scene 0 " \
+           "from frame 2" in lines
+
+
+def test_a_manifest_that_says_complete_but_lacks_shards_is_refused(small, tmp_path, capsys):
+    """Edited to list fewer shards and still say complete: stats and export covered part of it."""
+    out = _copy_tree(small, tmp_path / "partial")
+    _rewrite_manifest(out, lambda m: m["shards"].pop())
+    for argv in (["stats", str(out)], ["export", str(out), "--format", "coco", "--out", str(tmp_path / "e")]):
+        code = cli.main(argv)
+        _one_line_error(capsys, code, re.escape(f"DATA: {out / store.MANIFEST}: says complete but lists 1 of the "
+                                                f"config's 2 shards (first missing: scene 0, frame offset 2) "
+                                                f"(rainbench verify {out} lists every problem)"))
+    assert not (tmp_path / "e").exists()
+
+
+def test_a_manifest_that_cannot_be_written_is_named_and_leaves_no_temporary(tmp_path, monkeypatch):
+    def full(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(store.DatasetError, match=r"^" + re.escape(f"{tmp_path / store.MANIFEST}: cannot write it "
+                                                                   "(No space left on device)") + "$"):
+        write_manifest(tmp_path, DatasetConfig(**SMALL).to_dict(), [], complete=False)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_verify_ignores_what_hidden_folders_hold(small, tmp_path, capsys):
+    """A killed run's `.pieces.tmp-PID` folder holds piece shards: verify called them strays."""
+    out = _copy_tree(small, tmp_path / "copy")
+    (out / ".pieces.tmp-123").mkdir()
+    shutil.copy(out / "scene000000_f00000.h5", out / ".pieces.tmp-123" / "scene000000_f00000.h5")
+    assert store.unlisted_shards(out) == []
+    assert cli.main(["verify", str(out)]) == 0 and capsys.readouterr().err == ""
+
+
+def test_an_interrupted_overwrite_puts_the_previous_export_back(small, tmp_path, monkeypatch):
+    """Targets were replaced one by one: an interrupt (or an error) half way left the new images
+    beside the old JSON files."""
+    out = tmp_path / "export"
+    ex.export_coco(small, out, rates=[0.0])
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    real, calls = os.replace, []
+
+    def interrupted(source, target):
+        calls.append(target)
+        if len(calls) == 3:  # rate_0/images set aside and replaced; now rate_0.json is set aside
+            raise KeyboardInterrupt
+        real(source, target)
+
+    monkeypatch.setattr(ex.os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        ex.export_coco(small, out, rates=[0.0], overwrite=True, image_format="jpg")
+    monkeypatch.setattr(ex.os, "replace", real)
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in out.iterdir()) == ["rate_0", "rate_0.json"]  # no staging folder left
+
+
+def test_an_overwrite_that_would_stop_half_way_is_refused_up_front(small, tmp_path, capsys):
+    out = tmp_path / "export"
+    ex.export_coco(small, out)
+    shutil.rmtree(out / "rate_50")
+    (out / "rate_50").write_text("junk")
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    code = cli.main(["export", str(small), "--format", "coco", "--out", str(out), "--overwrite"])
+    _one_line_error(capsys, code, re.escape(f"OUT: {out / 'rate_50'} is a file where the export puts a folder; remove "
+                                            "it or choose another directory"))
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_a_failed_export_into_new_folders_removes_them_all(small, tmp_path, monkeypatch, capsys):
+    def full(path, rgb):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ex, "_write_image", full)
+    code = cli.main(["export", str(small), "--format", "yolo", "--out", str(tmp_path / "n1" / "n2" / "n3")])
+    _one_line_error(capsys, code, r"\[Errno 28\] No space left on device")
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("value", ["100001", "99999999999999999999", "0", "-3", "1e3"])
