@@ -384,8 +384,8 @@ def cmd_preview(args: argparse.Namespace) -> int:
     frame = 0 if args.frame is None else args.frame
     name = f"{path.stem}_frame{frame:04d}_rates.png"
     out = Path(args.out) if args.out else path.with_name(name)
-    if args.out and out.is_dir():
-        out = out / name
+    if args.out and (out.is_dir() or not out.suffix or str(args.out).endswith(("/", os.sep))):
+        out = out / name  # a directory, made if missing
     elif out.suffix.lower() != ".png":
         raise CliError(f"--out: expected a .png file name or a directory, got {out}")
     _writable_dir(out.parent, "--out")

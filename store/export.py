@@ -291,7 +291,7 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
       scoring);
     - ``categories``: ``{"id": i, "name": CLASS_NAMES[i], "supercategory": "object"}`` for the
       COCO ids ``i`` of :func:`export_classes` (0..3, or 0..3, 5 and 7 when bus or truck labels
-      are exported).
+      or ignore regions are exported: every annotation's category is listed).
 
     ``images=True`` also writes the images at the ``file_name`` paths (the same files as
     :func:`export_yolo`, so both exports can share one ``out_dir`` with ``overwrite=True``).

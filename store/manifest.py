@@ -334,7 +334,7 @@ def coverage_problems(manifest_path: Path, manifest: dict) -> list[str]:
         previous = key
         if entry["path"] != shard_name(*key):
             problems.append(f"{where}: the shard of scene {key[0]} from frame {key[1]} is named {shard_name(*key)}")
-        elif expected.get(key) != entry["frames"]:
+        if expected.get(key) != entry["frames"]:
             problems.append(f"{where}: scene {key[0]}, frames {key[1]}..{key[1] + entry['frames'] - 1} "
                             "is not a shard of the manifest's config")
         elif rates_known and [float(rate) for rate in entry["rates"]] != [float(rate) for rate in rates]:

@@ -147,10 +147,14 @@ def test_verify_finds_a_shard_of_another_config(small, tmp_path, capsys):
                    lambda manifest: manifest["shards"][1].update(scene_seed=7))
     code, problems = _verify_problems(root, capsys)
     assert code == 1 and problems == [
+        f"rainbench: bad: {root / store.MANIFEST}: shards[1] (scene000000_f00002.h5): the shard of scene 7 from "
+        "frame 2 is named scene000007_f00002.h5",
         f"rainbench: bad: {root / store.MANIFEST}: shards[1] (scene000000_f00002.h5): scene 7, "
         "frames 2..3 is not a shard of the manifest's config",
         f"rainbench: bad: {root / store.MANIFEST}: says complete but lists 1 of the config's 2 "
-        "shards (first missing: scene 0, frame offset 2)"]
+        "shards (first missing: scene 0, frame offset 2)",
+        f"rainbench: bad: {root / 'scene000000_f00002.h5'}: holds scene 0 from frame 2, its manifest says scene 7 "
+        "from frame 2"]
 
 
 def test_verify_finds_a_shard_whose_stored_rates_differ(small, tmp_path, capsys):
@@ -527,6 +531,16 @@ def test_preview_makes_a_missing_out_folder(small, tmp_path, capsys):
     assert _cli(["preview", small, "--out", out]) == 0
     assert capsys.readouterr().out.strip() == str(out) and out.read_bytes()[:4] == b"\x89PNG"
     assert [path.name for path in out.parent.iterdir()] == ["montage.png"]  # no temporary left
+
+
+@pytest.mark.parametrize("spelled", ["newdir/", "newdir"])
+def test_preview_makes_a_missing_out_directory(small, tmp_path, capsys, spelled):
+    """`--out DIR/` (or a name without a suffix) for a DIR that does not exist yet was refused,
+    though --help says "PNG path or directory, made if missing"."""
+    code = _cli(["preview", small, "--out", f"{tmp_path}/deep/{spelled}"])
+    written = tmp_path / "deep" / "newdir" / "scene000000_f00000_frame0000_rates.png"
+    assert code == 0 and capsys.readouterr().out.strip() == str(written)
+    assert written.read_bytes()[:4] == b"\x89PNG" and [p.name for p in written.parent.iterdir()] == [written.name]
 
 
 def test_preview_video_of_one_shard_writes_beside_it(small, tmp_path, capsys):

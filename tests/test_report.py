@@ -89,6 +89,20 @@ def test_read_metrics_rejects_other_suffix(tmp_path):
         read_metrics(tmp_path / "metrics.txt")
 
 
+def test_a_report_without_rate_0_says_what_it_compares():
+    """A dataset of 50 and 100 mm/h: the tables called 50 mm/h "Normal", and one of 50 mm/h alone
+    compared "Normal vs Normal" while the robustness table printed mPC beside "Normal n/a"."""
+    rainy = [record for record in _records() if record["rate"] > 0]
+    text = render_report_md(rainy, clean_rate=50.0)
+    assert "no rate 0 (no clean frames): the tables compare with its lowest rate, 50 mm/h" in text
+    assert "## Table III. AP@0.5 degradation, 50mm/h (lowest) vs 100mm/h" in text
+    assert "mPC and rPC need clean frames (rate 0); this dataset has none." in text
+    assert "| Model | Class | AP@0.5 Normal |" not in text and "Normal vs" not in text
+    one = render_report_md([record for record in rainy if record["rate"] == 50.0], clean_rate=50.0)
+    assert "One rate only (50mm/h (lowest)): no degradation to show." in one and "## Table III." not in one
+    assert "| Model | Class | AP@0.5 Normal |" in render_report_md(_records())
+
+
 def test_report_md_has_paper_tables():
     text = render_report_md(_records())
     assert "## Table III. AP@0.5 degradation, Normal vs 100mm/h" in text

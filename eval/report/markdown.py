@@ -31,8 +31,11 @@ def _fmt_pct(value: Any) -> str:
 
 
 def _rate_label(rate: float, clean_rate: float) -> str:
-    """'Normal' for the clean rate, else e.g. '100mm/h' (the paper's labels)."""
-    return "Normal" if rate == clean_rate else f"{rate:g}mm/h"
+    """'Normal' for the clean rate 0, else e.g. '100mm/h' (the paper's labels); a dataset without
+    rate 0 compares with its lowest rate, '50mm/h (lowest)'."""
+    if rate != clean_rate:
+        return f"{rate:g}mm/h"
+    return "Normal" if rate == 0 else f"{rate:g}mm/h (lowest)"
 
 
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
@@ -170,11 +173,17 @@ def render_report_md(
         "% drop = 100 (Normal - rain) / Normal.",
         "",
     ]
-    heavy_label = _rate_label(heavy, clean_rate)
-    lines += [f"## Table III. AP@0.5 degradation, Normal vs {heavy_label}", ""]
-    lines += _degradation_table("ap50", models, classes, by_key, clean_rate, heavy, paper, paper_models)
-    lines += ["", f"## Table IV. F1 degradation, Normal vs {heavy_label}", ""]
-    lines += _degradation_table("f1", models, classes, by_key, clean_rate, heavy, paper, paper_models)
+    baseline, heavy_label = _rate_label(clean_rate, clean_rate), _rate_label(heavy, clean_rate)
+    if clean_rate != 0:
+        lines += [f"The dataset has no rate 0 (no clean frames): the tables compare with its lowest rate, "
+                  f"{clean_rate:g} mm/h, in place of Normal.", ""]
+    if heavy == clean_rate:
+        lines += ["## Tables III and IV", "", f"One rate only ({heavy_label}): no degradation to show."]
+    else:
+        lines += [f"## Table III. AP@0.5 degradation, {baseline} vs {heavy_label}", ""]
+        lines += _degradation_table("ap50", models, classes, by_key, clean_rate, heavy, paper, paper_models)
+        lines += ["", f"## Table IV. F1 degradation, {baseline} vs {heavy_label}", ""]
+        lines += _degradation_table("f1", models, classes, by_key, clean_rate, heavy, paper, paper_models)
     if paper is not None and set(classes) & set(TABLE_CLASS_ORDER):
         lines += ["", "Paper columns: the seed paper's published values (Tables III and IV), for reference."]
     for metric, label in (("ap50", "AP@0.5"), ("ap50_95", "AP@0.5:0.95"), ("f1", "F1")):
@@ -197,6 +206,9 @@ def render_report_md(
             ),
         )
     lines += ["", "## Robustness: mPC (mean over rates > 0) and rPC = mPC / Normal", ""]
+    has_clean = 0.0 in rates
+    if not has_clean:
+        lines += ["mPC and rPC need clean frames (rate 0); this dataset has none."]
     summary = {(s["model"], s["class"], s["metric"]): s for s in robustness_records(records, ("ap50", "f1"))}
     header = ["Model", "Class", "AP@0.5 Normal", "AP@0.5 mPC", "AP@0.5 rPC", "F1 Normal", "F1 mPC", "F1 rPC"]
     rows = []
@@ -207,7 +219,8 @@ def render_report_md(
                 entry = summary.get((model, class_name, metric))
                 row += [_fmt(entry["clean"]), _fmt(entry["mpc"]), _fmt(entry["rpc"])] if entry else ["n/a"] * 3
             rows.append(row)
-    lines += _table(header, rows)
+    if has_clean:
+        lines += _table(header, rows)
     if robustness:
         lines += [""] + robustness_section({"": robustness}, level="##")
     lines += ["", f"## Ground-truth instances (non-ignored), model {models[0]}", ""]
