@@ -298,11 +298,13 @@ class EvalOutputs:
 
 
 def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map, classes, pt_backend="batched",
-                    device=None) -> dict[str, Any]:
+                    device=None, trained=None) -> dict[str, Any]:
     stat = weights.stat()
     settings = {"weights": str(weights.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
                 "imgsz": imgsz, "conf": conf, "iou": iou, "max_det": max_det, "class_map": class_map,
                 "classes": list(classes)}
+    if trained is not None and set(LABELLED_CLASSES) - set(trained):  # its card leaves classes out
+        settings["trained"] = list(trained)
     if weights.suffix.lower() == ".pt":  # how it runs changes its detections (fp16 on CUDA)
         from .weights import _on_cuda
 
@@ -530,7 +532,8 @@ def _backend_detections(dataset: Dataset, specs: list, cache_root: Path, *, imag
     for spec, (path, model) in zip(specs, resolved, strict=True):
         model_imgsz = registry.model_imgsz(spec) if imgsz is None else imgsz
         settings = _cache_settings(path, imgsz=model_imgsz, conf=conf, iou=iou, max_det=max_det,
-                                   class_map=class_map, classes=class_ids, pt_backend=pt_backend, device=device)
+                                   class_map=class_map, classes=class_ids, pt_backend=pt_backend, device=device,
+                                   trained=registry.trained_classes(spec))
         meta_path = cache_root / model / "settings.json"
         try:
             cached_settings = json.loads(meta_path.read_text(encoding="utf-8"))

@@ -128,6 +128,30 @@ def test_onnx_names_metadata_and_class_map(tmp_path):
     np.testing.assert_allclose(scores[order], [0.8, 0.9], atol=1e-6)
 
 
+def test_a_models_card_limits_it_to_the_classes_it_was_trained_on(tmp_path):
+    """`rainbench train` with classes [person, car] writes a model whose YOLO names are the dense
+    ids 0..3 (person, bicycle, car, motorcycle) and a card naming person and car: `eval --classes bicycle`
+    scored its untrained output; now the card says what it predicts."""
+    rows = _head_rows(1.0, (0.0, 0.0), 4, objectness=False)
+    rows[:, 4:] = 0
+    rows[0, 4 + 1], rows[1, 4 + 0], rows[2, 4 + 2] = 0.9, 0.8, 0.6  # bicycle, person, car
+    path = _export(ConstantHead(rows.T), tmp_path / "subset.onnx", (608, 800), True,
+                   names=["person", "bicycle", "car", "motorcycle"])
+    assert backends.model_classes(backends.load_detector(path)) == (0, 1, 2, 3)  # no card: every output
+    (tmp_path / "subset.json").write_text(json.dumps({"imgsz": 640, "classes": {"0": "person", "2": "car"}}))
+    assert registry.trained_classes(path) == (0, 2) and registry.trained_classes(tmp_path / "subset.pt") == (0, 2)
+    detector = backends.load_detector(path)
+    assert backends.model_classes(detector) == (0, 2)
+    _, _, ids = detector.predict([_image()], imgsz=800, conf=0.1, iou=0.7, max_det=300)[0]
+    assert sorted(ids.tolist()) == [0, 2]  # the untrained bicycle output is dropped
+    with pytest.raises(backends.BackendError, match=r"^--classes: model 'subset' cannot predict 'bicycle' \(class 1\); "
+                       r"it predicts person, car$"):
+        backends.check_model_classes(detector, "subset", [1])
+    (tmp_path / "subset.json").write_text("[1, 2]")  # a JSON file that is not a card: ignored
+    assert registry.trained_classes(path) is None
+    assert registry.trained_classes("rainbench-yolo11n") == (0, 1, 2, 3, 5, 7)
+
+
 def test_onnx_export_of_an_ultralytics_model_matches_its_checkpoint(tmp_path):
     """The same random-weights yolo11n through .pt and through ONNX: the same detections."""
     from ultralytics import YOLO

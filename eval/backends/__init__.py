@@ -110,9 +110,10 @@ def load_detector(weights: str | Path, *, class_map: str | None = None,
     path, name = registry.resolve_weights(weights, device)
     if class_map is not None:
         parse_class_map(class_map)
+    trained = registry.trained_classes(weights)
     suffix = path.suffix.lower()
     if suffix == ".onnx":
-        return _load_onnx(path, class_map, device, classes, name)
+        return _load_onnx(path, class_map, device, classes, name, trained)
     if suffix == ".weights":
         return _load_darknet(path, class_map, classes)
     if suffix != ".pt":
@@ -121,7 +122,7 @@ def load_detector(weights: str | Path, *, class_map: str | None = None,
                            f"name ({', '.join(registry.shipped_models()) or 'none shipped'})")
     if pt_backend not in PT_BACKENDS:
         raise BackendError(f"--pt-backend: expected one of {', '.join(PT_BACKENDS)}, got {pt_backend!r}")
-    detector = _load_ultralytics(path, class_map, device, trust_pickle, classes, name)
+    detector = _load_ultralytics(path, class_map, device, trust_pickle, classes, name, trained)
     if pt_backend == "batched":
         from rainbench.eval.backends.torch_batched import supports, torch_detector
 

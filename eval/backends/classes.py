@@ -80,11 +80,14 @@ def class_lookup(names: dict[int, str] | list[str], class_map: str | None, sourc
 
 
 def _lookups(names: dict[int, str] | list[str], class_map: str | None, source: str,
-             classes: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+             classes: Sequence[int], trained: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(everything the model can predict, the part kept for ``classes``): two :func:`class_lookup`
-    tables."""
-    return (class_lookup(names, class_map, source, LABELLED_CLASSES),
-            class_lookup(names, class_map, source, classes))
+    tables; ``trained`` (:func:`rainbench.eval.weights.trained_classes`), when known, leaves out
+    the classes the model was not trained on."""
+    everything = LABELLED_CLASSES if trained is None else [c for c in LABELLED_CLASSES if c in trained]
+    kept = classes if trained is None else [c for c in classes if c in trained]
+    return (class_lookup(names, class_map, source, everything),
+            class_lookup(names, class_map, source, kept))
 
 
 def index_names(nc: int) -> list[str]:

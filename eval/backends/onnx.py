@@ -44,6 +44,7 @@ class OnnxDetector:
     lookup: np.ndarray | None = None  # model class -> rainbench id of the evaluated classes (-1 dropped)
     classes: tuple[int, ...] = PAPER_CLASSES  # the evaluated rainbench ids
     full_lookup: np.ndarray | None = None  # model class -> any rainbench id (:func:`model_classes`)
+    trained: tuple[int, ...] | None = None  # the classes its card says it was trained on (None: unknown)
 
     def configure(self, output_shape: list) -> None:
         """Decide the output layout and class table from an output shape (B, A, C)."""
@@ -51,7 +52,7 @@ class OnnxDetector:
         self.layout, nc = output_layout(output_shape, nc, Path(f"{self.name}.onnx"))
         names = self.names if self.names is not None else index_names(nc)
         self.full_lookup, self.lookup = _lookups(names, self.class_map, f"--weights {self.name}.onnx",
-                                                 self.classes)
+                                                 self.classes, self.trained)
 
     def _on_cpu(self) -> bool:
         """Whether onnxruntime runs this model on the CPU (its first provider)."""
@@ -178,7 +179,8 @@ def output_layout(dims: list, nc: int | None, path: Path) -> tuple[str, int]:
 
 
 def _load_onnx(path: Path, class_map: str | None, device: str | None,
-               classes: Sequence[int] = PAPER_CLASSES, name: str | None = None) -> OnnxDetector:
+               classes: Sequence[int] = PAPER_CLASSES, name: str | None = None,
+               trained: Sequence[int] | None = None) -> OnnxDetector:
     try:
         import onnxruntime
     except ImportError:
@@ -207,9 +209,10 @@ def _load_onnx(path: Path, class_map: str | None, device: str | None,
     names = _onnx_names(session)
     detector = OnnxDetector(name=name or path.stem, session=session, names=names, class_map=class_map,
                             input_shape=(_fixed_dim(input_dims[2]), _fixed_dim(input_dims[3])),
-                            fixed_batch=_fixed_dim(input_dims[0]), classes=tuple(classes))
+                            fixed_batch=_fixed_dim(input_dims[0]), classes=tuple(classes),
+                            trained=None if trained is None else tuple(trained))
     if names is not None:  # a bad --class-map fails now, not at the first batch
-        detector.full_lookup, detector.lookup = _lookups(names, class_map, f"--weights {path}", classes)
+        detector.full_lookup, detector.lookup = _lookups(names, class_map, f"--weights {path}", classes, trained)
     if _fixed_dim(output_dims[1]) and _fixed_dim(output_dims[2]):
         detector.configure(output_dims)
     elif names is None and class_map is not None:

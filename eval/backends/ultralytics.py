@@ -168,9 +168,11 @@ def _not_a_checkpoint(path: Path) -> str | None:
 
 
 def _load_ultralytics(path: Path, class_map: str | None, device: str | None, trust_pickle: bool | None,
-                      classes: Sequence[int] = PAPER_CLASSES, name: str | None = None) -> UltralyticsDetector:
+                      classes: Sequence[int] = PAPER_CLASSES, name: str | None = None,
+                      trained: Sequence[int] | None = None) -> UltralyticsDetector:
     """An :class:`UltralyticsDetector` for the checkpoint ``path``, read safely (full unpickler
-    only when ``trust_pickle``; None: the :data:`TRUST_PICKLE_ENV` environment variable)."""
+    only when ``trust_pickle``; None: the :data:`TRUST_PICKLE_ENV` environment variable).
+    ``trained``: the classes its card names (None: unknown), the only ones it is taken to predict."""
     if trust_pickle is None:
         trust_pickle = os.environ.get(TRUST_PICKLE_ENV, "") == "1"
     try:
@@ -207,6 +209,6 @@ def _load_ultralytics(path: Path, class_map: str | None, device: str | None, tru
     if getattr(model, "task", None) != "detect":
         raise BackendError(f"--weights: {path} is a {getattr(model, 'task', 'unknown')!r} model; "
                            "expected a detection model")
-    full_lookup, lookup = _lookups(model.names, class_map, f"--weights {path}", classes)
+    full_lookup, lookup = _lookups(model.names, class_map, f"--weights {path}", classes, trained)
     return UltralyticsDetector(name=name or path.stem, model=model, lookup=lookup, device=device,
                                full_lookup=full_lookup)

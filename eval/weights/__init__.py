@@ -143,6 +143,25 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
     return path, name
 
 
+def trained_classes(spec: str | Path) -> tuple[int, ...] | None:
+    """The rainbench class ids a model was trained on, from its card: a shipped model's
+    ``<name>.json``, or the ``.json`` beside a ``.pt`` / ``.onnx`` file (what ``rainbench train``
+    writes: ``"classes": {"0": "person", "2": "car"}``); None when there is no such card (or it
+    names no classes). A model trained on some classes still has outputs for the others (YOLO
+    names are dense ids 0..max), and what it predicts there is noise."""
+    text = str(spec)
+    card = _shipped_file(text, ".json")
+    if card is None and Path(text).suffix.lower() in (".pt", ".onnx"):
+        card = Path(text).with_suffix(".json")
+    try:
+        classes = json.loads(card.read_text()).get("classes") if card is not None and card.is_file() else None
+    except (OSError, ValueError, AttributeError):
+        return None  # not a card: a .json of something else beside the weights
+    if not (isinstance(classes, dict) and classes and all(str(key).isdigit() for key in classes)):
+        return None
+    return tuple(sorted(int(key) for key in classes))
+
+
 def model_imgsz(spec: str | Path) -> int:
     """The letterbox size a model is evaluated at by default: a shipped model's card ``imgsz``
     (``<name>.json``), else :data:`DEFAULT_IMGSZ`."""
