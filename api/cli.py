@@ -11,12 +11,16 @@ import threading
 import tempfile
 from pathlib import Path
 
-from rainbench import gl
-from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
-from rainbench.gen.config import (HFOV_DEG, MAX_CLIP_SECONDS, MAX_FPS, MAX_FRAME_OFFSET, MAX_FRAMES, MAX_SCENES,
-                                  MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig, stats_device_for)
-from rainbench.rain.config import RAIN_MODELS, RAIN_OPTIONS, RainConfig
-from rainbench.rain.weather import SKIES, TIMES_OF_DAY
+try:  # about a second of imports: Ctrl-C meanwhile is one line too, not a traceback
+    from rainbench import gl
+    from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
+    from rainbench.gen.config import (HFOV_DEG, MAX_CLIP_SECONDS, MAX_FPS, MAX_FRAME_OFFSET, MAX_FRAMES,
+                                      MAX_SCENES, MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig, stats_device_for)
+    from rainbench.rain.config import RAIN_MODELS, RAIN_OPTIONS, RainConfig
+    from rainbench.rain.weather import SKIES, TIMES_OF_DAY
+except KeyboardInterrupt:
+    print("rainbench: interrupted", file=sys.stderr)
+    raise SystemExit(130) from None
 
 EXIT_USAGE = 2
 
@@ -854,8 +858,11 @@ def worker_error_message(error: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        print("rainbench: interrupted", file=sys.stderr)
+        return 130
     handlers = {}
     if threading.current_thread() is threading.main_thread():
         handlers = {signum: signal.signal(signum, _raise_terminated) for signum in TERMINATING_SIGNALS}

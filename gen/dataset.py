@@ -82,6 +82,26 @@ PARENT_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 the job), the parent gets them, stops the workers and cleans up."""
 
 
+_held_handlers: list[dict] = []
+
+
+def _hold_signals() -> None:
+    """Ignore :data:`PARENT_SIGNALS` while a stopped run cleans up (a second Ctrl-C cut the
+    cleanup short with a traceback); :func:`_release_signals` restores the handlers. Nested
+    calls stack. Only the main thread can set handlers: elsewhere both do nothing."""
+    if threading.current_thread() is threading.main_thread():
+        previous = {signum: signal.getsignal(signum) for signum in PARENT_SIGNALS}
+        for signum in PARENT_SIGNALS:
+            signal.signal(signum, signal.SIG_IGN)
+        _held_handlers.append(previous)
+
+
+def _release_signals() -> None:
+    if threading.current_thread() is threading.main_thread() and _held_handlers:
+        for signum, handler in _held_handlers.pop().items():
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+
+
 def _init_worker(progress_queue, render_threads: int | None, threads: int,
                  parent_pid: int | None = None) -> None:
     global _progress_queue
@@ -294,6 +314,7 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
         except BaseException:
             # The workers are stopped: list what they finished, remove their temporary files.
             try:
+                _hold_signals()  # a second Ctrl-C must not cut this short (restored on the way out)
                 for index in pending:
                     path = root / shard_name(tasks[index].seed, tasks[index].frame_offset)
                     if index not in entries and path.is_file() and _adoptable(path, tasks[index]):
@@ -304,8 +325,10 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
                     (root / MANIFEST).unlink(missing_ok=True)  # leave the directory as it was
                 else:
                     save()
-            except OSError:
+            except (OSError, DatasetError):
                 pass  # e.g. the disk is still full: the next run does the same
+            finally:
+                _release_signals()
             raise
     return root / MANIFEST
 
@@ -385,7 +408,11 @@ def _run_local_pool(tasks, pending, root, workers, render_threads, threads, reco
                             f"need less)") from None
                     piece_done(*futures[future], Path(result))
         except BaseException:
-            _stop_workers(pool)
+            _hold_signals()
+            try:
+                _stop_workers(pool)
+            finally:
+                _release_signals()
             raise
     pool.shutdown(wait=True)
     _drain(progress_queue, progress)

@@ -267,6 +267,43 @@ def test_a_worker_killed_on_its_own_is_one_line_naming_its_shard(tmp_path):
             os.killpg(process.pid, signal.SIGKILL)
 
 
+def test_ctrl_c_while_the_command_starts_is_one_line():
+    """Ctrl-C in the first second (the CLI's imports) printed a traceback through numpy."""
+    hook = ("import sys, runpy\n"
+            "class Interrupt:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name == 'rainbench.rain.weather':\n"
+            "            raise KeyboardInterrupt\n"
+            "sys.meta_path.insert(0, Interrupt())\n"
+            "runpy.run_module('rainbench.cli', run_name='__main__')\n")
+    result = subprocess.run([sys.executable, "-c", hook, "stats", "nowhere"], capture_output=True, text=True)
+    assert (result.returncode, result.stderr) == (130, "rainbench: interrupted\n")
+
+
+def test_a_second_ctrl_c_cannot_cut_the_cleanup_short():
+    """While a stopped run cleans up, Ctrl-C, SIGTERM and SIGHUP are ignored; the handlers come
+    back afterwards (a second Ctrl-C left a traceback and the cleanup half done)."""
+    received = []
+    original = {signum: signal.signal(signum, lambda number, frame: received.append(number))
+                for signum in ds.PARENT_SIGNALS}  # known handlers (a background run may ignore SIGINT)
+    try:
+        mine = {signum: signal.getsignal(signum) for signum in ds.PARENT_SIGNALS}
+        ds._hold_signals()
+        try:
+            assert all(signal.getsignal(signum) == signal.SIG_IGN for signum in ds.PARENT_SIGNALS)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+        finally:
+            ds._release_signals()
+        assert received == [] and {signum: signal.getsignal(signum) for signum in ds.PARENT_SIGNALS} == mine
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        assert received == [signal.SIGINT]
+    finally:
+        for signum, handler in original.items():
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+
+
 def test_the_manifest_exists_before_the_first_shard(tmp_path):
     seen = []
 
