@@ -249,7 +249,7 @@ def _finished_dataset(data: str | Path, allow_incomplete: bool, flag: str = "DAT
     """Refuse a dataset directory whose manifest says it is incomplete (an interrupted or running
     ``rainbench generate``): results from it would cover only its finished shards while looking
     whole. With ``allow_incomplete`` it is read, with a one-line warning."""
-    from rainbench.store.manifest import MANIFEST, coverage_problems, read_manifest
+    from rainbench.store.manifest import MANIFEST, missing_shards_problem, read_manifest
 
     if not Path(data).is_dir():
         return  # one shard file: no manifest to say
@@ -258,9 +258,9 @@ def _finished_dataset(data: str | Path, allow_incomplete: bool, flag: str = "DAT
         return
     if manifest["complete"]:
         # a manifest edited by hand (or by another tool) may say complete and list fewer shards
-        problems = coverage_problems(Path(data) / MANIFEST, manifest)
-        if problems:
-            raise CliError(f"{flag}: {problems[0]} (rainbench verify {data} lists every problem)")
+        missing = missing_shards_problem(Path(data) / MANIFEST, manifest)
+        if missing:
+            raise CliError(f"{flag}: {missing} (rainbench verify {data} lists every problem)")
         return
     listed = len(manifest["shards"])
     if not allow_incomplete:
@@ -865,12 +865,14 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     handlers = {}
     if threading.current_thread() is threading.main_thread():
-        handlers = {signum: signal.signal(signum, _raise_terminated) for signum in TERMINATING_SIGNALS}
+        # a signal already ignored stays ignored (`nohup rainbench generate ... &` outlives its terminal)
+        handlers = {signum: signal.signal(signum, _raise_terminated) for signum in TERMINATING_SIGNALS
+                    if signal.getsignal(signum) is not signal.SIG_IGN}
     try:
         return _run(args)
     finally:
         for signum, handler in handlers.items():
-            signal.signal(signum, handler)
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -47,6 +47,7 @@ from rainbench import __version__
 from rainbench.store.manifest import (MANIFEST, SHARD_GLOB, DatasetError, is_int, read_manifest,
                                       sha256_of, shard_entry, write_manifest)
 from rainbench.store.shard import ShardFormatError, open_checked, read_rgb, shard_name
+from rainbench.store.signals import STOP_SIGNALS, signals_held
 
 from .config import DatasetConfig, GenerateConfig
 from .generate import ShardAssembler, generate_shard, piece_configs
@@ -77,29 +78,10 @@ def _die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="rainbench-parent-watch", daemon=True).start()
 
 
-PARENT_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+PARENT_SIGNALS = STOP_SIGNALS
 """Signals a local worker ignores: sent to the whole process group (Ctrl-C, a scheduler stopping
-the job), the parent gets them, stops the workers and cleans up."""
-
-
-_held_handlers: list[dict] = []
-
-
-def _hold_signals() -> None:
-    """Ignore :data:`PARENT_SIGNALS` while a stopped run cleans up (a second Ctrl-C cut the
-    cleanup short with a traceback); :func:`_release_signals` restores the handlers. Nested
-    calls stack. Only the main thread can set handlers: elsewhere both do nothing."""
-    if threading.current_thread() is threading.main_thread():
-        previous = {signum: signal.getsignal(signum) for signum in PARENT_SIGNALS}
-        for signum in PARENT_SIGNALS:
-            signal.signal(signum, signal.SIG_IGN)
-        _held_handlers.append(previous)
-
-
-def _release_signals() -> None:
-    if threading.current_thread() is threading.main_thread() and _held_handlers:
-        for signum, handler in _held_handlers.pop().items():
-            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+the job), the parent gets them, stops the workers and cleans up (:func:`signals_held`: a second
+one cannot cut that short)."""
 
 
 def _init_worker(progress_queue, render_threads: int | None, threads: int,
@@ -313,22 +295,20 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
                                 record, progress)
         except BaseException:
             # The workers are stopped: list what they finished, remove their temporary files.
-            try:
-                _hold_signals()  # a second Ctrl-C must not cut this short (restored on the way out)
-                for index in pending:
-                    path = root / shard_name(tasks[index].seed, tasks[index].frame_offset)
-                    if index not in entries and path.is_file() and _adoptable(path, tasks[index]):
-                        entries[index] = _entry(path, tasks[index], root)
-                if executor == "local":
-                    _remove_temporaries(root)
-                if fresh and not entries:
-                    (root / MANIFEST).unlink(missing_ok=True)  # leave the directory as it was
-                else:
-                    save()
-            except (OSError, DatasetError):
-                pass  # e.g. the disk is still full: the next run does the same
-            finally:
-                _release_signals()
+            with signals_held():
+                try:
+                    for index in pending:
+                        path = root / shard_name(tasks[index].seed, tasks[index].frame_offset)
+                        if index not in entries and path.is_file() and _adoptable(path, tasks[index]):
+                            entries[index] = _entry(path, tasks[index], root)
+                    if executor == "local":
+                        _remove_temporaries(root)
+                    if fresh and not entries:
+                        (root / MANIFEST).unlink(missing_ok=True)  # leave the directory as it was
+                    else:
+                        save()
+                except (OSError, DatasetError):
+                    pass  # e.g. the disk is still full: the next run does the same
             raise
     return root / MANIFEST
 
@@ -365,12 +345,14 @@ def _run_local_pool(tasks, pending, root, workers, render_threads, threads, reco
     futures = {}
     finished: dict[int, dict[int, Path]] = {index: {} for index in pending}  # pieces not yet joined
     joined = dict.fromkeys(pending, 0)  # pieces of each shard joined so far
+    done_shards: set[int] = set()  # shards finished and recorded
     with contextlib.ExitStack() as assemblers:
         joining: dict[int, ShardAssembler] = {}
 
         def piece_done(index: int, number: int, path: Path) -> None:
             if piece_count[index] == 1:
                 record(index, path)
+                done_shards.add(index)
                 return
             if index not in joining:
                 joining[index] = assemblers.enter_context(ShardAssembler(tasks[index], root))
@@ -382,6 +364,7 @@ def _run_local_pool(tasks, pending, root, workers, render_threads, threads, reco
                 joined[index] += 1
             if joined[index] == piece_count[index]:
                 record(index, joining[index].commit())
+                done_shards.add(index)
 
         try:
             # Workers are started with SIGINT blocked (the mask is inherited through fork and exec)
@@ -400,19 +383,17 @@ def _run_local_pool(tasks, pending, root, workers, render_threads, threads, reco
                 for future in done:
                     try:
                         result = future.result()
-                    except BrokenProcessPool:
-                        index, number = futures[future]
+                    except BrokenProcessPool:  # every pending piece fails with it: which one died is unknown
+                        rendering = sorted({shard_name(tasks[index].seed, tasks[index].frame_offset)
+                                            for index, _ in futures.values() if index not in done_shards})
+                        shown = ", ".join(rendering[:3]) + (f" and {len(rendering) - 3} more" if len(rendering) > 3 else "")
                         raise DatasetError(
-                            f"{shard_name(tasks[index].seed, tasks[index].frame_offset)}: a worker process died while "
-                            f"rendering it (killed by a signal: out of memory? fewer --workers, or a smaller image, "
-                            f"need less)") from None
+                            f"OUT: a worker process died while rendering {shown} (killed: out of memory? fewer "
+                            f"--workers, or a smaller image, need less); the finished shards are kept") from None
                     piece_done(*futures[future], Path(result))
         except BaseException:
-            _hold_signals()
-            try:
+            with signals_held():
                 _stop_workers(pool)
-            finally:
-                _release_signals()
             raise
     pool.shutdown(wait=True)
     _drain(progress_queue, progress)

@@ -341,7 +341,7 @@ def _streak_geometry(drops: AirDrops) -> tuple[np.ndarray, ...]:
 
 def streak_sample_counts(drops: AirDrops) -> np.ndarray:
     """(N,) int64: the samples :func:`rasterize_streaks` takes of each drop (each splats into
-    at most 2 pixels), to bound its work and memory before drawing: about 200 bytes a sample."""
+    at most 2 pixels), to bound its work and memory before drawing: about 250 bytes a sample."""
     _, _, _, _, n_along, n_across = _streak_geometry(drops)
     return n_along * n_across
 

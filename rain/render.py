@@ -391,9 +391,11 @@ def _jeon_sweep(rgb: np.ndarray, ascending: list[float], config: RainConfig, len
 
 def _jeon_scenes(scene_of: dict[float, np.ndarray], ascending: list[float], config: RainConfig,
                  lens_clock: lens_mod.LensClock) -> list[RainFrame]:
-    """Lens water over each rate's own scene: the drops sampled and rasterised once, for the
-    largest count; each rate composites its first ``count`` drops over its scene (what a sweep of
-    that rate alone draws, since a drop's footprint does not depend on the others)."""
+    """Lens water over each rate's own scene: the drops sampled once, for the largest count, and
+    rasterised once while they fit the kept runs (:data:`LENS_RASTER_KEEP`; runs beyond are
+    rasterised again for each rate); each rate composites its first ``count`` drops over its
+    scene (what a sweep of that rate alone draws, since a drop's footprint does not depend on the
+    others)."""
     height, width = scene_of[ascending[0]].shape[:2]
     counts = [lens_mod.jeon2022_drop_count(rate, height, width) for rate in ascending]
     if max(counts) == 0:

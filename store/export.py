@@ -45,6 +45,7 @@ from .dataset import Dataset
 from .images import write_image
 from .manifest import DatasetError
 from .rates import rate_token
+from .signals import signals_held
 
 IMAGE_FORMATS = ("png", "jpg")
 _JPEG_QUALITY = 95
@@ -146,8 +147,10 @@ def _staged(out_dir: Path, overwrite: bool, targets: Sequence[str]):
 def _swap_in(stage: Path, out_dir: Path, targets: Sequence[str]) -> None:
     """Move ``targets`` from ``stage`` into ``out_dir``. What a target replaces is first moved
     aside (into the staging folder: renames in one file system), so that an error or an
-    interrupt part way removes the targets already moved in and puts back what they replaced:
-    ``out_dir`` then holds the previous export, never a mix of two."""
+    interrupt part way moves the new targets back into the stage and what they replaced back into
+    place, by renames, with Ctrl-C and termination signals held: ``out_dir`` then holds the
+    previous export, never a mix of two. Should a rename of that rollback fail, the previous
+    export's files are kept in ``OUT/.export-previous-<pid>`` and the error says so."""
     aside = stage / ".replaced"
     moved_in: list[str] = []
     moved_aside: list[str] = []
@@ -162,14 +165,17 @@ def _swap_in(stage: Path, out_dir: Path, targets: Sequence[str]) -> None:
             os.replace(stage / relative, final)
             moved_in.append(relative)
     except BaseException:
-        for relative in reversed(moved_in):
-            final = out_dir / relative
-            if final.is_dir() and not final.is_symlink():
-                shutil.rmtree(final, ignore_errors=True)
-            else:
-                final.unlink(missing_ok=True)
-        for relative in reversed(moved_aside):
-            os.replace(aside / relative, out_dir / relative)
+        with signals_held():
+            try:
+                for relative in reversed(moved_in):
+                    os.replace(out_dir / relative, stage / relative)
+                for relative in reversed(moved_aside):
+                    os.replace(aside / relative, out_dir / relative)
+            except OSError as error:
+                kept = out_dir / f".export-previous-{os.getpid()}"
+                os.replace(aside, kept)  # out of the stage, which is removed next
+                raise ExportError(f"OUT: the previous export could not be put back ({error.strerror or error}); "
+                                  f"its files are in {kept}") from None
         raise
 
 

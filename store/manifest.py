@@ -180,8 +180,13 @@ def entry_problem(path: Path, entry: dict, handle) -> str | None:
     if size != entry["bytes"]:
         return (f"{path}: {size} bytes, its manifest says {entry['bytes']} (changed since it was written: "
                 "rainbench verify checks the dataset)")
-    stored = tuple(int(handle.attrs.get(key, -1)) for key in ("scene_seed", "frame_offset"))
-    if stored != (entry["scene_seed"], entry["frame_offset"]):
+    stored = []
+    for key in ("scene_seed", "frame_offset"):
+        value = handle.attrs.get(key)
+        if value is None or np.ndim(value) != 0 or not np.issubdtype(np.asarray(value).dtype, np.integer):
+            return f"{path}: its {key} attribute is {'missing' if value is None else 'not an integer'}"
+        stored.append(int(value))
+    if tuple(stored) != (entry["scene_seed"], entry["frame_offset"]):
         return (f"{path}: holds scene {stored[0]} from frame {stored[1]}, its manifest says scene "
                 f"{entry['scene_seed']} from frame {entry['frame_offset']}")
     return None
@@ -313,8 +318,9 @@ def _config_problems(manifest_path: Path, config: dict) -> list[str]:
 
 
 def coverage_problems(manifest_path: Path, manifest: dict) -> list[str]:
-    """Manifest entries that the config does not describe (another scene, frame range or rate
-    list), and, for a manifest that says it is complete, the config's shards it lacks."""
+    """Manifest entries out of dataset order, whose file is named for another shard, or that the
+    config does not describe (another scene, frame range or rate list), and, for a manifest that
+    says it is complete, the config's shards it lacks (:func:`missing_shards_problem`)."""
     config = manifest["config"]
     expected = _expected_shards(config)
     if expected is None:
@@ -322,30 +328,41 @@ def coverage_problems(manifest_path: Path, manifest: dict) -> list[str]:
     rates = config.get("rates")
     rates_known = isinstance(rates, list) and all(
         isinstance(rate, (int, float)) and not isinstance(rate, bool) for rate in rates)
-    problems, listed = [], set()
+    problems = []
     previous = None
     for number, entry in enumerate(manifest["shards"]):
         where = f"{manifest_path}: shards[{number}] ({entry['path']})"
         key = (entry["scene_seed"], entry["frame_offset"])
-        listed.add(key)
         if previous is not None and key <= previous:
             problems.append(f"{where}: scene {key[0]} from frame {key[1]} is listed after scene {previous[0]} from "
                             f"frame {previous[1]} (shards are listed in dataset order: an image's index depends on it)")
         previous = key
-        if entry["path"] != shard_name(*key):
-            problems.append(f"{where}: the shard of scene {key[0]} from frame {key[1]} is named {shard_name(*key)}")
+        if PurePosixPath(entry["path"]).name != shard_name(*key):
+            problems.append(f"{where}: the shard of scene {key[0]} from frame {key[1]} is named {shard_name(*key)}, "
+                            f"not {PurePosixPath(entry['path']).name}")
         if expected.get(key) != entry["frames"]:
             problems.append(f"{where}: scene {key[0]}, frames {key[1]}..{key[1] + entry['frames'] - 1} "
                             "is not a shard of the manifest's config")
         elif rates_known and [float(rate) for rate in entry["rates"]] != [float(rate) for rate in rates]:
             problems.append(f"{where}: rates {_rates_text(entry['rates'])} disagree with the "
                             f"config's {_rates_text(rates)}")
+    missing = missing_shards_problem(manifest_path, manifest)
+    return problems + ([missing] if missing else [])
+
+
+def missing_shards_problem(manifest_path: Path, manifest: dict) -> str | None:
+    """For a manifest that says it is complete, the first of its config's shards it does not
+    list (an edited manifest: readers would cover part of the dataset while it looks whole);
+    None when it lists them all, says it is incomplete, or its config does not say."""
+    expected = _expected_shards(manifest["config"])
+    if expected is None or not manifest["complete"]:
+        return None
+    listed = {(entry["scene_seed"], entry["frame_offset"]) for entry in manifest["shards"]}
     missing = sorted(set(expected) - listed)
-    if manifest["complete"] and missing:
-        problems.append(f"{manifest_path}: says complete but lists {len(expected) - len(missing)} "
-                        f"of the config's {len(expected)} shards (first missing: scene "
-                        f"{missing[0][0]}, frame offset {missing[0][1]})")
-    return problems
+    if not missing:
+        return None
+    return (f"{manifest_path}: says complete but lists {len(expected) - len(missing)} of the config's "
+            f"{len(expected)} shards (first missing: scene {missing[0][0]}, frame offset {missing[0][1]})")
 
 
 def unlisted_shards(root: str | Path) -> list[Path]:

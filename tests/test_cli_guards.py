@@ -148,7 +148,7 @@ def test_verify_finds_a_shard_of_another_config(small, tmp_path, capsys):
     code, problems = _verify_problems(root, capsys)
     assert code == 1 and problems == [
         f"rainbench: bad: {root / store.MANIFEST}: shards[1] (scene000000_f00002.h5): the shard of scene 7 from "
-        "frame 2 is named scene000007_f00002.h5",
+        "frame 2 is named scene000007_f00002.h5, not scene000000_f00002.h5",
         f"rainbench: bad: {root / store.MANIFEST}: shards[1] (scene000000_f00002.h5): scene 7, "
         "frames 2..3 is not a shard of the manifest's config",
         f"rainbench: bad: {root / store.MANIFEST}: says complete but lists 1 of the config's 2 "

@@ -29,6 +29,7 @@ from rainbench.gen.generate import build_scene, generate_shard
 from rainbench.gen.render import FrameRenderer, padded_size
 from rainbench.store.manifest import write_manifest
 from rainbench.store.shard import ShardFormatError
+from rainbench.store.signals import STOP_SIGNALS, signals_held
 from rainbench.mjcf.scene import build_spec
 from cli_errors import cli_status, one_line_error
 
@@ -257,9 +258,12 @@ def test_a_worker_killed_on_its_own_is_one_line_naming_its_shard(tmp_path):
         os.kill(workers[0], signal.SIGKILL)
         _, err = process.communicate(timeout=120)
         assert process.returncode == 2
-        assert re.fullmatch(r"rainbench: error: scene000000_f000(00|16|32)\.h5: a worker process died while rendering "
-                            r"it \(killed by a signal: out of memory\? fewer --workers, or a smaller image, need less\)\n",
-                            err), err
+        assert re.fullmatch(r"rainbench: error: OUT: a worker process died while rendering (scene000000_f000(00|16|32)\.h5"
+                            r"(, )?)+ \(killed: out of memory\? fewer --workers, or a smaller image, need less\); the "
+                            r"finished shards are kept\n", err), err
+        manifest = out / store.MANIFEST  # absent when no shard was finished (a new OUT is left as it was)
+        listed = {entry["path"] for entry in json.loads(manifest.read_text())["shards"]} if manifest.exists() else set()
+        assert not any(name in err for name in listed)  # only shards still being rendered are named
         assert _wait_group_gone(process.pid, timeout=10) == []
         assert not list(out.glob(".*tmp*"))
     finally:
@@ -281,27 +285,45 @@ def test_ctrl_c_while_the_command_starts_is_one_line():
 
 
 def test_a_second_ctrl_c_cannot_cut_the_cleanup_short():
-    """While a stopped run cleans up, Ctrl-C, SIGTERM and SIGHUP are ignored; the handlers come
-    back afterwards (a second Ctrl-C left a traceback and the cleanup half done)."""
+    """While a stopped run cleans up (or an export swaps or rolls back), Ctrl-C, SIGTERM and
+    SIGHUP are ignored; the handlers come back afterwards (a second Ctrl-C left a traceback and the
+    cleanup half done)."""
     received = []
     original = {signum: signal.signal(signum, lambda number, frame: received.append(number))
-                for signum in ds.PARENT_SIGNALS}  # known handlers (a background run may ignore SIGINT)
+                for signum in STOP_SIGNALS}  # known handlers (a background run may ignore SIGINT)
     try:
-        mine = {signum: signal.getsignal(signum) for signum in ds.PARENT_SIGNALS}
-        ds._hold_signals()
-        try:
-            assert all(signal.getsignal(signum) == signal.SIG_IGN for signum in ds.PARENT_SIGNALS)
+        mine = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+        with signals_held():
+            assert all(signal.getsignal(signum) == signal.SIG_IGN for signum in STOP_SIGNALS)
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(0.05)
-        finally:
-            ds._release_signals()
-        assert received == [] and {signum: signal.getsignal(signum) for signum in ds.PARENT_SIGNALS} == mine
+        assert received == [] and {signum: signal.getsignal(signum) for signum in STOP_SIGNALS} == mine
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.05)
         assert received == [signal.SIGINT]
     finally:
         for signum, handler in original.items():
             signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+    assert ds.PARENT_SIGNALS == STOP_SIGNALS
+
+
+def test_a_signal_ignored_before_the_command_stays_ignored(monkeypatch):
+    """`nohup rainbench generate ... &`: SIGHUP is ignored so the run outlives its terminal; the
+    CLI's SIGTERM/SIGHUP handling must not undo that."""
+    seen = {}
+
+    def run(args):
+        seen.update({signum: signal.getsignal(signum) for signum in (signal.SIGHUP, signal.SIGTERM)})
+        return 0
+
+    monkeypatch.setattr(cli, "_run", run)
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        assert cli.main(["stats", "anything"]) == 0
+        assert seen[signal.SIGHUP] is signal.SIG_IGN and seen[signal.SIGTERM] is cli._raise_terminated
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN and signal.getsignal(signal.SIGTERM) is not cli._raise_terminated
+    finally:
+        signal.signal(signal.SIGHUP, before if before is not None else signal.SIG_DFL)
 
 
 def test_the_manifest_exists_before_the_first_shard(tmp_path):
@@ -738,6 +760,26 @@ def test_readers_check_each_shard_against_its_manifest_entry(small, tmp_path):
     assert len(store.Dataset(small)) == 4  # the untouched dataset reads
 
 
+def test_a_malformed_shard_attribute_is_one_line_and_shards_may_sit_in_a_subfolder(small, tmp_path, capsys):
+    out = _copy_tree(small, tmp_path / "attr")
+    shard = out / "scene000000_f00002.h5"
+    with h5py.File(shard, "r+") as handle:
+        handle.attrs["scene_seed"] = np.array([0, 0])
+    _rewrite_manifest(out, lambda m: m["shards"][1].update(sha256=ds.sha256_of(shard), bytes=shard.stat().st_size))
+    for argv in (["stats", str(out)], ["verify", str(out)]):
+        code = cli.main(argv)
+        err = capsys.readouterr().err
+        assert code in (1, 2) and f"{shard}: its scene_seed attribute is not an integer" in err and "Traceback" not in err
+    # a layout other tools may write: shards in a subfolder, listed by their relative paths
+    out = _copy_tree(small, tmp_path / "sub")
+    (out / "shards").mkdir()
+    for shard in sorted(out.glob("scene*.h5")):
+        shard.rename(out / "shards" / shard.name)
+    _rewrite_manifest(out, lambda m: [entry.update(path="shards/" + entry["path"]) for entry in m["shards"]])
+    assert cli.main(["verify", str(out)]) == 0 and cli.main(["stats", str(out)]) == 0
+    capsys.readouterr()
+
+
 def test_verify_checks_the_order_names_and_contents_of_manifest_entries(small, tmp_path, capsys):
     """Entries reordered (every image id moves) or with swapped offsets: verify said ok."""
     out = _copy_tree(small, tmp_path / "order")
@@ -756,7 +798,7 @@ def test_verify_checks_the_order_names_and_contents_of_manifest_entries(small, t
     assert cli.main(["verify", str(out)]) == 1
     lines = capsys.readouterr().err.strip().splitlines()
     assert f"rainbench: bad: {out / store.MANIFEST}: shards[0] (scene000000_f00000.h5): the shard of scene 0 from " \
-           "frame 2 is named scene000000_f00002.h5" in lines
+           "frame 2 is named scene000000_f00002.h5, not scene000000_f00000.h5" in lines
     assert f"rainbench: bad: {out / 'scene000000_f00000.h5'}: holds scene 0 from frame 0, its manifest says scene 0 " \
            "from frame 2" in lines
 
@@ -805,12 +847,20 @@ def test_an_interrupted_overwrite_puts_the_previous_export_back(small, tmp_path,
         calls.append(target)
         if len(calls) == 3:  # rate_0/images set aside and replaced; now rate_0.json is set aside
             raise KeyboardInterrupt
+        if len(calls) == 4:  # the rollback's first rename: a second Ctrl-C must not cut it short
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
         real(source, target)
 
     monkeypatch.setattr(ex.os, "replace", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        ex.export_coco(small, out, rates=[0.0], overwrite=True, image_format="jpg")
+    handler = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            ex.export_coco(small, out, rates=[0.0], overwrite=True, image_format="jpg")
+    finally:
+        signal.signal(signal.SIGINT, handler if handler is not None else signal.SIG_DFL)
     monkeypatch.setattr(ex.os, "replace", real)
+    assert len(calls) == 5  # 3 renames (the third interrupted), then 2 back
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
     assert sorted(p.name for p in out.iterdir()) == ["rate_0", "rate_0.json"]  # no staging folder left
 

@@ -170,7 +170,8 @@ def render_report_md(
         f"Models: {', '.join(models)}. Rates: {', '.join(f'{r:g}' for r in rates)} mm/h. "
         "AP is COCO's 101-point interpolated AP (pycocotools, maxDets 100); F1, precision and recall "
         "are taken at the confidence maximising the mean F1 over classes (YOLO convention). "
-        "% drop = 100 (Normal - rain) / Normal.",
+        f"% drop = 100 ({'Normal' if clean_rate == 0 else 'lowest rate'} - rain) / "
+        f"{'Normal' if clean_rate == 0 else 'lowest rate'}.",
         "",
     ]
     baseline, heavy_label = _rate_label(clean_rate, clean_rate), _rate_label(heavy, clean_rate)
