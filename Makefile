@@ -113,6 +113,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/render.py --json results/bench/render.json
 	$(BIN)/python bench/long_clip.py --json results/bench/long_clip.json
 	$(BIN)/python bench/rain.py --json results/bench/rain.json
+	$(BIN)/python bench/rain_memory.py --json results/bench/rain_memory.json
 	$(BIN)/python bench/eval_metrics.py --json results/bench/eval_metrics.json
 	$(BIN)/python bench/dataset.py --json results/bench/dataset.json
 	$(BIN)/python bench/train_reader.py --json results/bench/train_reader.json
