@@ -875,6 +875,18 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
 
 
+def _says_complete(root: Path) -> bool:
+    """Whether ``root``'s manifest reads and says the dataset is complete (an interrupt that came
+    as the last shard was listed)."""
+    from rainbench.store.manifest import DatasetError, read_manifest
+
+    try:
+        manifest = read_manifest(root)
+    except (DatasetError, OSError):
+        return False
+    return manifest is not None and bool(manifest["complete"])
+
+
 def _run(args: argparse.Namespace) -> int:
     try:
         return args.run(args)
@@ -890,7 +902,10 @@ def _run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt as interrupt:
         how = f"terminated by {interrupt.args[0]}" if isinstance(interrupt, Terminated) else "interrupted"
         manifest = Path(args.out) / "manifest.json" if args.command == "generate" else None
-        if manifest is not None and manifest.is_file():
+        if manifest is not None and _says_complete(manifest.parent):
+            print(f"rainbench: {how}; {manifest} says the dataset is complete (rainbench verify {args.out} "
+                  "checks it)", file=sys.stderr)
+        elif manifest is not None and manifest.is_file():
             print(f"rainbench: {how}; the workers are stopped, {manifest} lists the complete shards and nothing "
                   "partial is under a final name; run the same command again to resume", file=sys.stderr)
         elif manifest is not None:

@@ -326,6 +326,27 @@ def test_a_signal_ignored_before_the_command_stays_ignored(monkeypatch):
         signal.signal(signal.SIGHUP, before if before is not None else signal.SIG_DFL)
 
 
+def test_ctrl_c_as_the_last_shard_is_listed_says_the_dataset_is_complete(tmp_path, capsys, monkeypatch):
+    """Ctrl-C right after the final manifest write said "run the same command again to resume"."""
+    real, raised = ds.write_manifest, []
+
+    def then_interrupted(root, config, entries, complete):
+        path = real(root, config, entries, complete)
+        if complete and not raised:
+            raised.append(True)
+            raise KeyboardInterrupt
+        return path
+
+    monkeypatch.setattr(ds, "write_manifest", then_interrupted)
+    out = tmp_path / "done"
+    code = cli.main(["generate", "--frames", "2", "--width", "96", "--height", "72", "--rates", "0", "--quiet",
+                     "--workers", "1", "--out", str(out)])
+    assert code == 130 and raised
+    assert capsys.readouterr().err == (f"rainbench: interrupted; {out / store.MANIFEST} says the dataset is complete "
+                                       f"(rainbench verify {out} checks it)\n")
+    assert store.verify_dataset(out) == []
+
+
 def test_the_manifest_exists_before_the_first_shard(tmp_path):
     seen = []
 
