@@ -67,13 +67,16 @@ class Dataset:
     shard) or None for every rate, which every shard must then share. Failures are one-line
     :class:`DatasetError` (or :class:`rainbench.store.shard.ShardFormatError`) naming the file.
 
+    ``labels_only``: read labels only (``rainbench stats``): with ``rates`` None the shards'
+    rates need not agree and :attr:`rates` is empty.
+
     Attributes: ``shards`` (list of paths), ``rates`` (tuple of floats: the selected rates as
     their decimals), ``images`` (tuple of :class:`Image` in image-id order), ``root`` (the
     dataset directory, or None for shard files).
     """
 
     def __init__(self, data: str | Path | Sequence[str | Path],
-                 rates: Sequence[float | str] | None = None) -> None:
+                 rates: Sequence[float | str] | None = None, *, labels_only: bool = False) -> None:
         self.shards: list[Path] = list_shards(data)
         single = not isinstance(data, (list, tuple))
         self.root: Path | None = Path(data) if single and Path(data).is_dir() else None
@@ -101,7 +104,9 @@ class Dataset:
                 if path in entries and frames != entries[path]["frames"]:
                     raise DatasetError(f"{path}: {frames} frames, its manifest says {entries[path]['frames']}")
                 self._sizes.append((int(handle.attrs["height"]), int(handle.attrs["width"])))
-            if rates is None:
+            if labels_only and rates is None:  # statistics: the shards' rates need not agree
+                wanted = []
+            elif rates is None:
                 if first is None:
                     first, wanted = stored, [rate_decimal(value) for value in stored]
                 elif stored.shape != first.shape or not np.array_equal(stored, first):

@@ -121,7 +121,7 @@ def read_dataset_labels(data: str | Path | Sequence[str | Path]) -> list[ShardLa
     """:class:`ShardLabels` of every shard of ``data`` (a dataset directory, one shard, or a list
     of shards), in manifest order. Raises a one-line ValueError (``DatasetError``,
     ``ShardFormatError``) naming the path without shards or the corrupt shard."""
-    dataset = Dataset(data)
+    dataset = Dataset(data, labels_only=True)  # labels are the same at every rate
     result = []
     for number, path in enumerate(dataset.shards):
         with dataset.open(number) as handle:

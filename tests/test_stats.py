@@ -57,6 +57,18 @@ def test_objects_instances_and_frames(data):
     assert [c["ignore_regions"] for c in stats["classes"]] == [2, 1, 0, 0]
 
 
+def test_shards_of_different_rate_lists_count_together(data, tmp_path):
+    """Labels are the same at every rate: a folder of shards written with other rate lists was
+    refused with advice (select rates) that `stats` has no flag for."""
+    import shutil
+
+    for shard in sorted(data.glob("*.h5")):
+        shutil.copy(shard, tmp_path / shard.name)
+    write_labelled_shard(tmp_path, [[(CAR, 1, box(30), 1.0, 0.0)]], scene_seed=9, rates=(25.0,))
+    stats = dataset_stats(tmp_path)
+    assert (stats["shards"], stats["scenes"], stats["frames"], stats["objects"]) == (4, 3, 7, 7)
+
+
 def test_height_percentiles(data):
     heights = {name: entry["height_px"] for name, entry in by_class(dataset_stats(data)).items()}
     # linear interpolation: position p/100 * (n - 1) in the sorted heights
