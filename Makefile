@@ -24,6 +24,8 @@ WORKERS ?=
 THREADS ?=
 # where the per-rate statistics run: auto (a CUDA GPU if torch sees one), cpu, cuda, cuda:N
 DEVICE ?=
+# OVERWRITE=1: replace a dataset of another config in OUT (generate --overwrite)
+OVERWRITE ?=
 # make eval variables
 RESULTS ?= results/eval
 WEIGHTS ?=
@@ -71,7 +73,7 @@ dataset: $(STAMP)
 		$(if $(WORKERS),--workers $(WORKERS),) $(if $(THREADS),--threads $(THREADS),) \
 		$(if $(DEVICE),--device $(DEVICE),) \
 		$(if $(CLIP_FRAMES),--clip-frames $(CLIP_FRAMES),) \
-		$(if $(FIRST_FRAME),--first-frame $(FIRST_FRAME),)
+		$(if $(FIRST_FRAME),--first-frame $(FIRST_FRAME),) $(if $(OVERWRITE),--overwrite,)
 
 eval: $(STAMP)
 	$(BIN)/rainbench eval --data '$(OUT)' --out '$(RESULTS)' \

@@ -42,7 +42,13 @@ class Terminated(KeyboardInterrupt):
 TERMINATING_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 
 
+_terminations: list[int] = []
+"""Signals :func:`_raise_terminated` received in this run (Ray's waits re-raise what a handler
+raised as a plain KeyboardInterrupt: the exit status and message still follow the signal)."""
+
+
 def _raise_terminated(signum: int, frame) -> None:
+    _terminations.append(signum)
     raise Terminated(signum)
 
 
@@ -864,6 +870,7 @@ def main(argv: list[str] | None = None) -> int:
         print("rainbench: interrupted", file=sys.stderr)
         return 130
     handlers = {}
+    _terminations.clear()
     if threading.current_thread() is threading.main_thread():
         # a signal already ignored stays ignored (`nohup rainbench generate ... &` outlives its terminal)
         handlers = {signum: signal.signal(signum, _raise_terminated) for signum in TERMINATING_SIGNALS
@@ -900,7 +907,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"rainbench: error: {message}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt as interrupt:
-        how = f"terminated by {interrupt.args[0]}" if isinstance(interrupt, Terminated) else "interrupted"
+        signum = interrupt.signum if isinstance(interrupt, Terminated) else (_terminations[-1] if _terminations else None)
+        how = f"terminated by {signal.Signals(signum).name}" if signum is not None else "interrupted"
         manifest = Path(args.out) / "manifest.json" if args.command == "generate" else None
         if manifest is not None and _says_complete(manifest.parent):
             print(f"rainbench: {how}; {manifest} says the dataset is complete (rainbench verify {args.out} "
@@ -913,7 +921,7 @@ def _run(args: argparse.Namespace) -> int:
                   "again to start it", file=sys.stderr)
         else:
             print(f"rainbench: {how}", file=sys.stderr)
-        return 128 + interrupt.signum if isinstance(interrupt, Terminated) else 130
+        return 128 + signum if signum is not None else 130
 
 
 if __name__ == "__main__":

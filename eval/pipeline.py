@@ -299,10 +299,15 @@ class EvalOutputs:
 
 def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map, classes, pt_backend="batched",
                     device=None, trained=None) -> dict[str, Any]:
-    stat = weights.stat()
-    settings = {"weights": str(weights.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
+    from rainbench.store.manifest import sha256_of
+
+    # the weights' own bytes (a file replaced by another of the same size and time, as `cp -p`,
+    # `rsync -a` or an archive leave it, is another model), and a Darknet model's .cfg beside them
+    settings = {"weights": str(weights.resolve()), "sha256": sha256_of(weights),
                 "imgsz": imgsz, "conf": conf, "iou": iou, "max_det": max_det, "class_map": class_map,
                 "classes": list(classes)}
+    if weights.suffix.lower() == ".weights" and weights.with_suffix(".cfg").is_file():
+        settings["cfg_sha256"] = sha256_of(weights.with_suffix(".cfg"))
     if trained is not None and set(LABELLED_CLASSES) - set(trained):  # its card leaves classes out
         settings["trained"] = list(trained)
     if weights.suffix.lower() == ".pt":  # how it runs changes its detections (fp16 on CUDA)

@@ -560,11 +560,14 @@ def prepare_tiles(recipe: Recipe, out: str | Path, config: TileConfig) -> Path:
     return _dataset_yaml(out / f"{token}.yaml", root, "train/images", "val/images", recipe.classes)
 
 
-def _finished(path: Path) -> bool:
-    """Whether an ultralytics ``last.pt`` is of a finished run (its epoch is then -1)."""
+def _finished(path: Path, epochs: int | None = None) -> bool:
+    """Whether an ultralytics ``last.pt`` is of a finished run: its epoch is -1 once ultralytics
+    has stripped it, or its last epoch was saved (``epoch + 1 >= epochs``: a run cut off after
+    its last epoch but before the strip, which ultralytics refuses to resume)."""
     import torch
 
-    return int(torch.load(path, map_location="cpu", weights_only=False).get("epoch", -1)) == -1
+    epoch = int(torch.load(path, map_location="cpu", weights_only=False).get("epoch", -1))
+    return epoch == -1 or (epochs is not None and epoch + 1 >= epochs)
 
 
 def _stage_dir(out: Path, stage: int) -> Path:
@@ -613,7 +616,7 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
         arguments = {key: value for key, value in arguments.items() if key != "tiles"}
         stage_dir = _stage_dir(out, stage)
         last = stage_dir / "weights" / "last.pt"
-        if last.is_file() and not _finished(last):
+        if last.is_file() and not _finished(last, arguments.get("epochs")):
             model = ultralytics.YOLO(str(last))
             resumed = {"trainer": shard_trainer} if from_shards and tiles_of[stage] is None else {}
             model.train(resume=True, device=device, **resumed)
@@ -625,19 +628,25 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
             reads_shards = from_shards and tiles_of[stage] is None
             if reads_shards:
                 arguments = {**arguments, "cache": False}  # images are drawn at a new rate each time
-            model.train(data=str(stage_data[stage]), project=str(out.resolve()), name=stage_dir.name, exist_ok=True,
+            # an absolute path: a resumed run reads it back from last.pt, from any working directory
+            model.train(data=str(Path(stage_data[stage]).resolve()), project=str(out.resolve()), name=stage_dir.name, exist_ok=True,
                         pretrained=start is not None, plots=False, amp=False, device=device,
                         **({"trainer": shard_trainer} if reads_shards else {}), **arguments)
         best = stage_dir / "weights" / "best.pt"
         if not best.is_file():
             raise TrainError(f"training finished without {best}; see the log above")
     final = out / f"{recipe.name}.pt"
-    if recipe.wise_alpha is None:
-        shutil.copyfile(best, final)
-    else:  # the shipped weights: the trained ones mixed with those they started from
-        from rainbench.eval.weights import interpolate_checkpoints
+    partial = final.with_name(f".{final.stem}.tmp-{os.getpid()}.pt")  # a cut-off copy never takes the name
+    try:
+        if recipe.wise_alpha is None:
+            shutil.copyfile(best, partial)
+        else:  # the shipped weights: the trained ones mixed with those they started from
+            from rainbench.eval.weights import interpolate_checkpoints
 
-        interpolate_checkpoints(recipe.init_weights, best, recipe.wise_alpha, final)
+            interpolate_checkpoints(recipe.init_weights, best, recipe.wise_alpha, partial)
+        os.replace(partial, final)
+    finally:
+        partial.unlink(missing_ok=True)
     write_companions(final, recipe.eval_imgsz, model_card(recipe, out, device, stages))
     return final
 

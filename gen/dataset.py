@@ -485,13 +485,22 @@ def _ray_connect(ray, ray_address: str | None) -> None:
             Config.initialize("")
         except (ImportError, AttributeError):
             pass
+    # Ray's driver installs its own SIGTERM handler (sys.exit): keep the caller's, so that a
+    # terminated run stops and cleans up as Ctrl-C does
+    handlers = {signum: signal.getsignal(signum) for signum in (signal.SIGTERM, signal.SIGHUP)} \
+        if threading.current_thread() is threading.main_thread() else {}
     try:
-        ray.init(address=ray_address, log_to_driver=False)
+        # no address: a new local instance ("local"), never a cluster found by Ray's discovery
+        ray.init(address=ray_address if ray_address is not None else "local", log_to_driver=False)
     except (ConnectionError, RuntimeError, ValueError, ray.exceptions.RayError) as error:
         where = f"--ray-address {ray_address}" if ray_address else "executor ray"
         reason = " ".join(str(error).split())[:300]
         hint = f"; {RAY_AUTH_HINT}" if ray_address else ""
         raise DatasetError(f"{where}: cannot connect to the Ray cluster ({reason}){hint}") from None
+    finally:
+        for signum, handler in handlers.items():
+            if handler is not None:
+                signal.signal(signum, handler)
 
 
 def _run_ray(tasks, pending, root, ray_address, threads, record, progress) -> None:
@@ -524,6 +533,11 @@ def _run_ray(tasks, pending, root, ray_address, threads, record, progress) -> No
                     name = shard_name(tasks[index].seed, tasks[index].frame_offset)
                     raise DatasetError(f"ray task {name}: {type(cause).__name__}: "
                                        f"{' '.join(str(cause).split())[:300]}") from None
+                except ray.exceptions.RayError as error:  # the worker or its node died (out of memory?)
+                    name = shard_name(tasks[index].seed, tasks[index].frame_offset)
+                    raise DatasetError(f"ray task {name}: {type(error).__name__}: its worker died after Ray's "
+                                       f"retries (out of memory? fewer tasks a node, or a smaller image, need "
+                                       f"less)") from None
                 record(index, Path(path))
                 if progress:
                     progress(tasks[index].frames)

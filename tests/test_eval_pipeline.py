@@ -314,6 +314,26 @@ class _FakeDetector:
         return outputs
 
 
+def test_the_cache_knows_weights_by_their_bytes_and_a_darknet_cfg(tmp_path):
+    """Weights were known by path, size and mtime: a same-size file copied in with its time
+    (`cp -p`, `rsync -a`) served the old model's detections; a Darknet .cfg was not looked at."""
+    import os
+
+    weights = tmp_path / "m.weights"
+    weights.write_bytes(b"a" * 64)
+    (tmp_path / "m.cfg").write_text("[net]\nwidth=64\n")
+    settings = dict(imgsz=64, conf=0.25, iou=0.7, max_det=300, class_map=None, classes=[0, 2])
+    before = pipeline._cache_settings(weights, **settings)
+    stat = weights.stat()
+    weights.write_bytes(b"b" * 64)
+    os.utime(weights, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    after_weights = pipeline._cache_settings(weights, **settings)
+    assert after_weights != before and after_weights["weights"] == before["weights"]
+    (tmp_path / "m.cfg").write_text("[net]\nwidth=128\n")
+    assert pipeline._cache_settings(weights, **settings) != after_weights
+    assert pipeline._cache_settings(weights, **settings) == pipeline._cache_settings(weights, **settings)
+
+
 def test_backend_detections_are_cached_and_reused(data_dir, tmp_path, monkeypatch):
     by_bytes = {}
     for _, shard, frame in _images(data_dir):

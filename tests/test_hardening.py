@@ -347,6 +347,20 @@ def test_ctrl_c_as_the_last_shard_is_listed_says_the_dataset_is_complete(tmp_pat
     assert store.verify_dataset(out) == []
 
 
+def test_a_termination_ray_reraises_as_a_plain_interrupt_keeps_its_signal(monkeypatch, capsys):
+    """Ray's waits re-raise what a signal handler raised as a bare KeyboardInterrupt: SIGHUP was
+    reported as "interrupted", exit 130."""
+    def stats_like_ray(args):
+        try:
+            cli._raise_terminated(signal.SIGHUP, None)
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt from None  # what ray.wait does
+
+    monkeypatch.setattr(cli, "cmd_stats", stats_like_ray)
+    assert cli.main(["stats", "anything"]) == 128 + signal.SIGHUP
+    assert capsys.readouterr().err == "rainbench: terminated by SIGHUP\n"
+
+
 def test_the_manifest_exists_before_the_first_shard(tmp_path):
     seen = []
 

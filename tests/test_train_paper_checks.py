@@ -136,6 +136,15 @@ def test_a_recipe_name_is_a_plain_file_name(tmp_path, name):
     assert train.load_recipe(_recipe(tmp_path, "name: tiny-yolo", "name: My_model-2.1")).name == "My_model-2.1"
 
 
+def test_a_run_cut_off_after_its_last_epoch_counts_as_finished(tmp_path):
+    """Cut off after ultralytics saved the last epoch but before it stripped last.pt: the rerun
+    asked ultralytics to resume it, which refuses ("nothing to resume"), on every rerun."""
+    last = tmp_path / "last.pt"
+    for epoch, epochs, finished in ((-1, 4, True), (3, 4, True), (2, 4, False), (3, None, False)):
+        torch.save({"epoch": epoch}, last)
+        assert train._finished(last, epochs) is finished, (epoch, epochs)
+
+
 def _write(path: Path, data: bytes) -> Path:
     path.write_bytes(data)
     return path

@@ -203,19 +203,24 @@ def export_onnx(weights: str | Path, out: str | Path) -> Path:
             module.dynamic = True  # anchors from the input's shape, not the traced one
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with torch.no_grad():
-        # PRESERVE keeps the (eval-mode) batch norms as nodes instead of folding them into the
-        # convolutions, which would make weights that fp16 cannot hold.
-        torch.onnx.export(net, torch.zeros(1, 3, 480, 640), str(out), dynamo=False, opset_version=17,
-                          training=torch.onnx.TrainingMode.PRESERVE, do_constant_folding=False,
-                          input_names=["images"], output_names=["output0"],
-                          dynamic_axes={"images": {0: "batch", 2: "height", 3: "width"},
-                                        "output0": {0: "batch", 2: "anchors"}})
-    proto = _store_exact_halves(onnx.load(str(out)))
-    entry = proto.metadata_props.add()
-    entry.key, entry.value = "names", str(model.names)
-    onnx.checker.check_model(proto)
-    onnx.save(proto, str(out))
+    partial = out.with_name(f".{out.stem}.tmp-{os.getpid()}.onnx")  # a cut-off export never takes the name
+    try:
+        with torch.no_grad():
+            # PRESERVE keeps the (eval-mode) batch norms as nodes instead of folding them into the
+            # convolutions, which would make weights that fp16 cannot hold.
+            torch.onnx.export(net, torch.zeros(1, 3, 480, 640), str(partial), dynamo=False, opset_version=17,
+                              training=torch.onnx.TrainingMode.PRESERVE, do_constant_folding=False,
+                              input_names=["images"], output_names=["output0"],
+                              dynamic_axes={"images": {0: "batch", 2: "height", 3: "width"},
+                                            "output0": {0: "batch", 2: "anchors"}})
+        proto = _store_exact_halves(onnx.load(str(partial)))
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = "names", str(model.names)
+        onnx.checker.check_model(proto)
+        onnx.save(proto, str(partial))
+        os.replace(partial, out)
+    finally:
+        partial.unlink(missing_ok=True)
     return out
 
 
