@@ -533,11 +533,12 @@ def _run_ray(tasks, pending, root, ray_address, threads, record, progress) -> No
                     name = shard_name(tasks[index].seed, tasks[index].frame_offset)
                     raise DatasetError(f"ray task {name}: {type(cause).__name__}: "
                                        f"{' '.join(str(cause).split())[:300]}") from None
-                except ray.exceptions.RayError as error:  # the worker or its node died (out of memory?)
+                except ray.exceptions.RayError as error:  # a worker or node died past Ray's retries, ...
                     name = shard_name(tasks[index].seed, tasks[index].frame_offset)
-                    raise DatasetError(f"ray task {name}: {type(error).__name__}: its worker died after Ray's "
-                                       f"retries (out of memory? fewer tasks a node, or a smaller image, need "
-                                       f"less)") from None
+                    reason = " ".join(str(error).split())[:200]
+                    raise DatasetError(f"ray task {name}: {type(error).__name__}: {reason} (a worker that keeps "
+                                       f"dying may be out of memory: fewer tasks a node, or a smaller image, "
+                                       f"need less)") from None
                 record(index, Path(path))
                 if progress:
                     progress(tasks[index].frames)
