@@ -83,7 +83,7 @@ from rainbench.gen.config import DatasetConfig
 from rainbench.gen.dataset import run_dataset
 from rainbench.store.export import yolo_names
 from rainbench.store.classes import PAPER_CLASSES, parse_classes
-from rainbench.store.manifest import is_int
+from rainbench.store.manifest import is_int, sha256_of
 from rainbench.store.rates import rate_token
 from rainbench.mjcf.layout import ScenarioConfig
 
@@ -570,6 +570,32 @@ def _finished(path: Path, epochs: int | None = None) -> bool:
     return epoch == -1 or (epochs is not None and epoch + 1 >= epochs)
 
 
+def _trained_with(recipe: Recipe) -> dict[str, Any]:
+    """What a trained stage depends on besides its train() arguments (``OUT/recipe.json``)."""
+    return {"architecture": recipe.architecture, "classes": list(recipe.classes), "reader": recipe.reader,
+            "curriculum": repr(recipe.curriculum), "random_rain": repr(recipe.random_rain),
+            "init_weights": None if recipe.init_weights is None else sha256_of(recipe.init_weights),
+            "wise_alpha": recipe.wise_alpha}
+
+
+def _check_same_training(out: Path, record: dict[str, Any]) -> None:
+    """Refuse to go on in ``out`` when it holds a training run (a stage's ``last.pt``) made with
+    other settings than ``record`` (``OUT/recipe.json``'s): finished stages would be reused while
+    the card describes the new recipe. Keys an older ``recipe.json`` lacks are not compared."""
+    previous_path = out / "recipe.json"
+    started = any((_stage_dir(out, stage) / "weights" / "last.pt").is_file() for stage in range(len(record["restarts"]) + 1))
+    if not (started and previous_path.is_file()):
+        return
+    try:
+        previous = json.loads(previous_path.read_text())
+    except (OSError, ValueError):
+        return
+    for key in (key for key in record if key not in ("recipe", "device")):
+        if key in previous and json.loads(json.dumps(record[key], default=str)) != previous[key]:
+            raise TrainError(f"{out}: holds a training run made with another `{key}` ({previous_path}); "
+                             "choose another --out, or delete it to train again")
+
+
 def _stage_dir(out: Path, stage: int) -> Path:
     return out / ("run" if stage == 0 else f"restart{stage}")
 
@@ -599,9 +625,10 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     cuda = torch.cuda.is_available() if device is None else device != "cpu"
     device = device if device is not None else ("0" if cuda else "cpu")
     stages = recipe.stages(cuda)
-    (out / "recipe.json").write_text(json.dumps(
-        {"recipe": recipe.source, "device": device, "train_args": stages[0], "restarts": stages[1:]},
-        indent=1, sort_keys=True))
+    record = {"recipe": recipe.source, "device": device, "train_args": stages[0], "restarts": stages[1:],
+              **_trained_with(recipe)}
+    _check_same_training(out, record)
+    (out / "recipe.json").write_text(json.dumps(record, indent=1, sort_keys=True, default=str))
     tiles_of = [_stage_tiles(arguments, f"{recipe.source}: `stage {stage}") for stage, arguments in enumerate(stages)]
     from_shards = recipe.reader == "shards"
     needs_export = not from_shards or any(tiles is not None for tiles in tiles_of)
@@ -688,7 +715,6 @@ def model_card(recipe: Recipe, out: str | Path, device: str, stages: list[dict[s
 
     from rainbench import __version__  # noqa: PLC0415
     from rainbench.store.classes import CLASS_NAMES  # noqa: PLC0415
-    from rainbench.store.manifest import sha256_of  # noqa: PLC0415
 
     out = Path(out)
     folders = [folder for folder, _ in recipe.train_datasets().values()] + ["val"]

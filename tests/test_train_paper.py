@@ -206,6 +206,16 @@ def test_tiny_training_run_writes_weights_the_evaluator_loads(tmp_path, capsys):
     code, _, err = _run(capsys, "train", "--recipe", recipe_path, "--out", out, "--device", "cpu")
     assert code == 0, err
     assert (out / "run" / "weights" / "last.pt").stat().st_mtime_ns == before
+    # The same --out with another recipe is refused: it reused the trained model under a card
+    # that described the new recipe.
+    changed = tmp_path / "changed.yaml"
+    changed.write_text(TINY_RECIPE + "classes: [person, car]\n")
+    card_before = (out / "tiny-yolo.json").read_bytes()
+    code, _, err = _run(capsys, "train", "--recipe", changed, "--out", out, "--device", "cpu")
+    assert (code, err) == (2, f"rainbench: error: {out}: holds a training run made with another `classes` "
+                              f"({out / 'recipe.json'}); choose another --out, or delete it to train again\n")
+    assert (out / "tiny-yolo.json").read_bytes() == card_before
+    assert json.loads((out / "recipe.json").read_text())["classes"] == [0, 1, 2, 3]  # not rewritten
     # A fine-tune of it with `wise_alpha`: the shipped weights are the trained ones mixed back
     # with those they started from, (1 - a) start + a trained, and the card says so.
     wise_path = tmp_path / "wise.yaml"
