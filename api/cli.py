@@ -18,6 +18,7 @@ try:  # about a second of imports: Ctrl-C meanwhile is one line too, not a trace
                                       MAX_SCENES, MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig, stats_device_for)
     from rainbench.rain.config import RAIN_MODELS, RAIN_OPTIONS, RainConfig
     from rainbench.rain.weather import SKIES, TIMES_OF_DAY
+    from rainbench.store.signals import TERMINATING_SIGNALS
 except KeyboardInterrupt:
     print("rainbench: interrupted", file=sys.stderr)
     raise SystemExit(130) from None
@@ -37,9 +38,6 @@ class Terminated(KeyboardInterrupt):
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
-
-
-TERMINATING_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 
 
 _terminations: list[int] = []

@@ -663,17 +663,17 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
         if not best.is_file():
             raise TrainError(f"training finished without {best}; see the log above")
     final = out / f"{recipe.name}.pt"
-    partial = final.with_name(f".{final.stem}.tmp-{os.getpid()}.pt")  # a cut-off copy never takes the name
-    try:
-        if recipe.wise_alpha is None:
+    if recipe.wise_alpha is None:
+        partial = final.with_name(f".{final.stem}.tmp-{os.getpid()}.pt")  # a cut-off copy never takes the name
+        try:
             shutil.copyfile(best, partial)
-        else:  # the shipped weights: the trained ones mixed with those they started from
-            from rainbench.eval.weights import interpolate_checkpoints
+            os.replace(partial, final)
+        finally:
+            partial.unlink(missing_ok=True)
+    else:  # the shipped weights: the trained ones mixed with those they started from (written atomically)
+        from rainbench.eval.weights import interpolate_checkpoints
 
-            interpolate_checkpoints(recipe.init_weights, best, recipe.wise_alpha, partial)
-        os.replace(partial, final)
-    finally:
-        partial.unlink(missing_ok=True)
+        interpolate_checkpoints(recipe.init_weights, best, recipe.wise_alpha, final)
     write_companions(final, recipe.eval_imgsz, model_card(recipe, out, device, stages))
     return final
 

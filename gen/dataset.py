@@ -47,7 +47,7 @@ from rainbench import __version__
 from rainbench.store.manifest import (MANIFEST, SHARD_GLOB, DatasetError, is_int, read_manifest,
                                       sha256_of, shard_entry, write_manifest)
 from rainbench.store.shard import ShardFormatError, open_checked, read_rgb, shard_name
-from rainbench.store.signals import STOP_SIGNALS, signals_held
+from rainbench.store.signals import STOP_SIGNALS, TERMINATING_SIGNALS, signals_held
 
 from .config import DatasetConfig, GenerateConfig
 from .generate import ShardAssembler, generate_shard, piece_configs
@@ -487,7 +487,7 @@ def _ray_connect(ray, ray_address: str | None) -> None:
             pass
     # Ray's driver installs its own SIGTERM handler (sys.exit): keep the caller's, so that a
     # terminated run stops and cleans up as Ctrl-C does
-    handlers = {signum: signal.getsignal(signum) for signum in (signal.SIGTERM, signal.SIGHUP)} \
+    handlers = {signum: signal.getsignal(signum) for signum in TERMINATING_SIGNALS} \
         if threading.current_thread() is threading.main_thread() else {}
     try:
         # no address: a new local instance ("local"), never a cluster found by Ray's discovery

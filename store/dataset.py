@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .manifest import DatasetError, entry_problem, list_shards, manifest_entries
+from .manifest import DatasetError, entry_problem, listed_shards
 from .rates import MissingRate, rate_decimal, rate_rows
 from .shard import open_checked, open_shard, read_frame_ignore, read_frame_labels, read_rgb, rgb_checksum
 
@@ -77,7 +77,8 @@ class Dataset:
 
     def __init__(self, data: str | Path | Sequence[str | Path],
                  rates: Sequence[float | str] | None = None, *, labels_only: bool = False) -> None:
-        self.shards: list[Path] = list_shards(data)
+        listed = listed_shards(data)  # each shard with its manifest entry (None without one)
+        self.shards: list[Path] = [path for path, _ in listed]
         single = not isinstance(data, (list, tuple))
         self.root: Path | None = Path(data) if single and Path(data).is_dir() else None
         if rates is not None:
@@ -93,16 +94,15 @@ class Dataset:
         self._rows: list[list[int]] = []
         self._sizes: list[tuple[int, int]] = []
         first: np.ndarray | None = None
-        entries = manifest_entries(data)
-        for number, path in enumerate(self.shards):
+        for number, (path, entry) in enumerate(listed):
             with open_checked(path) as handle:  # refuses NaN boxes, inconsistent offsets
-                disagreement = entry_problem(path, entries[path], handle) if path in entries else None
+                disagreement = entry_problem(path, entry, handle) if entry is not None else None
                 if disagreement is not None:
                     raise DatasetError(disagreement)
                 stored = handle["rates"][()]
                 frames = int(handle["labels/offsets"].shape[0]) - 1
-                if path in entries and frames != entries[path]["frames"]:
-                    raise DatasetError(f"{path}: {frames} frames, its manifest says {entries[path]['frames']}")
+                if entry is not None and frames != entry["frames"]:
+                    raise DatasetError(f"{path}: {frames} frames, its manifest says {entry['frames']}")
                 self._sizes.append((int(handle.attrs["height"]), int(handle.attrs["width"])))
             if labels_only and rates is None:  # statistics: the shards' rates need not agree
                 wanted = []

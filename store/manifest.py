@@ -163,15 +163,6 @@ def check_manifest(manifest, path: str | Path) -> dict:
     return manifest
 
 
-def manifest_entries(data: str | Path | Sequence[str | Path]) -> dict[Path, dict]:
-    """The manifest entry of each shard of dataset directory ``data`` by path (as
-    :func:`list_shards` gives them); empty for shard files or a directory without a manifest."""
-    if isinstance(data, (list, tuple)) or not Path(data).is_dir():
-        return {}
-    manifest = read_manifest(Path(data))
-    return {} if manifest is None else {Path(data) / entry["path"]: entry for entry in manifest["shards"]}
-
-
 def entry_problem(path: Path, entry: dict, handle) -> str | None:
     """What a shard file disagrees with in its manifest entry, checked without hashing it (a
     shard replaced, swapped or rewritten since the manifest was written): its size, scene and
@@ -195,26 +186,32 @@ def entry_problem(path: Path, entry: dict, handle) -> str | None:
 def list_shards(data: str | Path | Sequence[str | Path]) -> list[Path]:
     """Shard paths of a dataset directory (manifest order; sorted names without a manifest),
     of one shard file, or of a list of shard files (kept in the given order)."""
+    return [path for path, _ in listed_shards(data)]
+
+
+def listed_shards(data: str | Path | Sequence[str | Path]) -> list[tuple[Path, dict | None]]:
+    """:func:`list_shards`'s paths, in its order, each with its manifest entry (None for shard
+    files, or in a directory without a manifest): the manifest is read once."""
     if isinstance(data, (list, tuple)):
-        paths = [Path(p) for p in data]
+        listed = [(Path(p), None) for p in data]
     else:
         root = Path(data)
         if root.is_file():
-            paths = [root]
+            listed = [(root, None)]
         elif root.is_dir():
             manifest = read_manifest(root)
             if manifest is not None:
-                paths = [root / entry["path"] for entry in manifest["shards"]]
+                listed = [(root / entry["path"], entry) for entry in manifest["shards"]]
             else:
-                paths = sorted(root.glob(SHARD_GLOB))
+                listed = [(path, None) for path in sorted(root.glob(SHARD_GLOB))]
         else:
             raise DatasetError(f"{root}: no such dataset directory or shard")
-    if not paths:
+    if not listed:
         raise DatasetError(f"{data}: no shards ({SHARD_GLOB}) found")
-    missing = [str(p) for p in paths if not p.is_file()]
+    missing = [str(path) for path, _ in listed if not path.is_file()]
     if missing:
         raise DatasetError(f"{missing[0]}: shard listed but missing")
-    return paths
+    return listed
 
 
 def verify_dataset(root: str | Path) -> list[str]:

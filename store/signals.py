@@ -8,8 +8,11 @@ import signal
 import threading
 from collections.abc import Iterator, Sequence
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-"""Ctrl-C, and what a job scheduler or a closed terminal sends."""
+TERMINATING_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+"""What a job scheduler (or ``kill``) and a closed terminal send."""
+
+STOP_SIGNALS = (signal.SIGINT, *TERMINATING_SIGNALS)
+"""Ctrl-C and :data:`TERMINATING_SIGNALS`."""
 
 
 @contextlib.contextmanager

@@ -60,18 +60,13 @@ def cached_onnx(checkpoint: Path) -> Path:
     path = cache_dir() / "onnx" / f"{checkpoint.stem}-{digest}.onnx"
     if path.is_file():
         return path
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
-        export_onnx(checkpoint, partial)
-        os.replace(partial, path)
+        export_onnx(checkpoint, path)  # written under a temporary name and renamed
     except BackendError:
         raise
     except Exception as error:  # torch/onnx export failures come as many exception types
         raise BackendError(f"--weights: {checkpoint}: could not build its ONNX copy in {path.parent} "
                            f"({type(error).__name__}: {error})") from error
-    finally:
-        partial.unlink(missing_ok=True)
     return path
 
 
