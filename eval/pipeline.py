@@ -39,6 +39,7 @@ from .metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS, coco_detections, co
 from .metrics.evaluation import evaluate
 from .report.figures import plot_detection_strip
 from rainbench.store.images import file_error
+from rainbench.store.locks import locked_output_dir
 from .report.markdown import render_report_md
 from .report.paper import PAPER_TABLES
 from .report.plots import plot_metric_vs_rate
@@ -430,12 +431,26 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
                                 n_boot=n_boot, conf=conf, iou=iou, report_conf=report_conf, classes=classes,
                                 metrics=metrics, pt_backend=pt_backend, workers=workers)
     dataset = open_dataset(data_dir)
-    rates = list(dataset.rates)
-    image_ids = {image.image_id for image in dataset.images}
     if not isinstance(targets, TargetFilter):
         raise EvalError(f"targets: expected a TargetFilter, got {type(targets).__name__}")
     gt = ground_truth(dataset, ignore_regions=ignore_regions, targets=targets)
-    out_dir = Path(out_dir)
+    with locked_output_dir(out_dir, "eval", option="--out", error=EvalError) as out_dir:
+        return _evaluate_into(dataset, gt, out_dir, predictions_dir=predictions_dir, weights=weights,
+                              imgsz=imgsz, batch=batch, conf=conf, iou=iou, max_det=max_det,
+                              report_conf=report_conf, n_boot=n_boot, class_map=class_map, device=device,
+                              force=force, progress=progress, trust_pickle=trust_pickle, class_ids=class_ids,
+                              classes_given=classes is not None, references=references, metrics=metrics,
+                              pt_backend=pt_backend, workers=workers, ignore_regions=ignore_regions,
+                              targets=targets)
+
+
+def _evaluate_into(dataset: Dataset, gt: dict, out_dir: Path, *, predictions_dir, weights, imgsz, batch, conf,
+                   iou, max_det, report_conf, n_boot, class_map, device, force, progress, trust_pickle,
+                   class_ids, classes_given, references, metrics, pt_backend, workers, ignore_regions,
+                   targets) -> EvalOutputs:
+    """:func:`run_eval`'s work once its settings are checked and ``out_dir`` is locked."""
+    rates = list(dataset.rates)
+    image_ids = {image.image_id for image in dataset.images}
     inference_runs = 0
     if predictions_dir is not None:
         models = prediction_models(predictions_dir)
@@ -448,7 +463,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
             dataset, list(weights), out_dir / "predictions", image_ids=image_ids, imgsz=imgsz, batch=batch,
             conf=conf, iou=iou, max_det=max_det, class_map=class_map, device=device, force=force,
             progress=progress, trust_pickle=trust_pickle, class_ids=class_ids,
-            classes_given=classes is not None, references=references, pt_backend=pt_backend,
+            classes_given=classes_given, references=references, pt_backend=pt_backend,
             workers=default_read_workers() if workers is None else workers)
     records = _score(gt, detections, models, rates, class_ids=class_ids, report_conf=report_conf,
                      n_boot=n_boot, progress=progress, backend=metrics)

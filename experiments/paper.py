@@ -26,6 +26,7 @@ from rainbench.gen.config import PAPER_CLIP, RAIN_MODELS, DatasetConfig
 from rainbench.gen.dataset import run_dataset
 from rainbench.store import Dataset, read_frame_ignore, read_frame_labels
 
+from rainbench.store.locks import locked_output_dir
 from rainbench.store.classes import CLASS_NAMES, PAPER_CLASSES, parse_classes
 from rainbench.eval.metrics.breakdown import ap_by_size, ap_by_visibility
 from rainbench.eval.metrics.coco import DEFAULT_BACKEND
@@ -264,7 +265,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     (``paper: generate jeon2022: 14.2 s``) go to stderr."""
     from rainbench.eval.backends import check_model_classes, load_detector
     from rainbench.eval.backends.ultralytics import preload_torch
-    from rainbench.eval.weights import model_imgsz, resolve_weights
+    from rainbench.eval.weights import resolve_weights
 
     from rainbench.experiments.train import check_device
 
@@ -282,6 +283,16 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     references = default_references(config.weights, config.references)
     if references:  # a --compare naming no evaluated model fails before generating
         comparison_references([resolve_weights(spec, config.device)[1] for spec in config.weights], references)
+    with locked_output_dir(out_dir, "paper", option="--out", error=EvalError):
+        return _paper_into(config, out_dir, data_root, class_ids=class_ids, references=references,
+                           workers=workers, force=force, progress=progress)
+
+
+def _paper_into(config: PaperConfig, out_dir: Path, data_root: Path, *, class_ids, references, workers: int,
+                force: bool, progress: bool) -> Path:
+    """:func:`run_paper`'s work once every model is checked and ``out_dir`` is locked."""
+    from rainbench.eval.weights import model_imgsz, resolve_weights
+
     data = config.dataset
     records_by_rain: dict[str, list] = {}
     robustness: dict[str, list] = {}

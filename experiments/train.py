@@ -83,6 +83,7 @@ from rainbench.gen.config import DatasetConfig
 from rainbench.gen.dataset import run_dataset
 from rainbench.store.export import yolo_names
 from rainbench.store.classes import PAPER_CLASSES, parse_classes
+from rainbench.store.locks import locked_output_dir
 from rainbench.store.manifest import is_int, sha256_of
 from rainbench.store.rates import rate_token
 from rainbench.mjcf.layout import ScenarioConfig
@@ -620,9 +621,15 @@ def train(recipe: Recipe, out: str | Path, *, device: str | None = None, workers
     device = check_device(device)
     check_architecture(recipe.architecture, recipe.source)
     check_first_model(recipe, ultralytics)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    cuda = torch.cuda.is_available() if device is None else device != "cpu"
+    with locked_output_dir(out, "train", option="--out", error=TrainError) as out:
+        return _train_into(recipe, out, device=device, workers=workers, progress=progress,
+                           ultralytics=ultralytics, cuda_available=torch.cuda.is_available())
+
+
+def _train_into(recipe: Recipe, out: Path, *, device: str | None, workers: int,
+                progress: Callable[[int], None] | None, ultralytics, cuda_available: bool) -> Path:
+    """:func:`train`'s work once the recipe is checked and ``out`` is locked."""
+    cuda = cuda_available if device is None else device != "cpu"
     device = device if device is not None else ("0" if cuda else "cpu")
     stages = recipe.stages(cuda)
     record = {"recipe": recipe.source, "device": device, "train_args": stages[0], "restarts": stages[1:],

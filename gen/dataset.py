@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import fcntl
 import json
 import multiprocessing
 import os
@@ -44,6 +43,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from rainbench import __version__
+from rainbench.store.locks import directory_lock, lock_name
 from rainbench.store.manifest import (MANIFEST, SHARD_GLOB, DatasetError, is_int, read_manifest,
                                       sha256_of, shard_entry, write_manifest)
 from rainbench.store.shard import ShardFormatError, open_checked, read_rgb, shard_name
@@ -53,7 +53,7 @@ from .config import DatasetConfig, GenerateConfig
 from .generate import ShardAssembler, generate_shard, piece_configs
 
 EXECUTORS = ("local", "ray")
-LOCK = ".rainbench-generate.lock"
+LOCK = lock_name("generate")
 
 _progress_queue = None
 
@@ -107,49 +107,11 @@ def _generate_task(task: GenerateConfig, out: str, threads: int | None = None) -
     return str(generate_shard(task, out, progress=report, threads=threads))
 
 
-@contextlib.contextmanager
 def _locked(root: Path):
-    """Hold ``root/.rainbench-generate.lock`` (``fcntl.flock``) for one generate run; a second
-    run on the same directory gets a one-line :class:`DatasetError` naming the holder's pid.
-    The kernel releases the lock when the holder exits, however it exits; a clean exit also
-    removes the file (under the lock: a waiter that locked the removed file tries again)."""
-    path = root / LOCK
-    for _attempt in range(100):
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as error:
-            raise DatasetError(f"OUT: cannot create the lock file {path} ({error.strerror})") \
-                from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            same = os.fstat(fd).st_ino == os.stat(path).st_ino
-        except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
-            os.close(fd)
-            pid = f" (pid {holder})" if holder.isdigit() else ""
-            raise DatasetError(f"OUT: {root} is being written by another rainbench generate{pid}; "
-                               "wait for it to finish or choose another OUT") from None
-        except FileNotFoundError:
-            same = False
-        except OSError as error:
-            os.close(fd)
-            raise DatasetError(f"OUT: cannot lock {path} ({error.strerror})") from None
-        if same:
-            break
-        os.close(fd)
-    else:
-        raise DatasetError(f"OUT: cannot lock {path} (it keeps being replaced)")
-    try:
-        try:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, str(os.getpid()).encode(), 0)
-        except OSError as error:
-            raise DatasetError(f"OUT: cannot write the lock file {path} ({error.strerror})") from None
-        yield
-    finally:
-        with contextlib.suppress(OSError):
-            path.unlink()
-        os.close(fd)
+    """Hold ``root/.rainbench-generate.lock`` for one generate run
+    (:func:`rainbench.store.locks.directory_lock`); a second run on the same directory gets a
+    one-line :class:`DatasetError` naming the holder's pid."""
+    return directory_lock(root, "generate", option="OUT", error=DatasetError)
 
 
 def _entry(path: Path, task: GenerateConfig, root: Path) -> dict:

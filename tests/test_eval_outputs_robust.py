@@ -4,6 +4,7 @@ strip draws any box, the detection cache is never half-written and a broken one 
 
 import errno
 import json
+import os
 import pathlib
 import re
 
@@ -14,6 +15,7 @@ from labelled_shards import write_labelled_shard
 from rainbench import cli
 from rainbench.eval import backends, pipeline
 from rainbench.eval.report.figures import plot_detection_strip
+from rainbench.store.locks import directory_lock
 
 RATES = (0.0, 50.0)
 FRAMES = [[(0, 0, (10, 10, 20, 40), 1.0, 0.0)], [(2, 1, (30, 30, 60, 50), 1.0, 0.0)]]
@@ -202,3 +204,24 @@ def test_a_broken_cache_file_suggests_force(data_dir, tmp_path, monkeypatch):
     with pytest.raises(pipeline.EvalError, match="is not valid JSON") as info:
         _eval(data_dir, preds, tmp_path / "other")
     assert "--force" not in str(info.value)
+
+
+def test_a_second_eval_into_a_busy_out_is_refused_and_leaves_the_first_s_files(data_dir, tmp_path, capsys):
+    """Two evals into one --out removed each other's staging folder and crashed; the second is
+    now refused in one line naming the holder, before any inference or write."""
+    preds = _predictions(tmp_path / "preds", {0.0: GOOD, 50.0: GOOD})
+    out = tmp_path / "out"
+    out.mkdir()
+    staging = out / ".report.tmp-first"  # the first run's files being written
+    staging.mkdir()
+    with directory_lock(out, "eval", option="--out", error=ValueError):
+        code = cli.main(["eval", "--data", str(data_dir), "--predictions", str(preds), "--out", str(out), "--quiet",
+                         "--n-boot", "3"])
+        assert staging.is_dir()
+    assert code == 2
+    assert capsys.readouterr().err == (f"rainbench: error: --out: {out} is being written by another rainbench eval "
+                                       f"(pid {os.getpid()}); wait for it to finish or choose another --out\n")
+    assert _left(out) == [".report.tmp-first"]
+    staging.rmdir()
+    _eval(data_dir, preds, out)  # released
+    assert _left(out) == sorted(pipeline.REPORT_OUTPUTS) and not (out / ".rainbench-eval.lock").exists()

@@ -3,6 +3,7 @@ architecture, init_weights and train() arguments, the device, the models and the
 Each case is a one-line error naming what is at fault, exit status 2, and no file written."""
 
 import dataclasses
+import os
 import re
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from rainbench.eval.weights import shipped_models
 from rainbench.experiments import train
 from rainbench.experiments.paper import PaperConfig, check_models, run_paper
 from rainbench.gen.config import DatasetConfig
+from rainbench.store.locks import directory_lock, locked_output_dir
 
 # Load torch's lazy modules before anything could render in this process (see test_eval_pipeline).
 _offline_ultralytics()
@@ -271,3 +273,40 @@ def test_run_paper_checks_models_and_device_before_generating(tmp_path):
     with pytest.raises(EvalError, match="^--rain-models: physical is named twice$"):
         PaperConfig(dataset=dataset, rain_models=("physical", "jeon2022", "physical"))
     check_models([("--model", name) for name in shipped_models()])  # every shipped name is known
+
+
+# ---- one run at a time per --out --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["train", "paper"])
+def test_a_second_run_into_a_locked_out_is_refused_before_generating(tmp_path, capsys, monkeypatch, command):
+    """Two runs into one --out removed and overwrote each other's files; the second is refused,
+    naming the holder, and the holder's directory is left as it was."""
+    _no_cuda(monkeypatch)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "busy"
+    out.mkdir()
+    argv = (["train", "--recipe", _recipe(tmp_path), "--device", "cpu"] if command == "train"
+            else ["paper", *PAPER_TINY, "--model", "rainbench-yolo11n", "--data", "pd"])
+    with directory_lock(out, command, option="--out", error=ValueError) as lock:
+        code, stdout, err = _run(capsys, *argv, "--out", out)
+        assert lock.read_text() == str(os.getpid())
+    assert code == 2 and stdout == ""
+    _one_line_error(err, f"--out: {out} is being written by another rainbench {command} (pid {os.getpid()}); "
+                         "wait for it to finish or choose another --out")
+    assert list(out.iterdir()) == []  # the holder's lock is gone with it; nothing else was written
+    _nothing_written(tmp_path / "pd")
+
+
+def test_a_refused_run_leaves_no_empty_out_behind(tmp_path):
+    """A run that fails under the lock removes the folders it made for --out (when empty)."""
+    out = tmp_path / "new" / "out"
+    with pytest.raises(RuntimeError, match="boom"):
+        with locked_output_dir(out, "eval", option="--out", error=ValueError) as root:
+            assert root == out and (out / ".rainbench-eval.lock").is_file()
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match=f"^--out: {re.escape(str(tmp_path / 'file'))} exists and is not a directory$"):
+        with locked_output_dir(tmp_path / "file", "eval", option="--out", error=ValueError):
+            pass
