@@ -38,10 +38,19 @@ TRAIN_OUT ?=
 MODELS ?=
 PAPER_OUT ?= results/paper
 
+# make scene: where scene.xml goes (default: a folder named by the scene's settings)
+SCENE_OUT ?=
+
+# A value as one shell word, whatever it holds (spaces, quotes, $): 'it'\''s'
+q = '$(subst ','\'',$(1))'
+
 # None of SEED, SKY, LAYOUT, TIME: the paper's clip (seed 0, cloudy street by day); otherwise
 # the seed decides whatever is not given.
-SCENE_FLAGS = $(if $(SEED),--seed $(SEED),) $(if $(SKY),--sky $(SKY),) \
-	$(if $(LAYOUT),--layout $(LAYOUT),) $(if $(TIME),--time $(TIME),)
+SCENE_FLAGS = $(if $(SEED),--seed $(call q,$(SEED)),) $(if $(SKY),--sky $(call q,$(SKY)),) \
+	$(if $(LAYOUT),--layout $(call q,$(LAYOUT)),) $(if $(TIME),--time $(call q,$(TIME)),)
+# The paper's clip goes to OUT/scene_paper, any other to OUT/scene_<seed>[_<layout>][_<time>][_<sky>]
+# (seed 0 when only some of LAYOUT, TIME, SKY are given), so two scenes never share a folder.
+SCENE_NAME = $(if $(SEED)$(SKY)$(LAYOUT)$(TIME),scene_$(or $(SEED),0)$(if $(LAYOUT),_$(LAYOUT))$(if $(TIME),_$(TIME))$(if $(SKY),_$(SKY)),scene_paper)
 
 .PHONY: venv dataset scene verify eval train paper test test-slow bench clean
 
@@ -64,38 +73,40 @@ $(STAMP): pyproject.toml
 
 dataset: $(STAMP)
 	$(if $(filter-out on off,$(WEATHER)),$(error WEATHER: expected on or off (or unset: the rain model decides), got '$(WEATHER)'))
-	$(BIN)/rainbench generate --out '$(OUT)' $(SCENE_FLAGS) --scenes $(SCENES) \
-		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
-		--rain-model $(RAIN_MODEL) $(if $(STORE),--store $(STORE),) \
-		$(foreach option,$(RAIN_OPTIONS),--rain-option '$(option)') \
+	$(BIN)/rainbench generate --out $(call q,$(OUT)) $(SCENE_FLAGS) --scenes $(call q,$(SCENES)) \
+		--frames $(call q,$(FRAMES)) --width $(call q,$(WIDTH)) --height $(call q,$(HEIGHT)) --rates $(call q,$(RATES)) \
+		--rain-model $(call q,$(RAIN_MODEL)) $(if $(STORE),--store $(call q,$(STORE)),) \
+		$(foreach option,$(RAIN_OPTIONS),--rain-option $(call q,$(option))) \
 		$(if $(filter on,$(WEATHER)),--weather-follows-rate,) \
 		$(if $(filter off,$(WEATHER)),--no-weather-follows-rate,) \
-		$(if $(WORKERS),--workers $(WORKERS),) $(if $(THREADS),--threads $(THREADS),) \
-		$(if $(DEVICE),--device $(DEVICE),) \
-		$(if $(CLIP_FRAMES),--clip-frames $(CLIP_FRAMES),) \
-		$(if $(FIRST_FRAME),--first-frame $(FIRST_FRAME),) $(if $(OVERWRITE),--overwrite,)
+		$(if $(WORKERS),--workers $(call q,$(WORKERS)),) $(if $(THREADS),--threads $(call q,$(THREADS)),) \
+		$(if $(DEVICE),--device $(call q,$(DEVICE)),) \
+		$(if $(CLIP_FRAMES),--clip-frames $(call q,$(CLIP_FRAMES)),) \
+		$(if $(FIRST_FRAME),--first-frame $(call q,$(FIRST_FRAME)),) $(if $(OVERWRITE),--overwrite,)
 
 eval: $(STAMP)
-	$(BIN)/rainbench eval --data '$(OUT)' --out '$(RESULTS)' \
-		$(foreach w,$(WEIGHTS),--weights $(w)) $(if $(PREDICTIONS),--predictions '$(PREDICTIONS)',) \
-		$(foreach c,$(COMPARE),--compare $(c))
+	$(BIN)/rainbench eval --data $(call q,$(OUT)) --out $(call q,$(RESULTS)) \
+		$(foreach w,$(WEIGHTS),--weights $(call q,$(w))) $(if $(PREDICTIONS),--predictions $(call q,$(PREDICTIONS)),) \
+		$(foreach c,$(COMPARE),--compare $(call q,$(c)))
 
 # Trains the recipe's model from scratch on clean scenes (resumes a cut-off run when re-run).
 train: $(STAMP)
-	$(BIN)/rainbench train --recipe $(RECIPE) $(if $(TRAIN_OUT),--out '$(TRAIN_OUT)',)
+	$(BIN)/rainbench train --recipe $(call q,$(RECIPE)) $(if $(TRAIN_OUT),--out $(call q,$(TRAIN_OUT)),)
 
 # The seed paper's experiment: generate both rain models, evaluate the shipped models, report.
 paper: $(STAMP)
-	$(BIN)/rainbench paper --out '$(PAPER_OUT)' --data '$(OUT)/paper' $(SCENE_FLAGS) --scenes $(SCENES) \
-		--frames $(FRAMES) --width $(WIDTH) --height $(HEIGHT) --rates '$(RATES)' \
-		$(foreach m,$(MODELS),--model $(m)) $(foreach w,$(WEIGHTS),--weights $(w)) \
-		$(foreach c,$(COMPARE),--compare $(c))
+	$(BIN)/rainbench paper --out $(call q,$(PAPER_OUT)) --data $(call q,$(OUT)/paper) $(SCENE_FLAGS) --scenes $(call q,$(SCENES)) \
+		--frames $(call q,$(FRAMES)) --width $(call q,$(WIDTH)) --height $(call q,$(HEIGHT)) --rates $(call q,$(RATES)) \
+		$(foreach m,$(MODELS),--model $(call q,$(m))) $(foreach w,$(WEIGHTS),--weights $(call q,$(w))) \
+		$(foreach c,$(COMPARE),--compare $(call q,$(c)))
 
 verify: $(STAMP)
-	$(BIN)/rainbench verify '$(OUT)'
+	$(BIN)/rainbench verify $(call q,$(OUT))
 
 scene: $(STAMP)
-	$(BIN)/rainbench scene $(SCENE_FLAGS) --out '$(OUT)/scene_$(or $(SEED),0)'
+	$(BIN)/rainbench scene $(SCENE_FLAGS) --frames $(call q,$(FRAMES)) \
+		--width $(call q,$(WIDTH)) --height $(call q,$(HEIGHT)) \
+		--out $(call q,$(or $(SCENE_OUT),$(OUT)/$(SCENE_NAME))) $(if $(OVERWRITE),--overwrite,)
 
 # Two test processes (pytest-xdist), one per core of the 2-core CI machine: 263 s against 435 s
 # in one process (bench/RESULTS.md). A test file's tests stay in one process (--dist loadfile),

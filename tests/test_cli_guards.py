@@ -200,23 +200,67 @@ def test_an_unreachable_ray_address_fails_at_once():
         ds._check_reachable(left_to_ray)
 
 
-def test_make_dataset_refuses_a_bad_weather_and_quotes_paths():
+def test_make_dataset_refuses_a_bad_weather_and_passes_the_clip_options(tmp_path):
     bad = subprocess.run(["make", "-n", "-C", REPO, "dataset", "WEATHER=maybe"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode != 0
     assert "WEATHER: expected on or off (or unset: the rain model decides), got 'maybe'" in bad.stderr
-    good = subprocess.run(["make", "-n", "-C", REPO, "dataset", "WEATHER=off", "OUT=a b"],
+    [good] = _make_argv(tmp_path, "dataset", "WEATHER=off", "OUT=a b")
+    assert good[:3] == ["generate", "--out", "a b"] and "--no-weather-follows-rate" in good
+    assert "--device" not in good  # unset: the CLI's own default (auto)
+    [part] = _make_argv(tmp_path, "dataset", "FRAMES=10", "CLIP_FRAMES=200", "FIRST_FRAME=70")
+    assert all(part[part.index(flag) + 1] == value
+               for flag, value in (("--frames", "10"), ("--clip-frames", "200"), ("--first-frame", "70")))
+    [device] = _make_argv(tmp_path, "dataset", "DEVICE=cpu")
+    assert device[device.index("--device") + 1] == "cpu"
+
+
+def _make_argv(tmp_path, *arguments):
+    """The argv each `rainbench` command of ``make <arguments>`` receives (the targets run
+    against a stand-in `rainbench` that records its argv, with the venv step skipped)."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    log = tmp_path / "argv.jsonl"
+    log.unlink(missing_ok=True)
+    fake = bin_dir / "rainbench"
+    fake.write_text(f"#!{sys.executable}\nimport json, sys\n"
+                    f"open({str(log)!r}, 'a').write(json.dumps(sys.argv[1:]) + '\\n')\n")
+    fake.chmod(0o755)
+    made = subprocess.run(["make", "-s", "-C", REPO, f"BIN={bin_dir}", f"STAMP={fake}", *arguments],
                           capture_output=True, text=True, timeout=60)
-    assert good.returncode == 0, good.stderr
-    assert "--out 'a b'" in good.stdout and "--no-weather-follows-rate" in good.stdout
-    part = subprocess.run(["make", "-n", "-C", REPO, "dataset", "FRAMES=10", "CLIP_FRAMES=200",
-                           "FIRST_FRAME=70"], capture_output=True, text=True, timeout=60)
-    assert part.returncode == 0, part.stderr
-    assert all(flag in part.stdout for flag in ("--frames 10", "--clip-frames 200", "--first-frame 70"))
-    device = subprocess.run(["make", "-n", "-C", REPO, "dataset", "DEVICE=cpu"],
-                            capture_output=True, text=True, timeout=60)
-    assert device.returncode == 0 and "--device cpu" in device.stdout, device.stderr
-    assert "--device" not in good.stdout  # unset: the CLI's own default (auto)
+    assert made.returncode == 0, made.stderr
+    return [json.loads(line) for line in log.read_text().splitlines()]
+
+
+def test_make_targets_pass_each_value_as_one_argument(tmp_path):
+    """Paths with spaces and apostrophes reach rainbench whole (an apostrophe in OUT broke the
+    targets' quoting), each of WEIGHTS, MODELS, COMPARE and RAIN_OPTIONS as one argument."""
+    odd = "it's a dir"
+    [generate] = _make_argv(tmp_path, "dataset", f"OUT={odd}", "RATES=0,50", "RAIN_OPTIONS=lens_drops=false x=it's")
+    assert generate[:3] == ["generate", "--out", odd] and generate[generate.index("--rates") + 1] == "0,50"
+    assert [generate[i + 1] for i, a in enumerate(generate) if a == "--rain-option"] == ["lens_drops=false", "x=it's"]
+    [evaluate] = _make_argv(tmp_path, "eval", f"OUT={odd}", "RESULTS=r's", "WEIGHTS=a'b.pt c.pt", "COMPARE=a=b")
+    assert evaluate == ["eval", "--data", odd, "--out", "r's", "--weights", "a'b.pt", "--weights", "c.pt",
+                        "--compare", "a=b"]
+    [paper] = _make_argv(tmp_path, "paper", f"OUT={odd}", "PAPER_OUT=p'q", "MODELS=m'1 m2")
+    assert paper[:5] == ["paper", "--out", "p'q", "--data", f"{odd}/paper"]
+    assert [paper[i + 1] for i, a in enumerate(paper) if a == "--model"] == ["m'1", "m2"]
+    assert _make_argv(tmp_path, "verify", f"OUT={odd}") == [["verify", odd]]
+    assert _make_argv(tmp_path, "train", "RECIPE=my recipe.yaml", f"TRAIN_OUT={odd}") == [
+        ["train", "--recipe", "my recipe.yaml", "--out", odd]]
+
+
+def test_make_scene_takes_the_clip_settings_and_a_folder_per_scene(tmp_path):
+    """make scene passed no FRAMES, WIDTH or HEIGHT (a scene is laid out for its clip's length),
+    and wrote every scene of a seed, and the paper's clip, into one OUT/scene_<seed>."""
+    [paper_clip] = _make_argv(tmp_path, "scene", "FRAMES=50", "WIDTH=320", "HEIGHT=240")
+    assert paper_clip == ["scene", "--frames", "50", "--width", "320", "--height", "240", "--out", "data/scene_paper"]
+    [seeded] = _make_argv(tmp_path, "scene", "SEED=0")
+    assert seeded[:3] == ["scene", "--seed", "0"] and seeded[-2:] == ["--out", "data/scene_0"]
+    [night] = _make_argv(tmp_path, "scene", "SEED=3", "LAYOUT=highway", "TIME=night", "OVERWRITE=1")
+    assert night[-3:] == ["--out", "data/scene_3_highway_night", "--overwrite"]
+    [chosen] = _make_argv(tmp_path, "scene", "SEED=3", "SCENE_OUT=my scene")
+    assert chosen[-2:] == ["--out", "my scene"]
 
 
 # -- a corrupt manifest and --overwrite ---------------------------------------------------------
