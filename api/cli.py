@@ -253,20 +253,18 @@ def _finished_dataset(data: str | Path, allow_incomplete: bool, flag: str = "DAT
     """Refuse a dataset directory whose manifest says it is incomplete (an interrupted or running
     ``rainbench generate``): results from it would cover only its finished shards while looking
     whole. With ``allow_incomplete`` it is read, with a one-line warning."""
-    from rainbench.store.manifest import MANIFEST, missing_shards_problem, read_manifest
+    from rainbench.store.manifest import MANIFEST, missing_shards_problem, read_manifest, unfinished_listing
 
     if not Path(data).is_dir():
         return  # one shard file: no manifest to say
-    manifest = read_manifest(data)
-    if manifest is None:
-        return
-    if manifest["complete"]:
+    listed = unfinished_listing(data)
+    if listed is None:
+        manifest = read_manifest(data)
         # a manifest edited by hand (or by another tool) may say complete and list fewer shards
-        missing = missing_shards_problem(Path(data) / MANIFEST, manifest)
+        missing = missing_shards_problem(Path(data) / MANIFEST, manifest) if manifest is not None else None
         if missing:
             raise CliError(f"{flag}: {missing} (rainbench verify {data} lists every problem)")
         return
-    listed = len(manifest["shards"])
     if not allow_incomplete:
         raise CliError(f"{flag}: {data} is an incomplete dataset (its manifest lists {listed} "
                        "finished shards and says \"complete\": false): run the same rainbench "

@@ -30,6 +30,11 @@ from .rates import MissingRate, rate_decimal, rate_rows
 from .shard import open_checked, open_shard, read_frame_ignore, read_frame_labels, read_rgb, rgb_checksum
 
 
+MAX_OPEN_SHARDS = 64
+"""Shards :meth:`Dataset.handle` keeps open at once in a process (each is an open file; HDF5's
+chunk cache is per file)."""
+
+
 @dataclass(frozen=True)
 class Image:
     """One frame of the dataset: ``image_id`` (1-based), ``shard`` (path), ``frame`` (index in
@@ -161,14 +166,20 @@ class Dataset:
 
     def handle(self, shard: int):
         """Shard number ``shard`` open read-only for random access by this process: opened on
-        first use and kept open until :meth:`close`. A forked ``DataLoader`` worker opens its own
-        (open files never cross processes, nor are they pickled), so readers built on a dataset
-        are safe with ``num_workers > 0``."""
+        first use and kept open until :meth:`close`, or until :data:`MAX_OPEN_SHARDS` others
+        have been used since (the least recently used is closed: a shuffled epoch over thousands
+        of shards stays under the process's open-file limit). A forked ``DataLoader`` worker
+        opens its own (open files never cross processes, nor are they pickled), so readers built
+        on a dataset are safe with ``num_workers > 0``."""
         if self._handles_pid != os.getpid():
             self._handles, self._handles_pid = {}, os.getpid()
-        if shard not in self._handles:
-            self._handles[shard] = self.open(shard)
-        return self._handles[shard]
+        handle = self._handles.pop(shard, None)
+        if handle is None:
+            if len(self._handles) >= MAX_OPEN_SHARDS:
+                self._handles.pop(next(iter(self._handles))).close()
+            handle = self.open(shard)
+        self._handles[shard] = handle  # the most recently used last
+        return handle
 
     def close(self) -> None:
         """Close the files :meth:`handle` opened in this process."""

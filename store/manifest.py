@@ -100,6 +100,18 @@ def read_manifest(root: str | Path) -> dict | None:
     return check_manifest(manifest, path)
 
 
+def unfinished_listing(data: str | Path | Sequence[str | Path]) -> int | None:
+    """How many finished shards the manifest of dataset directory ``data`` lists when it says
+    the dataset is incomplete (an interrupted or still running ``rainbench generate``); None for
+    a complete dataset, shard files, or a directory without a manifest."""
+    if isinstance(data, (list, tuple)) or not Path(data).is_dir():
+        return None
+    manifest = read_manifest(data)
+    if manifest is None or manifest["complete"]:
+        return None
+    return len(manifest["shards"])
+
+
 def _show(value) -> str:
     text = repr(value) if not isinstance(value, (dict, list)) else type(value).__name__
     return text if len(text) <= 60 else text[:57] + "..."

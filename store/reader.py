@@ -20,15 +20,43 @@ Target keys (numpy arrays from :class:`ShardReader`, tensors from ``ShardDataset
 
 from __future__ import annotations
 
+import math
+import operator
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from .classes import parse_classes
 from .dataset import Dataset
+from .manifest import DatasetError, unfinished_listing
 from .shard import read_rgb
 
 _LABEL_KEYS = ("bbox", "class_id", "instance_id", "visible_fraction", "truncation")
+
+
+def _fraction(value) -> float:
+    """``min_visible_fraction`` as a float in [0, 1], else a one-line DatasetError (a percentage
+    or NaN dropped every label without a word)."""
+    try:
+        fraction = float(value)
+    except (TypeError, ValueError):
+        fraction = math.nan
+    if isinstance(value, bool) or not 0.0 <= fraction <= 1.0:
+        raise DatasetError(f"min_visible_fraction: expected a fraction in [0, 1], got {value!r}")
+    return fraction
+
+
+def _class_ids(classes) -> tuple[int, ...]:
+    """``classes`` (names or ids of the labelled classes) as ascending ids, else a one-line
+    DatasetError (an unknown or misspelt class dropped every label without a word)."""
+    if isinstance(classes, (str, bytes)) or not isinstance(classes, (Sequence, np.ndarray, set, frozenset)):
+        raise DatasetError(f"classes: expected a list of class names or ids, got {classes!r}")
+    try:
+        return parse_classes(list(classes))
+    except ValueError as error:
+        raise DatasetError(str(error).replace("--classes: ", "classes: ", 1)) from None
 
 
 class ShardReader:
@@ -36,16 +64,30 @@ class ShardReader:
 
     ``data``: a dataset directory, one shard, or a list of shards. ``rates``: the rates to read
     (mm/h, each present in every shard) or None for all. Optional filters drop labels with
-    ``visible_fraction < min_visible_fraction`` or a class not in ``classes``.
+    ``visible_fraction < min_visible_fraction`` (a fraction in [0, 1]) or a class not in
+    ``classes`` (names or ids of the labelled classes, :func:`rainbench.store.classes.parse_classes`).
+
+    A dataset directory whose manifest says generation has not finished (``rainbench generate``
+    interrupted or still running) is refused, as the command line refuses it: training on it
+    would use its finished shards as if they were the whole dataset. ``allow_incomplete=True``
+    reads the shards it lists, with a warning.
     """
 
     def __init__(self, data: str | Path | Sequence[str | Path], rates: Sequence[float] | None = None,
-                 *, min_visible_fraction: float = 0.0, classes: Sequence[int] | None = None) -> None:
+                 *, min_visible_fraction: float = 0.0, classes: Sequence[int | str] | None = None,
+                 allow_incomplete: bool = False) -> None:
+        self.min_visible_fraction = _fraction(min_visible_fraction)
+        self.classes = None if classes is None else np.asarray(_class_ids(classes), np.int64)
+        listed = unfinished_listing(data)
+        if listed is not None and not allow_incomplete:
+            raise DatasetError(f"{data} is an incomplete dataset (its manifest lists {listed} finished shards "
+                               "and says \"complete\": false): run the same rainbench generate again to finish "
+                               "it, or pass allow_incomplete=True to read the finished shards only")
+        if listed is not None:
+            warnings.warn(f"{data} is incomplete: reading its {listed} finished shards only", stacklevel=2)
         self.dataset = Dataset(data, rates)
         self.shards = self.dataset.shards
         self.rates: tuple[float, ...] = self.dataset.rates
-        self.min_visible_fraction = float(min_visible_fraction)
-        self.classes = None if classes is None else np.asarray(sorted(set(classes)), np.int64)
         self._rate_rows = [np.asarray([self.dataset.rate_row(rate, shard) for rate in self.rates])
                            for shard in range(len(self.shards))]
         self._labels: dict[int, dict[str, np.ndarray]] = {}
@@ -54,9 +96,15 @@ class ShardReader:
         return len(self.dataset.images) * len(self.rates)
 
     def locate(self, index: int) -> tuple[int, int, int]:
-        """(shard number, frame, rate number) of sample ``index``."""
-        if not 0 <= index < len(self):
+        """(shard number, frame, rate number) of sample ``index`` (an integer, numpy or 0-d tensor
+        included; negative counts from the end, as for a list)."""
+        try:
+            index = operator.index(index)
+        except TypeError:
+            raise TypeError(f"sample index: expected an integer, got {index!r}") from None
+        if not -len(self) <= index < len(self):
             raise IndexError(f"sample index {index} out of range 0..{len(self) - 1}")
+        index %= len(self)
         image, rate = divmod(index, len(self.rates))  # samples: images in id order, then rates
         return self.dataset.images[image].shard_index, self.dataset.images[image].frame, rate
 
@@ -70,6 +118,7 @@ class ShardReader:
     def sample(self, index: int) -> tuple[np.ndarray, dict]:
         """Image (H, W, 3) uint8 RGB and its target (numpy; keys in the module docstring)."""
         shard, frame, rate_number = self.locate(index)
+        index = operator.index(index) % len(self)
         handle = self.dataset.handle(shard)
         image = read_rgb(handle, int(self._rate_rows[shard][rate_number]), frame)
         labels = self._shard_labels(shard)

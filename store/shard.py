@@ -9,6 +9,7 @@ every reader opens a shard, also checks its labels (:func:`check_labels`).
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -389,12 +390,25 @@ def _naming(path: Path):
         raise named from error
 
 
+_NOT_THE_FILES_FAULT = frozenset({errno.EMFILE, errno.ENFILE, errno.EACCES, errno.EPERM, errno.ENOMEM})
+"""Errors opening a file that say nothing of its contents (too many open files, no permission,
+no memory): :func:`open_shard` raises them as an OSError naming the file, not as a
+:class:`ShardFormatError`."""
+
+
 def open_shard(path: str | Path) -> h5py.File:
-    """Open a shard read-only after checking its format; errors name the file."""
+    """Open a shard read-only after checking its format; errors name the file. A file that
+    cannot be opened for a reason outside it (:data:`_NOT_THE_FILES_FAULT`: ``PATH: Too many
+    open files``) is an OSError; one that is not a readable rainbench shard, a
+    :class:`ShardFormatError`."""
     path = Path(path)
     try:
         handle = h5py.File(path, "r")
-    except (OSError, ValueError) as error:
+    except OSError as error:
+        if error.errno in _NOT_THE_FILES_FAULT:  # a healthy shard must not be called corrupt
+            raise file_error(OSError(error.errno, os.strerror(error.errno)), path) from error
+        raise ShardFormatError(f"{path}: not a readable HDF5 shard ({error})") from error
+    except ValueError as error:
         raise ShardFormatError(f"{path}: not a readable HDF5 shard ({error})") from error
     try:
         if handle.attrs.get("format") != FORMAT:

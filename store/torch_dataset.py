@@ -23,15 +23,16 @@ class ShardDataset(_TorchDataset):
     ``visible_fraction`` (M,), ``truncation`` (M,), ``rate`` (float32 scalar) and the plain
     ``image_id``, ``shard``, ``frame``. Arguments as :class:`ShardReader`.
 
-    With ``DataLoader(num_workers > 0)`` use ``collate_fn=ShardDataset.collate_fn``: workers
-    hand targets over as numpy arrays (cheaper between processes), and the images of a batch
-    cross as one shared-memory block.
+    Items are the same in a ``DataLoader`` worker as in the main process. With
+    ``DataLoader(num_workers > 0)`` use ``collate_fn=ShardDataset.collate_fn``: it packs a
+    batch's images of one size and each target key into one block, so a batch crosses between
+    processes as a few shared-memory segments rather than one per tensor.
     """
 
     def __init__(self, data, rates=None, *, min_visible_fraction: float = 0.0,
-                 classes=None) -> None:
+                 classes=None, allow_incomplete: bool = False) -> None:
         self.reader = ShardReader(data, rates, min_visible_fraction=min_visible_fraction,
-                                  classes=classes)
+                                  classes=classes, allow_incomplete=allow_incomplete)
 
     @property
     def rates(self) -> tuple[float, ...]:
@@ -43,11 +44,7 @@ class ShardDataset(_TorchDataset):
     def __getitem__(self, index: int):
         image, target = self.reader.sample(index)
         image = torch.from_numpy(image).permute(2, 0, 1)  # CHW view, no copy
-        if torch.utils.data.get_worker_info() is not None:
-            # In a DataLoader worker the target stays numpy: collate_fn makes one tensor block
-            # per key for the whole batch (each tensor costs a shared-memory segment).
-            return image, target
-        return image, _targets_to_tensors((target,))[0]
+        return image, _targets_to_tensors((target,))[0]  # views of the numpy arrays, no copy
 
     @staticmethod
     def collate_fn(batch):
@@ -66,16 +63,19 @@ class ShardDataset(_TorchDataset):
 
 
 def _targets_to_tensors(targets: Sequence[dict]) -> tuple[dict, ...]:
-    """Numpy targets of one batch as tensors that are views of one block per key."""
+    """Targets of one batch (numpy arrays or tensors) as tensors that are views of one block per
+    key."""
     out = [dict(target) for target in targets]
     for key, value in targets[0].items():
-        values = [target[key] for target in targets]
+        values = [target[key].numpy() if isinstance(target[key], torch.Tensor) else target[key]
+                  for target in targets]
+        value = values[0]
         if isinstance(value, np.ndarray) and value.ndim >= 1:
             parts = torch.split(torch.from_numpy(np.concatenate(values)),
                                 [len(v) for v in values])
         elif isinstance(value, (np.ndarray, np.floating)):
             parts = torch.from_numpy(np.stack(values))
-        else:  # already tensors (a DataLoader without workers) or plain values
+        else:  # plain values: image_id, shard, frame
             continue
         for target, part in zip(out, parts):
             target[key] = part

@@ -363,3 +363,106 @@ def test_read_rgb_equals_h5py_and_names_a_corrupt_chunk(dataset_dir, tmp_path):
     with pytest.raises(ShardFormatError, match=r"scene000000_f00000.h5: /rgb chunk of rate row 1, "
                                                r"frame 1 is corrupt"):
         reader.sample(len(reader.rates) + 1)  # frame 1, rate row 1
+
+
+def _pairs(batch):
+    return tuple(zip(*batch))
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_items_hold_tensors_in_dataloader_workers_too(dataset_dir, workers):
+    """A worker's item held numpy targets (the main process's held tensors): code that worked
+    with num_workers=0 failed on target["boxes"].to(device) with workers, or with any collate."""
+    loader = DataLoader(ShardDataset(dataset_dir), batch_size=3, num_workers=workers, collate_fn=_pairs)
+    images, targets = next(iter(loader))
+    for target in targets:
+        for key in ("boxes", "labels", "instance_id", "visible_fraction", "truncation", "rate"):
+            assert isinstance(target[key], torch.Tensor), (key, type(target[key]))
+        assert target["boxes"].shape[1:] == (4,) and target["rate"].shape == ()
+        assert isinstance(target["image_id"], int) and isinstance(target["shard"], str)
+    assert all(isinstance(image, torch.Tensor) and image.shape == (3, 72, 96) for image in images)
+
+
+def test_at_most_max_open_shards_stay_open(dataset_dir, monkeypatch):
+    """Every shard read stayed open in every process: a shuffled epoch over a few thousand shards
+    ran out of file handles (and the error called a healthy shard unreadable)."""
+    monkeypatch.setattr(store.dataset, "MAX_OPEN_SHARDS", 2)
+    reader = ShardReader(dataset_dir)
+    fresh = ShardReader(dataset_dir)
+    order = list(range(len(reader)))[::-1] + list(range(len(reader)))
+    for index in order:
+        image, target = reader.sample(index)
+        assert len(reader.dataset._handles) <= 2
+        assert all(handle.id.valid for handle in reader.dataset._handles.values())
+        want_image, want = fresh.sample(index)
+        np.testing.assert_array_equal(image, want_image)
+        np.testing.assert_array_equal(target["boxes"], want["boxes"])
+    reader.close()
+
+
+def test_a_file_that_cannot_be_opened_for_lack_of_handles_is_not_called_corrupt(dataset_dir, monkeypatch):
+    import errno
+
+    shard = dataset_dir / "scene000000_f00000.h5"
+
+    def refuse(*args, **kwargs):
+        raise OSError(errno.EMFILE, "Unable to synchronously open file (errno = 24, error message = "
+                                    "'Too many open files')")
+
+    monkeypatch.setattr(h5py, "File", refuse)
+    with pytest.raises(OSError, match=f"^{shard}: Too many open files$") as info:
+        store.open_shard(shard)
+    assert not isinstance(info.value, ShardFormatError) and info.value.errno == errno.EMFILE
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"classes": [4]}, r"^classes: unknown class 4; expected names or ids of person \(0\)"),
+    ({"classes": [2.7]}, r"^classes: unknown class 2.7;"),
+    ({"classes": []}, r"^classes: expected at least one class, got \[\]"),
+    ({"classes": 2}, r"^classes: expected a list of class names or ids, got 2$"),
+    ({"classes": "car"}, r"^classes: expected a list of class names or ids, got 'car'$"),
+    ({"min_visible_fraction": 25}, r"^min_visible_fraction: expected a fraction in \[0, 1\], got 25$"),
+    ({"min_visible_fraction": float("nan")}, r"^min_visible_fraction: expected a fraction in \[0, 1\], got nan$"),
+])
+def test_reader_filters_are_checked(dataset_dir, options, message):
+    """A class id the shards never hold, a float id or a percentage dropped every label silently."""
+    with pytest.raises(store.DatasetError, match=message):
+        ShardDataset(dataset_dir, **options)
+
+
+def test_reader_filters_take_class_names(dataset_dir):
+    by_name = ShardReader(dataset_dir, rates=[50], classes=["car", "person"])
+    by_id = ShardReader(dataset_dir, rates=[50], classes=[2, 0])
+    assert by_name.classes.tolist() == [0, 2]
+    for index in range(len(by_id)):
+        np.testing.assert_array_equal(by_name.sample(index)[1]["labels"], by_id.sample(index)[1]["labels"])
+
+
+def test_reader_refuses_an_unfinished_dataset_unless_allowed(dataset_dir, tmp_path):
+    """A dataset still being generated (or cut off) was read as if whole, without a word."""
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    manifest = json.loads((dataset_dir / store.MANIFEST).read_text())
+    first = manifest["shards"][0]
+    (partial / first["path"]).write_bytes((dataset_dir / first["path"]).read_bytes())
+    manifest.update(complete=False, shards=[first])
+    (partial / store.MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(store.DatasetError, match=f"^{partial} is an incomplete dataset \\(its manifest lists 1 "
+                                                 "finished shards .*allow_incomplete=True"):
+        ShardDataset(partial)
+    with pytest.warns(UserWarning, match="is incomplete: reading its 1 finished shards only"):
+        dataset = ShardDataset(partial, allow_incomplete=True)
+    assert len(dataset) == first["frames"] * 2
+
+
+def test_reader_indexes_like_a_sequence(dataset_dir):
+    reader = ShardReader(dataset_dir)
+    last = reader.sample(len(reader) - 1)
+    for index in (-1, np.int64(len(reader) - 1), torch.tensor(len(reader) - 1)):
+        image, target = reader.sample(index)
+        np.testing.assert_array_equal(image, last[0])
+        assert (target["image_id"], target["rate"]) == (last[1]["image_id"], last[1]["rate"])
+    with pytest.raises(IndexError, match=f"sample index {-len(reader) - 1} out of range 0..{len(reader) - 1}"):
+        reader.sample(-len(reader) - 1)
+    with pytest.raises(TypeError, match=r"^sample index: expected an integer, got 2.0$"):
+        reader.sample(2.0)
