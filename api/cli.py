@@ -518,7 +518,7 @@ def _check_weights_files(specs: list[tuple[str, str]], device: str | None) -> No
         del detector
 
 
-def _add_compare_arg(parser: argparse.ArgumentParser, default: str = "the model its name extends, else the first") -> None:
+def _add_compare_arg(parser: argparse.ArgumentParser, default: str = "the model its name extends, else the first that extends none") -> None:
     parser.add_argument("--compare", action="append", default=None, metavar="MODEL=REFERENCE",
                         help="robustness comparison: the model's paired mPC difference is taken from "
                              f"REFERENCE (repeatable; default: {default})")
@@ -824,7 +824,7 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--classes", default=None,
                        help="classes to report, names or ids (default: the paper's four; e.g. add bus,truck)")
     _add_compare_arg(paper, "X-rain against X-randomrain when both are evaluated, else the model its "
-                            "name extends, else the first")
+                            "name extends, else the first that extends none")
     _add_metrics_arg(paper)
     paper.add_argument("--force", action="store_true", help="re-run detectors despite cached predictions")
     paper.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -26,16 +26,22 @@ def comparison_references(models: Sequence[str], chosen: Sequence[tuple[str, str
     ``chosen`` (``(model, reference)`` pairs, ``--compare MODEL=REFERENCE``) wins; any other model
     is compared with the evaluated model whose name it extends by a ``-suffix`` (the longest such:
     ``rainbench-yolo11n-rain`` and ``rainbench-yolo11n-randomrain`` with ``rainbench-yolo11n``),
-    else with the first model, which has no reference. Raises a one-line ValueError for a
-    chosen name that is not among ``models``."""
+    in whatever order the models come; a model that extends none is compared with the first such
+    model, which has no reference. Raises a one-line ValueError for a chosen name that is not
+    among ``models``."""
     for pair in chosen:
         missing = [name for name in pair if name not in models]
         if missing:
             raise ValueError(f"--compare: {missing[0]!r} is not an evaluated model (models: {', '.join(models)})")
+    bases = {model: [other for other in models if other != model and model.startswith(other + "-")]
+             for model in models}
+    anchor = next((model for model in models if not bases[model]), None)
     references = {}
-    for model in models[1:]:
-        bases = [other for other in models if other != model and model.startswith(other + "-")]
-        references[model] = max(bases, key=len) if bases else models[0]
+    for model in models:
+        if bases[model]:
+            references[model] = max(bases[model], key=len)
+        elif model != anchor:
+            references[model] = anchor
     references.update(dict(chosen))
     return references
 

@@ -391,7 +391,7 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     weights file and settings on the same images at that rate unless ``force``.
 
     ``imgsz``: letterbox size of every model; None gives each model its own
-    (:func:`rainbench.eval.weights.model_imgsz`: a shipped model's card, else 640).
+    (:func:`rainbench.eval.weights.model_imgsz`: the model's card, else 640).
     ``trust_pickle``: load ``.pt`` files that ultralytics' safe loading refuses with Python's
     full unpickler (see :func:`rainbench.eval.backends.load_detector`).
 

@@ -328,7 +328,18 @@ def test_shipped_names_resolve_by_device_and_carry_their_imgsz(tmp_path, monkeyp
     assert registry.resolve_weights("m", "cuda:0") == (tmp_path / "m.pt", "m")
     assert registry.resolve_weights("m", None)[0].suffix == (".pt" if torch.cuda.is_available() else ".onnx")
     assert registry.model_imgsz("m") == 960
-    assert registry.model_imgsz(tmp_path / "m.pt") == 640  # a file path is not a shipped name
+    # Weights given by path take the card beside them (what `rainbench train` writes): a trained
+    # model was evaluated at 640 by path and at its card's 960 by name, 3-12 AP points apart.
+    assert registry.model_imgsz(tmp_path / "m.pt") == 960
+    assert registry.model_imgsz(str(tmp_path / "m.onnx")) == 960
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    assert registry.model_imgsz(elsewhere / "m.pt") == 640  # no card beside it
+    (elsewhere / "m.json").write_text('{"notes": "not a card"}')
+    assert registry.model_imgsz(elsewhere / "m.pt") == 640  # a .json that is not a card
+    (elsewhere / "m.json").write_text('{"imgsz": 8}')
+    with pytest.raises(backends.BackendError, match=r"elsewhere/m\.json: imgsz: expected an integer >= 32, got 8"):
+        registry.model_imgsz(elsewhere / "m.pt")
     assert registry.model_imgsz("other") == 640
     (tmp_path / "m.json").write_text('{"imgsz": "big"}')
     with pytest.raises(backends.BackendError, match=r"m\.json: imgsz: expected an integer >= 32, got 'big'"):

@@ -586,6 +586,13 @@ def test_comparison_references_follow_names_unless_chosen():
     chosen = comparison_references(models, [("rainbench-yolo11n-rain", "rainbench-yolo11n-randomrain")])
     assert chosen["rainbench-yolo11n-rain"] == "rainbench-yolo11n-randomrain"
     assert comparison_references(["only"]) == {}
+    # The order of --weights does not matter: a rain model listed first is still compared with
+    # the model it extends (it got no reference, and the clean model was compared with it).
+    assert comparison_references(["m-rain", "m"]) == {"m-rain": "m"}
+    assert comparison_references(["m-rain", "other", "m"]) == {"m-rain": "m", "m": "other"}
+    assert comparison_references(list(reversed(models))) == {
+        "rainbench-yolo11n-randomrain": "rainbench-yolo11n", "rainbench-yolo11n-rain": "rainbench-yolo11n",
+        "rainbench-yolo11s-rain": "rainbench-yolo11s", "rainbench-yolo11s": "mine", "rainbench-yolo11n": "mine"}
 
 
 def test_paper_pairs_each_rain_trained_model_with_its_randomrain_twin(monkeypatch):

@@ -158,13 +158,22 @@ def trained_classes(spec: str | Path) -> tuple[int, ...] | None:
 
 
 def model_imgsz(spec: str | Path) -> int:
-    """The letterbox size a model is evaluated at by default: a shipped model's card ``imgsz``
-    (``<name>.json``), else :data:`DEFAULT_IMGSZ`."""
+    """The letterbox size a model is evaluated at by default: its card's ``imgsz`` (a shipped
+    model's ``<name>.json``, or the ``.json`` beside a ``.pt`` / ``.onnx`` file that holds an
+    ``imgsz``, as ``rainbench train`` writes it), else :data:`DEFAULT_IMGSZ`. A ``.json`` beside
+    the weights without ``imgsz`` (not a card) is passed over, as :func:`trained_classes` does."""
     card = _shipped_file(spec, ".json")
+    if card is None and Path(str(spec)).suffix.lower() in (".pt", ".onnx"):
+        beside = Path(str(spec)).with_suffix(".json")
+        try:
+            loaded = json.loads(beside.read_text()) if beside.is_file() else None
+        except (OSError, ValueError):
+            loaded = None
+        card = beside if isinstance(loaded, dict) and "imgsz" in loaded else None
     if card is not None:
         try:
             imgsz = json.loads(card.read_text())["imgsz"]
-        except (ValueError, KeyError, TypeError):
+        except (OSError, ValueError, KeyError, TypeError):
             raise BackendError(f"{card}: expected a JSON object with an integer `imgsz`") from None
         if not (isinstance(imgsz, int) and imgsz >= 32):
             raise BackendError(f"{card}: imgsz: expected an integer >= 32, got {imgsz!r}")
