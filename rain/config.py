@@ -69,8 +69,11 @@ class RainConfig:
         exposure_s: camera exposure time T in seconds (physical model: streak length).
         focus_distance_m: focus distance of the thin-lens camera in metres (defocus of drops).
         f_number: aperture f-number N (defocus of drops).
-        pixel_pitch_um: sensor pixel pitch in micrometres; with fx it fixes the focal length in
-            metres ``f = fx * pitch`` used by the defocus formula.
+        pixel_pitch_um: pixel pitch of the image as rendered, in micrometres; with fx it fixes
+            the focal length in metres ``f = fx * pitch`` used by the defocus formula. The
+            default 7.2 um is the lens-water camera's (docs/rain.md): 1920 sensor pixels of 3 um
+            resized to 800 px, so f = 400 px x 7.2 um = 2.9 mm at the default 800x600 and 90
+            degrees.
         wind_slant_deg: angle of the streaks from the image vertical, degrees, positive = the
             drop drifts towards +x (right) while falling.
         streak_z_near_m, streak_z_far_m: depth range (metres along the optical axis) in which
@@ -102,8 +105,9 @@ class RainConfig:
         lens_aspect_min: lens drops are ellipses with minor/major axis ratio in [aspect_min, 1].
         lens_view_field_px: a lens drop shows the scene within this radius of its centre
             (px @800x600), point-reflected (flipped) and minified into the drop.
-        lens_view_blur_px: blur of the view through a lens drop, px @800x600 (the scene is
-            box-averaged over this many pixels); also the cell size on which lens water is drawn.
+        lens_view_blur_px: blur of the view through a lens drop, px @800x600: the Gaussian
+            sigma applied to the frame area-averaged to the drawing grid (whose cells are
+            ``lens_defocus_px / 2`` wide).
         lens_rim_darkening: fractional darkening at the rim of a lens drop (0 = none).
         lens_defocus_px: radius of the defocus blur of a drop on the glass, px @800x600.
         lens_opacity: opacity of a drop larger than the defocus blur, in (0, 1].
@@ -120,7 +124,7 @@ class RainConfig:
     exposure_s: float = 0.004
     focus_distance_m: float = 5.0
     f_number: float = 2.0
-    pixel_pitch_um: float = 3.0
+    pixel_pitch_um: float = 7.2
     wind_slant_deg: float = 0.0
     # physical model: drops drawn as streaks
     streak_z_near_m: float = 0.5

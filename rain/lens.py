@@ -32,6 +32,7 @@ upsampled bilinearly before they are blended over the full-resolution image.
 from __future__ import annotations
 
 import dataclasses
+import fractions
 import functools
 import math
 
@@ -76,8 +77,8 @@ def image_scale(height: int, width: int) -> float:
     return math.sqrt(height * width / REFERENCE_AREA)
 
 
-def _round_half_up(value: float) -> int:
-    return int(math.floor(value + 0.5))
+def _round_half_up(value: fractions.Fraction) -> int:
+    return math.floor(value + fractions.Fraction(1, 2))
 
 
 def jeon2022_drop_count(rate_mm_h: float, height: int = REFERENCE_HEIGHT, width: int = REFERENCE_WIDTH) -> int:
@@ -99,10 +100,13 @@ def jeon2022_drop_count(rate_mm_h: float, height: int = REFERENCE_HEIGHT, width:
         raise ValueError(f"image size must be positive, got height {height} and width {width}")
     if rate_mm_h <= EQ5_OFFSET_MM_H:
         return 0
-    count_800x600 = _round_half_up((rate_mm_h - EQ5_OFFSET_MM_H) / EQ5_SLOPE_MM_H)
+    # in exact decimals: (3.925 - 3.88) / 0.03 is 1.5, which floats make 1.4999999999999893
+    rate = fractions.Fraction(repr(float(rate_mm_h)))
+    count_800x600 = _round_half_up((rate - fractions.Fraction(repr(EQ5_OFFSET_MM_H)))
+                                   / fractions.Fraction(repr(EQ5_SLOPE_MM_H)))
     if height * width == REFERENCE_AREA:
         return count_800x600
-    return _round_half_up(count_800x600 * (height * width) / REFERENCE_AREA)
+    return _round_half_up(fractions.Fraction(count_800x600 * height * width, REFERENCE_AREA))
 
 
 # --------------------------------------------------------------------------------------------

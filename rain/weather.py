@@ -106,7 +106,7 @@ ROAD_PUDDLE_REFLECTANCE = 0.12
 reference angle of 80 degrees from the normal (water's Fresnel reflectance there is 0.35). At
 other angles it scales with water's Fresnel reflectance (:func:`road_mirror_weight`): a roof
 camera sees the road 2.6 m ahead at 60 degrees (0.06: hardly a mirror) and 30 m ahead at 87
-degrees (0.69)."""
+degrees (0.72)."""
 ROAD_FILM_SLOPE_RAD = 0.02
 """RMS slope of the wet film's surface, asphalt's texture showing through a thin film. A facet
 tilted by d in the plane of incidence turns the mirrored ray by 2 d, one tilted across it by only
@@ -265,8 +265,8 @@ class Weather:
 RECORD_FIELDS = tuple(f.name for f in dataclasses.fields(Weather)
                       if f.name not in ("sky", "time_of_day"))
 MID_GREY_DN = 118.0
-"""An 18 % grey card through the display tone curve, in 8-bit units: where :attr:`Weather.noise_dn`
-is measured."""
+"""An 18 % grey card in 8-bit display units (the usual 118 of an sRGB camera; 0.18^(1/2.2) x 255 is
+117): where :attr:`Weather.noise_dn` is measured."""
 
 
 def check_sky(sky: object) -> str:
@@ -390,8 +390,10 @@ def cloud_cover_and_shade(cover: float, cloud_ranks: np.ndarray | None,
     that cloud)`` for directions of elevation sine ``sin_elevation`` (N,) whose cloud field
     reads ``cloud_ranks`` (N,) in 0..1.
 
-    A fraction ``cover`` of the field is under cloud, the highest ranks, with edges feathered
-    over ``CLOUD_EDGE_RANKS``: cover 0 leaves no cloud, cover 1 no gap. Within the cloud the
+    About a fraction ``cover`` of the field is under cloud, the highest ranks, with edges
+    feathered over ``CLOUD_EDGE_RANKS`` (e): cover 0 leaves no cloud, cover 1 no gap; between,
+    the mean share is ``cover + e (cover - 1/2)`` where the ramp lies inside the ranks (0.824
+    for the cloudy sky's 0.8), fading to ``cover`` itself towards the horizon. Within the cloud the
     thickest parts are darker, the thinnest lighter (``1 +- CLOUD_SHADE``: the grey bases of a
     closed deck). Low down, where the layer's cells shrink below what the sky texture resolves,
     both fade into their means (``cover`` and 1) with the haze, over ``CLOUD_FADE_SIN_ELEVATION``.
@@ -509,8 +511,8 @@ def road_mirror_weight(K: np.ndarray, rotation_world_cam: np.ndarray, height: in
                        road_reflectance: float) -> np.ndarray:
     """(H, W) float32 in [0, 1]: how much of the mirror image a horizontal wet road shows at each
     pixel, ``min(1, road_reflectance x F(theta) / F(80 deg))`` with theta the angle between the
-    pixel's ray and the road's normal (pixels whose ray does not go down get F(90 deg) = 1,
-    harmless: no road is seen there).
+    pixel's ray and the road's normal (a pixel whose ray does not go down gets the F of its
+    mirrored ray's angle: harmless, no road is seen there).
 
     Args:
         K: (3, 3) intrinsics. rotation_world_cam: (3, 3) camera-to-world rotation (OpenCV axes).
@@ -1109,7 +1111,9 @@ def noise_field(rng: np.random.Generator, height: int, width: int) -> np.ndarray
 @functools.lru_cache(maxsize=1)
 def _grain_kernel() -> tuple[np.ndarray, np.float32]:
     """(1-D Gaussian kernel of :data:`ISP_NOISE_SIGMA_PX`, the factor that brings white noise
-    smoothed by it back to unit variance: 1 / sum of the 2-D kernel's squared weights)."""
+    smoothed by it in both directions back to unit variance: 1 / the sum of the 1-D kernel's
+    squared weights, since the separable 2-D smoothing scales the standard deviation by that
+    sum)."""
     radius = max(1, math.ceil(3 * ISP_NOISE_SIGMA_PX))
     kernel = cv2.getGaussianKernel(2 * radius + 1, ISP_NOISE_SIGMA_PX, cv2.CV_32F)
     return kernel, np.float32(1.0 / float((kernel.astype(np.float64) ** 2).sum()))

@@ -132,6 +132,15 @@ def test_eq5_counts_at_800x600():
     assert lens_mod.jeon2022_drop_count(3.9) == 1  # (3.9 - 3.88) / 0.03 = 0.67 -> 1
 
 
+def test_eq5_rounds_exact_halves_up():
+    """Float arithmetic put exact halves just under .5: 3.925 mm/h (1.5 drops) gave 1, 3.985 gave
+    3; 186 of the 6000 half-way rates 3.88 + 0.03 (k + 1/2) below 184 mm/h rounded down."""
+    assert lens_mod.jeon2022_drop_count(3.925) == 2 and lens_mod.jeon2022_drop_count(3.985) == 4
+    halves = [round(3.88 + 0.03 * (k + 0.5), 3) for k in range(6000)]
+    assert [lens_mod.jeon2022_drop_count(rate) for rate in halves] == [k + 1 for k in range(6000)]
+    assert lens_mod.jeon2022_drop_count(3.925, 1080, 1920) == 9  # 2 x 4.32 = 8.64 -> 9
+
+
 def test_eq5_counts_scale_with_area():
     assert lens_mod.jeon2022_drop_count(100.0, 300, 400) == 801  # 3204 / 4
     assert lens_mod.jeon2022_drop_count(100.0, 1200, 1600) == 12816  # 3204 * 4
@@ -656,3 +665,15 @@ def test_rain_code_does_not_import_mujoco():
     for path in RAIN_DIR.glob("*.py"):
         text = path.read_text(encoding="utf-8")
         assert "import mujoco" not in text and "from mujoco" not in text, path.name
+
+
+def test_one_camera_for_falling_drops_and_lens_water():
+    """The defocus of falling drops used f = fx x 3 um = 1.2 mm, the lens water a 2.9 mm lens:
+    one default camera now, whose lens at f/2 blurs a point on the glass 3 cm away by about the
+    lens water's defocus radius."""
+    config = RainConfig(model="physical")
+    focal_length_m = 400 * config.pixel_pitch_um * 1e-6  # fx at 800x600, 90 degrees
+    assert focal_length_m == pytest.approx(2.9e-3, rel=0.01)
+    glass_m = 0.03
+    blur_px = (focal_length_m / config.f_number) * 400 / (2 * glass_m)
+    assert blur_px == pytest.approx(config.lens_defocus_px, rel=0.05)
