@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from rainbench.rain.weather import (GRASS_WET_DARKENING, NIGHT_SKY_LUX, PAVEMENT_WET_DARKENING,
                                     ROAD_WET_DARKENING, STRAY_LIGHT_LUX, Weather, airlight_rgb,
-                                    daylight_level, display_light)
+                                    daylight_level, display_light, wet_display_factor)
 
 # The clear-sky sun (light "sun", directional, casts shadows) and the camera's headlight.
 SUN_DIFFUSE = (0.75, 0.72, 0.66)
@@ -68,7 +68,7 @@ class SceneLighting:
     skylight_diffuse: float
     headlight_ambient: tuple[float, float, float]  # a faint blue cast: diffuse skylight
     headlight_diffuse: float
-    road_factor: float  # multiplies the asphalt material's colour
+    road_factor: float  # multiplies the asphalt material's colour (wet_display_factor)
     pavement_factor: float  # sidewalks and curbs
     grass_factor: float
     road_reflectance: float
@@ -128,9 +128,9 @@ def scene_lighting(weather: Weather) -> SceneLighting:
         skylight_diffuse=skylight,
         headlight_ambient=ambient_rgb,
         headlight_diffuse=headlight_diffuse,
-        road_factor=1.0 - ROAD_WET_DARKENING * wet,
-        pavement_factor=1.0 - PAVEMENT_WET_DARKENING * wet,
-        grass_factor=1.0 - GRASS_WET_DARKENING * wet,
+        road_factor=wet_display_factor(ROAD_WET_DARKENING, wet),
+        pavement_factor=wet_display_factor(PAVEMENT_WET_DARKENING, wet),
+        grass_factor=wet_display_factor(GRASS_WET_DARKENING, wet),
         road_reflectance=weather.road_reflectance,
         puddle_scale=weather.puddle_fraction ** 0.5,
         cloud_deck=weather.rain_mm_h > 0 and weather.sun <= 0.02,

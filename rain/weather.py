@@ -97,9 +97,19 @@ PUDDLE_ONSET_MM_H, PUDDLE_FULL_MM_H = 4.0, 40.0
 SPRAY_ONSET_MM_H, SPRAY_FULL_MM_H = 2.0, 40.0
 """Tyre spray needs a water film: none below 2 mm/h, full density from 40 mm/h."""
 ROAD_WET_DARKENING = 0.45
-"""Wet asphalt reflects ~45 % less diffuse light (Lekner & Dorf 1988: water fills the pores)."""
+"""Wet asphalt reflects ~45 % less diffuse light (Lekner & Dorf 1988: water fills the pores).
+A share of the light, not of the display value: :func:`wet_display_factor`."""
 PAVEMENT_WET_DARKENING = 0.35
 GRASS_WET_DARKENING = 0.20
+
+
+def wet_display_factor(darkening: float, wetness: float) -> float:
+    """The factor on a surface material's colour that makes it reflect ``darkening x wetness``
+    less light: ``(1 - darkening x wetness)^(1 / 2.2)``. The renderer's output is a display
+    value, proportional to the material colour, so the light's share goes through the tone
+    curve (asphalt fully wet: 0.55 of the light, 0.76 of the display value; 0.55 of the display
+    value would be 0.27 of the light, until 2026-11-27)."""
+    return (1.0 - float(darkening) * float(wetness)) ** (1.0 / DISPLAY_LIGHT_GAMMA)
 ROAD_FILM_REFLECTANCE = 0.30
 ROAD_PUDDLE_REFLECTANCE = 0.12
 """Mirror strength of the road: 0.30 x wetness + 0.12 x puddle fraction, the reflectance at the

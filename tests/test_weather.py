@@ -146,7 +146,13 @@ def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=T
     spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
                      builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT, rgb1=[1, 1, 1], rgb2=[1, 1, 1],
                      width=32, height=32)
-    spec.add_material(name=road, rgba=[0.4, 0.4, 0.4, 1])  # the rig re-colours "asphalt" only
+    # the rig re-colours "asphalt" only (its rgba: the wet factor); a dark texture makes it a
+    # road (scene asphalt is about 90 of 255 dry), not a white floor
+    spec.add_texture(name="road_grey", type=mujoco.mjtTexture.mjTEXTURE_2D,
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT, rgb1=[0.35, 0.35, 0.35],
+                     rgb2=[0.35, 0.35, 0.35], width=8, height=8)
+    road_material = spec.add_material(name=road, rgba=[0.4, 0.4, 0.4, 1])
+    road_material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "road_grey"
     world = spec.worldbody
     if split_at is None and planes:  # one unbounded plane (size 0)
         world.add_geom(name="scenery/road", type=mujoco.mjtGeom.mjGEOM_PLANE,
@@ -714,3 +720,20 @@ def test_glow_adds_in_linear_light():
     expected = np.clip(np.rint(255.0 * ((rgb / 255.0) ** 2.2 + 0.25) ** (1 / 2.2)), 0, 255)
     np.testing.assert_allclose(lifted, expected, atol=1)
     assert lifted[0, 0, 0] == pytest.approx(255 * 0.25 ** (1 / 2.2), abs=1) and lifted[0, 0, 2] == 255
+
+
+@pytest.mark.parametrize("time_of_day", ["day", "night"])
+def test_wet_surfaces_reflect_the_documented_share_of_the_light(time_of_day):
+    """Wet asphalt reflects 45 % less light (Lekner & Dorf); its material colour was scaled by
+    0.55, which through the renderer's display values is 73 % less light."""
+    from rainbench.mjcf.weather import scene_lighting
+
+    for rate in (0.0, 5.0, 100.0):
+        weather = wx.weather_at("clear", rate, time_of_day=time_of_day)
+        lighting = scene_lighting(weather)
+        for factor, darkening in ((lighting.road_factor, wx.ROAD_WET_DARKENING),
+                                  (lighting.pavement_factor, wx.PAVEMENT_WET_DARKENING),
+                                  (lighting.grass_factor, wx.GRASS_WET_DARKENING)):
+            assert factor ** wx.DISPLAY_LIGHT_GAMMA == pytest.approx(1.0 - darkening * weather.wetness)
+    wet = scene_lighting(wx.weather_at("clear", 100.0, time_of_day=time_of_day))
+    assert wet.road_factor == pytest.approx(0.55 ** (1 / 2.2), abs=1e-3)  # 0.762 of the display value
