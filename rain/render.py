@@ -300,12 +300,13 @@ each rate (the physical model's, and lens water over each rate's own scene): 48 
 again each time a rate draws them."""
 
 
-STREAK_SAMPLE_BUDGET = 1 << 22
-"""Streak samples (:func:`phys.streak_sample_counts`) rasterised at once, about 250 bytes each
-(1 GB at the budget). Beyond it (long exposures on large images: 1/30 s at 3840x2160 and 1000
-mm/h takes 24 million) the streaks are drawn in runs into dense per-layer sums
-(:class:`_StreakRuns`), the same numbers. The defaults fit one raster up to 1000 mm/h at
-3840x2160."""
+STREAK_SAMPLE_BUDGET = 1 << 21
+"""Streak samples (:func:`phys.streak_sample_counts`) rasterised at once, about 380 bytes each
+(0.8 GB at the budget; each sample splats into 2 x 2 pixels; 2^22 until they splatted into 2).
+Beyond it (long exposures on large images: 1/30 s at 3840x2160 and 1000 mm/h takes 24 million)
+the streaks are drawn in runs into dense per-layer sums (:class:`_StreakRuns`), the same
+numbers. One raster holds up to 1000 mm/h at 2560x1440 with the default 1/250 s, and at
+800x600 with the 1/60 s of rain light."""
 
 
 class _LensAccumulator:
