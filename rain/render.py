@@ -20,6 +20,7 @@ from rainbench.rain import lens as lens_mod
 from rainbench.rain import physical as phys
 from rainbench.rain._seeding import check_seed_sequence
 from rainbench.rain.config import RainConfig
+from rainbench.rain.tone import linear_value, to_display, to_linear
 from rainbench.store.rates import MAX_RATE_MM_H
 
 
@@ -444,14 +445,17 @@ def _physical_sweep(
     path_m = phys.ray_length_m(depth, K, config.sky_distance_m)
 
     def blend_terms(scene: np.ndarray, airlight_rgb: tuple[float, float, float] | None):
+        # in linear light (rainbench.rain.tone): extinction, airlight and streaks mix radiance
         airlight = np.asarray(airlight_rgb, dtype=np.float64) if airlight_rgb is not None else phys.estimate_airlight(scene, depth)
+        airlight_linear = linear_value(airlight)
+        scene_linear = to_linear(scene)
         # a drop refracts a ~165 degree view, mostly of the sky: streak radiance is a blend of
-        # the sky's colour (the airlight) and the frame's mean colour (Garg & Nayar)
+        # the sky's radiance (the airlight) and the frame's mean radiance (Garg & Nayar)
         sky_weight = config.streak_sky_weight
-        drop_radiance = sky_weight * airlight + (1.0 - sky_weight) * np.asarray(cv2.mean(scene)[:3], dtype=np.float64)
-        scene_minus_air = [scene[..., channel].astype(np.float32) - np.float32(airlight[channel]) for channel in range(3)]
-        radiance_minus_air = [float(drop_radiance[channel] - airlight[channel]) for channel in range(3)]
-        return airlight, scene_minus_air, radiance_minus_air
+        drop_radiance = sky_weight * airlight_linear + (1.0 - sky_weight) * np.asarray(cv2.mean(scene_linear)[:3], dtype=np.float64)
+        scene_minus_air = [scene_linear[..., channel] - np.float32(airlight_linear[channel]) for channel in range(3)]
+        radiance_minus_air = [float(drop_radiance[channel] - airlight_linear[channel]) for channel in range(3)]
+        return airlight_linear, scene_minus_air, radiance_minus_air
 
     shared_terms = blend_terms(rgb, config.airlight_rgb) if scene_of is None and airlight_of is None else None
 
@@ -469,7 +473,8 @@ def _physical_sweep(
         streaks.add_rate(rate)
         streak_opacity = streaks.opacity()
 
-        # I' = A + (I - A) T (1 - E) + (S - A) E: extinction/airlight, then streaks over it
+        # I' = A + (I - A) T (1 - E) + (S - A) E in linear light: extinction/airlight, then
+        # streaks over it; back to display values once
         beta_per_m = phys.extinction_coefficient(rate) * 1e-3
         gain = cv2.exp(path_m * np.float32(-beta_per_m))
         gain = cv2.multiply(gain, np.float32(1.0) - streak_opacity)
@@ -477,8 +482,8 @@ def _physical_sweep(
         for channel in range(3):
             plane = cv2.multiply(scene_minus_air[channel], gain)
             plane = cv2.scaleAdd(streak_opacity, radiance_minus_air[channel], plane)
-            channels.append(cv2.convertScaleAbs(plane, alpha=1.0, beta=float(airlight[channel])))
-        rainy = cv2.merge(channels)
+            channels.append(plane + np.float32(airlight[channel]))
+        rainy = to_display(cv2.merge(channels))
         coverage = streak_opacity
         drop_count = streaks.visible_count()
 

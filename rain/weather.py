@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from rainbench.rain.physical import extinction_coefficient
+from rainbench.rain.tone import DISPLAY_LIGHT_GAMMA, linear_value, to_display, to_linear
 
 SKIES = ("clear", "cloudy", "overcast")
 """Base weathers a scene may have; the seed paper's CARLA clip was ``cloudy``."""
@@ -162,9 +163,8 @@ STREET_LIGHT_LUX = 15.0
 STRAY_LIGHT_LUX = 0.5
 """Light that street lights, shop windows and other cars spill everywhere (inter-reflections,
 the lamps the renderer does not draw as light sources): the floor of the night ambient."""
-DISPLAY_LIGHT_GAMMA = 2.2
-"""Tone curve of :func:`display_light`: the camera maps relative luminance to display values
-with exponent 1/2.2, so a 10x dimmer patch is 0.35x, not 0.1x, as bright in the image."""
+# DISPLAY_LIGHT_GAMMA (rainbench.rain.tone): the tone curve of :func:`display_light` and of every
+# mix of light done here.
 
 
 def check_time_of_day(time_of_day: object) -> str:
@@ -961,12 +961,14 @@ def spray_opacity(depth: np.ndarray, K: np.ndarray, points_cam: np.ndarray,
 
 
 def composite_spray(rgb: np.ndarray, opacity: np.ndarray, colour_rgb: np.ndarray) -> np.ndarray:
-    """``rgb + opacity (colour - rgb)``, rounded: spray lit by the sky. Returns a new array."""
+    """Spray lit by the sky over ``rgb`` ((H, W, 3) uint8): ``L + opacity (C - L)`` in linear
+    light (:mod:`rainbench.rain.tone`), ``colour_rgb`` (3,) display values in [0, 255], opacity
+    (H, W) float32 in [0, 1]. Returns a new (H, W, 3) uint8 array."""
     if not opacity.any():
         return rgb.copy()
-    base = rgb.astype(np.float32)
-    out = base + opacity[..., None] * (np.asarray(colour_rgb, np.float32)[None, None] - base)
-    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    base = to_linear(rgb)
+    colour = linear_value(colour_rgb).astype(np.float32)[None, None]
+    return to_display(base + opacity[..., None] * (colour - base))
 
 
 # -- lights seen through rain -----------------------------------------------------------------
@@ -1069,10 +1071,6 @@ def light_glow(K: np.ndarray, pose_world_cam: np.ndarray, lamps: np.ndarray, int
     return cv2.resize(level.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
 
 
-_LINEAR_OF_DISPLAY = np.power(np.arange(256, dtype=np.float32) / np.float32(255.0),
-                              np.float32(DISPLAY_LIGHT_GAMMA))
-
-
 def puddle_water(surface: np.ndarray, mirror: np.ndarray, fresnel: np.ndarray) -> np.ndarray:
     """(..., 3) float32 display values of standing water, pixel by pixel: in linear light,
     water's Fresnel reflectance ``F`` of the mirror image plus the rest of the road seen through
@@ -1101,8 +1099,7 @@ def add_glow(rgb: np.ndarray, glow: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8: ``rgb`` (display values) with ``glow`` ((H, W, 3) float32 linear display
     units, :func:`light_glow`) added in linear light: ``255 ((rgb / 255)^2.2 + glow)^(1 / 2.2)``,
     rounded and clipped (a pixel without glow keeps its value)."""
-    linear = cv2.add(_LINEAR_OF_DISPLAY[rgb], glow)
-    return cv2.convertScaleAbs(cv2.pow(linear, 1.0 / DISPLAY_LIGHT_GAMMA), alpha=255.0)
+    return to_display(cv2.add(to_linear(rgb), glow))
 
 
 def noise_field(rng: np.random.Generator, height: int, width: int) -> np.ndarray:

@@ -333,18 +333,37 @@ def test_extinction_and_airlight_applied_with_the_depth_render():
     path = phys.ray_length_m(depth, K, config.sky_distance_m).astype(np.float64)
     transmission = np.exp(-phys.extinction_coefficient(100.0) * 1e-3 * path)[..., None]
     streaks = frame.coverage.astype(np.float64)[..., None]
-    air = np.asarray(airlight)
-    # the sky's share (the airlight) plus the rest of the frame's mean colour
-    drop_radiance = config.streak_sky_weight * air + (1 - config.streak_sky_weight) * rgb.reshape(-1, 3).mean(axis=0)
-    expected = air + (rgb - air) * transmission * (1 - streaks) + (drop_radiance - air) * streaks
+    # radiance mixes in linear light: display values through the 1/2.2 tone curve, and back
+    def linear(display):
+        return (np.asarray(display, np.float64) / 255.0) ** 2.2
+
+    def display(light):
+        return 255.0 * np.clip(light, 0.0, 1.0) ** (1 / 2.2)
+
+    air, scene = linear(airlight), linear(rgb)
+    # the sky's share (the airlight) plus the rest of the frame's mean radiance
+    drop_radiance = config.streak_sky_weight * air + (1 - config.streak_sky_weight) * scene.reshape(-1, 3).mean(axis=0)
+    expected = display(air + (scene - air) * transmission * (1 - streaks) + (drop_radiance - air) * streaks)
     assert np.abs(frame.rgb.astype(np.float64) - expected).max() <= 1.0
     assert frame.coverage.max() > 0.01
-    # without streaks it is the pure extinction / airlight blend
+    # without streaks it is the pure extinction / airlight blend (Koschmieder, in light)
     no_streaks = render_rain(rgb, np.full_like(depth, 0.2), 100.0, config=config, K=K, seed_sequence=_seed())
     near_path = phys.ray_length_m(np.full_like(depth, 0.2), K, config.sky_distance_m).astype(np.float64)
-    near_expected = air + (rgb - air) * np.exp(-phys.extinction_coefficient(100.0) * 1e-3 * near_path)[..., None]
+    near_expected = display(air + (scene - air) * np.exp(-phys.extinction_coefficient(100.0) * 1e-3 * near_path)[..., None])
     assert not no_streaks.coverage.any()
-    assert np.abs(no_streaks.rgb.astype(np.float64) - near_expected).max() <= 0.5 + 1e-6
+    assert np.abs(no_streaks.rgb.astype(np.float64) - near_expected).max() <= 0.5 + 1e-3
+    # the mix is of light, not of display values: a grey 50 at 50 m under a 200 airlight at
+    # 100 mm/h (T = 0.71) shows as 120, not the 93 of a display-value mix
+    grey = render_rain(np.full((height, width, 3), 50, np.uint8), depth, 100.0,
+                       config=dataclasses.replace(config, airlight_rgb=(200.0, 200.0, 200.0)), K=K,
+                       seed_sequence=_seed())
+    assert transmission[height // 2, width // 2, 0] == pytest.approx(0.71, abs=0.01)
+    opacity = grey.coverage.astype(np.float64)
+    streak_light = config.streak_sky_weight * linear(200) + (1 - config.streak_sky_weight) * linear(50)
+    want = display(linear(200) + (linear(50) - linear(200)) * transmission[..., 0] * (1 - opacity)
+                   + (streak_light - linear(200)) * opacity)
+    np.testing.assert_allclose(grey.rgb[..., 0].astype(float), want, atol=1.0)
+    assert np.median(grey.rgb) >= 118  # a display-value mix gave about 93
     # the corner ray is longer than the central one (path = depth * ray norm)
     assert path[0, 0] > path[height // 2, width // 2] >= 50.0
 
@@ -357,7 +376,8 @@ def test_sky_fades_to_airlight_with_rate():
     config = RainConfig(model="physical", airlight_rgb=(240.0, 240.0, 240.0), streak_z_far_m=0.6)
     medians = [float(np.median(render_rain(rgb, depth, rate, config=config, K=K, seed_sequence=_seed()).rgb)) for rate in (1.0, 10.0, 100.0)]
     transmission_10 = math.exp(-phys.extinction_coefficient(10.0) * config.sky_distance_m * 1e-3)
-    assert medians[1] == pytest.approx(240 + (60 - 240) * transmission_10, abs=2.0)
+    light_60, light_240 = (60 / 255) ** 2.2, (240 / 255) ** 2.2  # Koschmieder in linear light
+    assert medians[1] == pytest.approx(255 * (light_240 + (light_60 - light_240) * transmission_10) ** (1 / 2.2), abs=2.0)
     assert medians[0] < medians[1] < medians[2] == pytest.approx(240, abs=1.0)
 
 

@@ -737,3 +737,27 @@ def test_wet_surfaces_reflect_the_documented_share_of_the_light(time_of_day):
             assert factor ** wx.DISPLAY_LIGHT_GAMMA == pytest.approx(1.0 - darkening * weather.wetness)
     wet = scene_lighting(wx.weather_at("clear", 100.0, time_of_day=time_of_day))
     assert wet.road_factor == pytest.approx(0.55 ** (1 / 2.2), abs=1e-3)  # 0.762 of the display value
+
+
+def test_spray_mixes_light_not_display_values():
+    """Spray of opacity 0.5 lit at 200 over black shows as 255 (0.5 x 0.78)^(1/2.2) = 146, not the
+    100 of a display-value mix; opacity 0 leaves the image as it was, 1 is the spray's colour."""
+    opacity = np.array([[0.0, 0.5, 1.0]], np.float32)
+    image = np.array([[[0, 0, 0], [0, 0, 0], [0, 0, 0]]], np.uint8)
+    out = wx.composite_spray(image, opacity, [200.0, 200.0, 200.0])
+    assert out[0, 0].tolist() == [0, 0, 0] and out[0, 2].tolist() == [200, 200, 200]
+    assert out[0, 1].tolist() == [round(255 * (0.5 * (200 / 255) ** 2.2) ** (1 / 2.2))] * 3 == [146] * 3
+
+
+def test_the_tone_curve_round_trips_display_values():
+    from rainbench.rain import tone
+
+    values = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    light = tone.to_linear(values)
+    assert light.dtype == np.float32 and light[0, 0] == 0.0 and light[-1, -1] == 1.0
+    np.testing.assert_allclose(light, (values / 255.0) ** 2.2, rtol=1e-5, atol=1e-7)
+    assert np.array_equal(tone.to_display(light), values)  # every display value comes back
+    assert tone.to_display(np.array([-0.5, 2.0], np.float32)).tolist() == [0, 255]  # clipped
+    assert float(tone.linear_value(128.0)) == pytest.approx((128 / 255) ** 2.2)
+    with pytest.raises(TypeError, match="^display: expected uint8 values, got float64$"):
+        tone.to_linear(np.zeros(3))
