@@ -340,7 +340,11 @@ def weather_at(sky: str, rate_mm_h: float, follows_rate: bool = True,
     exposure_s, gain, shortfall = _exposure(lux, max_time)
     _, _, base_shortfall = _exposure(base_lux, max_time)
     _, day_gain, _ = _exposure(day_base_lux)
-    # image level = E X / (E0 X0): (E / E0)^0.1 while the gain is below its limit
+    # image level (display values) = (E / E0)^0.1 while the gain is below its limit: the AE law
+    # is set on the display level (docs/rain.md). X, which sets exposure time, gain and noise,
+    # leaves the signal E X at (E / E0)^0.1 too, not the (E / E0)^0.22 that the 2.2 tone curve
+    # would make of a display level of (E / E0)^0.1: a simplification, kept (gains up to 16x
+    # by day at 100 mm/h where a signal-consistent X would give 7.6x).
     image_level = (lux / base_lux) ** AE_RESIDUAL * (shortfall / base_shortfall)
     light_level = 1.0 if time_of_day == "day" else (
         (base_lux / day_base_lux) ** AE_RESIDUAL * base_shortfall)
