@@ -49,7 +49,8 @@ q = '$(subst ','\'',$(1))'
 SCENE_FLAGS = $(if $(SEED),--seed $(call q,$(SEED)),) $(if $(SKY),--sky $(call q,$(SKY)),) \
 	$(if $(LAYOUT),--layout $(call q,$(LAYOUT)),) $(if $(TIME),--time $(call q,$(TIME)),)
 # The paper's clip goes to OUT/scene_paper, any other to OUT/scene_<seed>[_<layout>][_<time>][_<sky>]
-# (seed 0 when only some of LAYOUT, TIME, SKY are given), so two scenes never share a folder.
+# (seed 0 when only some of LAYOUT, TIME, SKY are given); another FRAMES, WIDTH or HEIGHT in the
+# same folder needs OVERWRITE=1 (the scene is refused, not mixed).
 SCENE_NAME = $(if $(SEED)$(SKY)$(LAYOUT)$(TIME),scene_$(or $(SEED),0)$(if $(LAYOUT),_$(LAYOUT))$(if $(TIME),_$(TIME))$(if $(SKY),_$(SKY)),scene_paper)
 
 .PHONY: venv dataset scene verify eval train paper test test-slow bench clean

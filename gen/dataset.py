@@ -20,7 +20,7 @@ config (:class:`~rainbench.gen.config.DatasetConfig`) is checked when it is buil
   ``PR_SET_PDEATHSIG``, and a watchdog thread polling the parent elsewhere); Ctrl-C stops the
   workers at once instead of letting them finish their shards;
 - one ``generate`` at a time per directory: a second one is refused while the first holds the
-  lock (``fcntl.flock`` on ``OUT/.rainbench-generate.lock``).
+  lock (``fcntl.flock`` on ``OUT/.rainbench.lock``).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from rainbench import __version__
-from rainbench.store.locks import directory_lock, lock_name
+from rainbench.store.locks import LOCK_NAME, directory_lock
 from rainbench.store.manifest import (MANIFEST, SHARD_GLOB, DatasetError, is_int, read_manifest,
                                       sha256_of, shard_entry, write_manifest)
 from rainbench.store.shard import ShardFormatError, open_checked, read_rgb, shard_name
@@ -53,7 +53,7 @@ from .config import DatasetConfig, GenerateConfig
 from .generate import ShardAssembler, generate_shard, piece_configs
 
 EXECUTORS = ("local", "ray")
-LOCK = lock_name("generate")
+LOCK = LOCK_NAME
 
 _progress_queue = None
 
@@ -108,7 +108,7 @@ def _generate_task(task: GenerateConfig, out: str, threads: int | None = None) -
 
 
 def _locked(root: Path):
-    """Hold ``root/.rainbench-generate.lock`` for one generate run
+    """Hold ``root/.rainbench.lock`` for one generate run
     (:func:`rainbench.store.locks.directory_lock`); a second run on the same directory gets a
     one-line :class:`DatasetError` naming the holder's pid."""
     return directory_lock(root, "generate", option="OUT", error=DatasetError)

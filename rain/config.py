@@ -69,11 +69,12 @@ class RainConfig:
         exposure_s: camera exposure time T in seconds (physical model: streak length).
         focus_distance_m: focus distance of the thin-lens camera in metres (defocus of drops).
         f_number: aperture f-number N (defocus of drops).
-        pixel_pitch_um: pixel pitch of the image as rendered, in micrometres; with fx it fixes
-            the focal length in metres ``f = fx * pitch`` used by the defocus formula. The
+        pixel_pitch_um: pixel pitch of the image resized to 800 px wide, in micrometres (at W
+            px it is ``pixel_pitch_um * 800 / W``); with fx it fixes the focal length in metres
+            ``f = fx * pitch`` used by the defocus formula, the same at every image size. The
             default 7.2 um is the lens-water camera's (docs/rain.md): 1920 sensor pixels of 3 um
-            resized to 800 px, so f = 400 px x 7.2 um = 2.9 mm at the default 800x600 and 90
-            degrees.
+            resized to 800 px, so f = 400 px x 7.2 um = 2.9 mm at 90 degrees (at 1920 px: 3 um
+            pixels, the sensor's own).
         wind_slant_deg: angle of the streaks from the image vertical, degrees, positive = the
             drop drifts towards +x (right) while falling.
         streak_z_near_m, streak_z_far_m: depth range (metres along the optical axis) in which

@@ -41,6 +41,7 @@ import numpy as np
 
 from rainbench.rain._seeding import STREAM_LENS, check_seed_sequence
 from rainbench.rain.config import RainConfig
+from rainbench.store.rates import rate_decimal
 
 REFERENCE_HEIGHT = 600
 REFERENCE_WIDTH = 800
@@ -100,8 +101,9 @@ def jeon2022_drop_count(rate_mm_h: float, height: int = REFERENCE_HEIGHT, width:
         raise ValueError(f"image size must be positive, got height {height} and width {width}")
     if rate_mm_h <= EQ5_OFFSET_MM_H:
         return 0
-    # in exact decimals: (3.925 - 3.88) / 0.03 is 1.5, which floats make 1.4999999999999893
-    rate = fractions.Fraction(repr(float(rate_mm_h)))
+    # in exact decimals: (3.925 - 3.88) / 0.03 is 1.5, which floats make 1.4999999999999893; a
+    # rate is the decimal it stands for (rate_decimal: float32 3.925 read from a shard too)
+    rate = fractions.Fraction(rate_decimal(rate_mm_h))
     count_800x600 = _round_half_up((rate - fractions.Fraction(repr(EQ5_OFFSET_MM_H)))
                                    / fractions.Fraction(repr(EQ5_SLOPE_MM_H)))
     if height * width == REFERENCE_AREA:

@@ -153,6 +153,17 @@ def frustum_volume_m3(K: np.ndarray, height: int, width: int, z_near_m: float, z
     return (width / fx) * (height / fy) * (z_far_m**3 - z_near_m**3) / 3.0
 
 
+PITCH_REFERENCE_WIDTH_PX = 800
+"""``RainConfig.pixel_pitch_um`` is the pitch of the image resized to this width."""
+
+
+def pixel_pitch_m(config: RainConfig, width: int) -> float:
+    """The pixel pitch of a ``width``-pixel image in metres: ``pixel_pitch_um`` is the pitch at
+    800 px, and the same sensor behind the same lens has pixels 800 / width times that as the
+    image grows, so the focal length ``fx * pitch`` stays that of the lens at any size."""
+    return config.pixel_pitch_um * 1e-6 * PITCH_REFERENCE_WIDTH_PX / width
+
+
 def defocus_diameter_px(depth_m: np.ndarray, *, focus_distance_m: float, focal_length_m: float, f_number: float, pixel_pitch_m: float) -> np.ndarray:
     """Thin-lens circle of confusion in pixels: |z - z_f| f^2 / (z (z_f - f) N) / pitch.
 
@@ -271,7 +282,7 @@ def sample_air_candidates(*, config: RainConfig, K: np.ndarray, height: int, wid
     slant = math.radians(config.wind_slant_deg)
     fall_px = fy * velocity * config.exposure_s / z_m
     drift_px = fx * velocity * math.tan(slant) * config.exposure_s / z_m
-    pitch_m = config.pixel_pitch_um * 1e-6
+    pitch_m = pixel_pitch_m(config, width)
     focal_length_m = 0.5 * (fx + fy) * pitch_m
     if config.focus_distance_m <= focal_length_m:
         raise ValueError(f"RainConfig.focus_distance_m must exceed the focal length {focal_length_m:.4g} m (fx * pixel pitch), got {config.focus_distance_m!r}")
@@ -349,7 +360,7 @@ def _streak_geometry(drops: AirDrops) -> tuple[np.ndarray, ...]:
 
 def streak_sample_counts(drops: AirDrops) -> np.ndarray:
     """(N,) int64: the samples :func:`rasterize_streaks` takes of each drop (each splats into
-    at most 4 pixels), to bound its work and memory before drawing: about 450 bytes a sample."""
+    at most 4 pixels), to bound its work and memory before drawing: about 370 bytes a sample."""
     _, _, _, _, n_along, n_across = _streak_geometry(drops)
     return n_along * n_across
 

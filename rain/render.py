@@ -302,7 +302,7 @@ again each time a rate draws them."""
 
 
 STREAK_SAMPLE_BUDGET = 1 << 21
-"""Streak samples (:func:`phys.streak_sample_counts`) rasterised at once, about 380 bytes each
+"""Streak samples (:func:`phys.streak_sample_counts`) rasterised at once, about 370 bytes each
 (0.8 GB at the budget; each sample splats into 2 x 2 pixels; 2^22 until they splatted into 2).
 Beyond it (long exposures on large images: 1/30 s at 3840x2160 and 1000 mm/h takes 24 million)
 the streaks are drawn in runs into dense per-layer sums (:class:`_StreakRuns`), the same

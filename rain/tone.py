@@ -28,8 +28,8 @@ def to_linear(display: np.ndarray) -> np.ndarray:
     display = np.asarray(display)
     if display.dtype != np.uint8:
         raise TypeError(f"display: expected uint8 values, got {display.dtype}")
-    if display.ndim == 3 and display.shape[2] <= 4:  # an image: OpenCV's table lookup, 9x numpy's
-        return cv2.LUT(display, _linear_table())
+    if display.ndim == 3 and display.size and display.shape[2] <= 4:  # an image: OpenCV's lookup, 9x numpy's
+        return cv2.LUT(display, _linear_table()).reshape(display.shape)
     return _linear_table()[display]
 
 
@@ -40,9 +40,10 @@ def linear_value(display: float | np.ndarray) -> np.ndarray:
 
 
 def to_display(linear: np.ndarray) -> np.ndarray:
-    """uint8 display values of linear light (float32, any shape; clipped to [0, 1]):
-    ``round(255 x^(1/2.2))``. Returns a new array."""
-    linear = np.asarray(linear, dtype=np.float32)
-    # below 0 to 0 (OpenCV's pow takes |x|); above 1 saturates at 255 in the conversion
-    positive = np.maximum(linear, np.float32(0.0))
-    return cv2.convertScaleAbs(cv2.pow(positive, 1.0 / DISPLAY_LIGHT_GAMMA), alpha=255.0).reshape(linear.shape)
+    """uint8 display values of linear light (float32, any shape; clipped to [0, 1], so +inf is
+    255): ``round(255 x^(1/2.2))``. Returns a new array."""
+    linear = np.clip(np.asarray(linear, dtype=np.float32), 0.0, 1.0)  # OpenCV's pow takes |x|
+    if linear.size == 0:
+        return np.zeros(linear.shape, np.uint8)
+    work = linear if 1 <= linear.ndim <= 3 else linear.reshape(-1, 1)  # shapes OpenCV takes
+    return cv2.convertScaleAbs(cv2.pow(work, 1.0 / DISPLAY_LIGHT_GAMMA), alpha=255.0).reshape(linear.shape)

@@ -168,7 +168,8 @@ class Dataset:
         """Shard number ``shard`` open read-only for random access by this process: opened on
         first use and kept open until :meth:`close`, or until :data:`MAX_OPEN_SHARDS` others
         have been used since (the least recently used is closed: a shuffled epoch over thousands
-        of shards stays under the process's open-file limit). A forked ``DataLoader`` worker
+        of shards stays under the process's open-file limit). So use a handle right away rather
+        than keep it, and call this from one thread at a time. A forked ``DataLoader`` worker
         opens its own (open files never cross processes, nor are they pickled), so readers built
         on a dataset are safe with ``num_workers > 0``."""
         if self._handles_pid != os.getpid():

@@ -1,7 +1,9 @@
 """One run at a time per output directory: an advisory lock file a command holds while it writes.
 
-Two runs of a command into one directory would remove or overwrite each other's temporaries and
-leave outputs of both runs under final names; the second is refused instead, in one line."""
+Two runs into one directory (of one command, or of two: an eval and a paper into the same
+``--out`` both write ``report.md``) would remove or overwrite each other's temporaries and leave
+outputs of both runs under final names; the second is refused instead, in one line. Every
+command takes the same lock file, ``.rainbench.lock``, naming its pid and command in it."""
 
 from __future__ import annotations
 
@@ -12,25 +14,24 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
-def lock_name(command: str) -> str:
-    """The lock file's name for ``command``'s runs: ``.rainbench-<command>.lock``."""
-    return f".rainbench-{command}.lock"
+LOCK_NAME = ".rainbench.lock"
+"""The lock file in a directory a rainbench command is writing: ``<pid> <command>``."""
 
 
 @contextlib.contextmanager
 def directory_lock(root: str | Path, command: str, *, option: str,
                    error: type[Exception]) -> Iterator[Path]:
-    """Hold ``root/.rainbench-<command>.lock`` (``fcntl.flock``, non-blocking) for one run of
-    ``rainbench <command>``; yields the lock file's path. ``root`` must exist.
+    """Hold ``root/.rainbench.lock`` (``fcntl.flock``, non-blocking) for one run of ``rainbench
+    <command>``; yields the lock file's path. ``root`` must exist.
 
-    A second run on the same directory gets ``error`` with one line naming ``option`` (the CLI
-    argument that chose the directory), the directory and the holder's pid: ``--out: results is
-    being written by another rainbench eval (pid 1234); wait for it to finish or choose another
-    --out``. The kernel releases the lock when the holder exits, however it exits; a clean exit
+    A second run on the same directory, of any command, gets ``error`` with one line naming
+    ``option`` (the CLI argument that chose the directory), the directory and the holder's
+    command and pid: ``--out: results is being written by another rainbench eval (pid 1234);
+    wait for it to finish or choose another --out``. The kernel releases the lock when the holder exits, however it exits; a clean exit
     also removes the file (under the lock: a waiter that locked the removed file tries again).
     Failing to create, lock or write the file is ``error`` naming the file."""
     root = Path(root)
-    path = root / lock_name(command)
+    path = root / LOCK_NAME
     for _attempt in range(100):
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -40,10 +41,11 @@ def directory_lock(root: str | Path, command: str, *, option: str,
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             same = os.fstat(fd).st_ino == os.stat(path).st_ino
         except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            holder = os.pread(fd, 64, 0).decode(errors="replace").split()
             os.close(fd)
-            pid = f" (pid {holder})" if holder.isdigit() else ""
-            raise error(f"{option}: {root} is being written by another rainbench {command}{pid}; "
+            pid = f" (pid {holder[0]})" if holder and holder[0].isdigit() else ""
+            what = holder[1] if len(holder) > 1 and holder[1].isidentifier() else "command"
+            raise error(f"{option}: {root} is being written by another rainbench {what}{pid}; "
                         f"wait for it to finish or choose another {option}") from None
         except FileNotFoundError:
             same = False
@@ -58,7 +60,7 @@ def directory_lock(root: str | Path, command: str, *, option: str,
     try:
         try:
             os.ftruncate(fd, 0)
-            os.pwrite(fd, str(os.getpid()).encode(), 0)
+            os.pwrite(fd, f"{os.getpid()} {command}".encode(), 0)
         except OSError as failure:
             raise error(f"{option}: cannot write the lock file {path} ({failure.strerror})") from None
         yield path

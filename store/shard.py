@@ -625,12 +625,18 @@ _LABEL_SHAPES = {
 
 def open_checked(path: str | Path):
     """:func:`open_shard` then :func:`check_labels`: how every rainbench reader opens a shard.
-    Every failure is a one-line :class:`ShardFormatError` naming the file."""
+    Every failure is one line naming the file: a :class:`ShardFormatError`, or an OSError for a
+    file that cannot be opened for a reason outside it (:data:`_NOT_THE_FILES_FAULT`)."""
     try:
         handle = open_shard(path)
     except ShardFormatError:
         raise
-    except (KeyError, OSError, RuntimeError, TypeError, ValueError) as error:
+    except OSError as error:
+        if error.errno in _NOT_THE_FILES_FAULT:
+            raise
+        reason = " ".join(str(error).split())
+        raise ShardFormatError(f"{path}: not a readable shard ({type(error).__name__}: {reason})") from None
+    except (KeyError, RuntimeError, TypeError, ValueError) as error:
         # damaged HDF5 metadata surfaces from h5py as KeyError, OSError, ...
         reason = " ".join(str(error).split())
         raise ShardFormatError(f"{path}: not a readable shard ({type(error).__name__}: "

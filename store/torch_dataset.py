@@ -44,7 +44,9 @@ class ShardDataset(_TorchDataset):
     def __getitem__(self, index: int):
         image, target = self.reader.sample(index)
         image = torch.from_numpy(image).permute(2, 0, 1)  # CHW view, no copy
-        return image, _targets_to_tensors((target,))[0]  # views of the numpy arrays, no copy
+        # the target's tensors share one storage: from a DataLoader worker, whatever the collate,
+        # an item crosses as two shared-memory segments (image and target), not seven
+        return image, _targets_to_tensors((target,))[0]
 
     @staticmethod
     def collate_fn(batch):
@@ -63,20 +65,48 @@ class ShardDataset(_TorchDataset):
 
 
 def _targets_to_tensors(targets: Sequence[dict]) -> tuple[dict, ...]:
-    """Targets of one batch (numpy arrays or tensors) as tensors that are views of one block per
-    key."""
+    """Targets of one batch (numpy arrays or tensors) as tensors that are views of one block
+    (:func:`_one_storage`): each key's values are joined (arrays) or stacked (scalars), and each
+    sample gets its part of them."""
     out = [dict(target) for target in targets]
+    keys, joined, splits = [], [], []
     for key, value in targets[0].items():
         values = [target[key].numpy() if isinstance(target[key], torch.Tensor) else target[key]
                   for target in targets]
         value = values[0]
         if isinstance(value, np.ndarray) and value.ndim >= 1:
-            parts = torch.split(torch.from_numpy(np.concatenate(values)),
-                                [len(v) for v in values])
+            joined.append(np.concatenate(values))
+            splits.append([len(v) for v in values])
         elif isinstance(value, (np.ndarray, np.floating)):
-            parts = torch.from_numpy(np.stack(values))
+            joined.append(np.stack(values))
+            splits.append(None)
         else:  # plain values: image_id, shard, frame
             continue
+        keys.append(key)
+    for key, block, split in zip(keys, _one_storage(joined), splits):
+        parts = torch.split(block, split) if split is not None else block
         for target, part in zip(out, parts):
             target[key] = part
     return tuple(out)
+
+
+_ALIGN = 8
+
+
+def _one_storage(arrays: Sequence[np.ndarray]) -> list[torch.Tensor]:
+    """Tensors equal to ``arrays`` (copied) that are typed views of one byte storage, each at an
+    8-byte aligned offset: a tensor crossing from a DataLoader worker costs a shared-memory
+    segment and an open file, and views of one storage cross as one."""
+    offsets, total = [], 0
+    for array in arrays:
+        offsets.append(total)
+        total += -(-array.nbytes // _ALIGN) * _ALIGN
+    buffer = np.empty(max(total, _ALIGN), np.uint8)
+    storage = torch.from_numpy(buffer)
+    tensors = []
+    for array, offset in zip(arrays, offsets):
+        array = np.ascontiguousarray(array)
+        buffer[offset:offset + array.nbytes] = array.reshape(-1).view(np.uint8)
+        dtype = torch.from_numpy(array[:0].reshape(-1)).dtype
+        tensors.append(storage[offset:offset + array.nbytes].view(dtype).reshape(array.shape))
+    return tensors

@@ -380,7 +380,19 @@ def test_items_hold_tensors_in_dataloader_workers_too(dataset_dir, workers):
             assert isinstance(target[key], torch.Tensor), (key, type(target[key]))
         assert target["boxes"].shape[1:] == (4,) and target["rate"].shape == ()
         assert isinstance(target["image_id"], int) and isinstance(target["shard"], str)
+        # one storage per target: from a worker it crosses as one shared-memory segment and one
+        # open file, not six (with a plain collate, held batches ran out of file handles)
+        keys = ("boxes", "labels", "instance_id", "visible_fraction", "truncation", "rate")
+        assert len({target[key].untyped_storage().data_ptr() for key in keys}) == 1
     assert all(isinstance(image, torch.Tensor) and image.shape == (3, 72, 96) for image in images)
+    reader = ShardReader(dataset_dir)
+    for target in targets:  # and the values are the reader's
+        index = next(i for i in range(len(reader)) if reader.sample(i)[1]["image_id"] == target["image_id"]
+                     and reader.sample(i)[1]["rate"] == float(target["rate"]))
+        want = reader.sample(index)[1]
+        for key in ("boxes", "labels", "instance_id", "visible_fraction", "truncation"):
+            assert target[key].dtype == torch.from_numpy(want[key]).dtype
+            np.testing.assert_array_equal(target[key].numpy(), want[key])
 
 
 def test_at_most_max_open_shards_stay_open(dataset_dir, monkeypatch):
@@ -410,9 +422,10 @@ def test_a_file_that_cannot_be_opened_for_lack_of_handles_is_not_called_corrupt(
                                     "'Too many open files')")
 
     monkeypatch.setattr(h5py, "File", refuse)
-    with pytest.raises(OSError, match=f"^{shard}: Too many open files$") as info:
-        store.open_shard(shard)
-    assert not isinstance(info.value, ShardFormatError) and info.value.errno == errno.EMFILE
+    for open_it in (store.open_shard, store.Dataset, ShardDataset):  # and every reader built on them
+        with pytest.raises(OSError, match=f"^{shard}: Too many open files$") as info:
+            open_it(shard)
+        assert not isinstance(info.value, ShardFormatError) and info.value.errno == errno.EMFILE
 
 
 @pytest.mark.parametrize("options, message", [

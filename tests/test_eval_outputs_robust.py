@@ -224,4 +224,4 @@ def test_a_second_eval_into_a_busy_out_is_refused_and_leaves_the_first_s_files(d
     assert _left(out) == [".report.tmp-first"]
     staging.rmdir()
     _eval(data_dir, preds, out)  # released
-    assert _left(out) == sorted(pipeline.REPORT_OUTPUTS) and not (out / ".rainbench-eval.lock").exists()
+    assert _left(out) == sorted(pipeline.REPORT_OUTPUTS) and not (out / ".rainbench.lock").exists()

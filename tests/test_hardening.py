@@ -229,7 +229,7 @@ def test_ctrl_c_stops_the_workers_tells_the_truth_and_the_rerun_resumes(referenc
                 f"rainbench: {how} before a shard was finished; nothing of the run is kept: run the "
                 "same command again to start it"]
             assert not any(out.iterdir())
-        assert not (out / ".rainbench-generate.lock").exists()
+        assert not (out / ".rainbench.lock").exists()
         assert _wait_group_gone(process.pid, timeout=10) == []
         finals = sorted(p.name for p in out.glob("scene*.h5"))
         time.sleep(2)
@@ -417,7 +417,7 @@ def test_a_corrupt_unlisted_shard_is_rendered_again(small, tmp_path, monkeypatch
 
 def test_the_lock_refuses_a_second_run_and_is_released(tmp_path, capsys):
     with ds._locked(tmp_path):
-        assert (tmp_path / ds.LOCK).read_text() == str(os.getpid())
+        assert (tmp_path / ds.LOCK).read_text() == f"{os.getpid()} generate"
         code = cli.main(["generate", "--out", str(tmp_path), "--frames", "1", "--quiet"])
         _one_line_error(capsys, code, re.escape(f"OUT: {tmp_path} is being written by another "
                                                 f"rainbench generate (pid {os.getpid()})") + ".*")

@@ -139,6 +139,9 @@ def test_eq5_rounds_exact_halves_up():
     halves = [round(3.88 + 0.03 * (k + 0.5), 3) for k in range(6000)]
     assert [lens_mod.jeon2022_drop_count(rate) for rate in halves] == [k + 1 for k in range(6000)]
     assert lens_mod.jeon2022_drop_count(3.925, 1080, 1920) == 9  # 2 x 4.32 = 8.64 -> 9
+    # a rate read back from a shard (float32) is the decimal it stands for
+    assert lens_mod.jeon2022_drop_count(np.float32(3.925)) == 2
+    assert lens_mod.jeon2022_drop_count(float(np.float32(3.985))) == 4
 
 
 def test_eq5_counts_scale_with_area():
@@ -720,3 +723,14 @@ def test_one_camera_for_falling_drops_and_lens_water():
     glass_m = 0.03
     blur_px = (focal_length_m / config.f_number) * 400 / (2 * glass_m)
     assert blur_px == pytest.approx(config.lens_defocus_px, rel=0.05)
+    # the same lens at any image size: the pitch is that of the image at 800 px (a fixed pitch
+    # made a 1920 px image a 6.9 mm lens, its near drops blurred 2.4x too much)
+    near_sigmas = {}
+    for width, height in ((320, 240), (800, 600), (1920, 1080), (3840, 2160)):
+        K = intrinsics(height, width, 90.0)
+        assert K[0, 0] * phys.pixel_pitch_m(config, width) == pytest.approx(focal_length_m)
+        near_sigmas[width] = float(phys.defocus_diameter_px(
+            np.array([0.5]), focus_distance_m=config.focus_distance_m, focal_length_m=focal_length_m,
+            f_number=config.f_number, pixel_pitch_m=phys.pixel_pitch_m(config, width))[0]) / 4
+    assert near_sigmas[800] == pytest.approx(0.26, abs=0.01)
+    assert near_sigmas[1920] == pytest.approx(near_sigmas[800] * 2.4) and near_sigmas[1920] == pytest.approx(0.62, abs=0.01)

@@ -290,7 +290,7 @@ def test_a_second_run_into_a_locked_out_is_refused_before_generating(tmp_path, c
             else ["paper", *PAPER_TINY, "--model", "rainbench-yolo11n", "--data", "pd"])
     with directory_lock(out, command, option="--out", error=ValueError) as lock:
         code, stdout, err = _run(capsys, *argv, "--out", out)
-        assert lock.read_text() == str(os.getpid())
+        assert lock.read_text() == f"{os.getpid()} {command}"
     assert code == 2 and stdout == ""
     _one_line_error(err, f"--out: {out} is being written by another rainbench {command} (pid {os.getpid()}); "
                          "wait for it to finish or choose another --out")
@@ -303,10 +303,24 @@ def test_a_refused_run_leaves_no_empty_out_behind(tmp_path):
     out = tmp_path / "new" / "out"
     with pytest.raises(RuntimeError, match="boom"):
         with locked_output_dir(out, "eval", option="--out", error=ValueError) as root:
-            assert root == out and (out / ".rainbench-eval.lock").is_file()
+            assert root == out and (out / ".rainbench.lock").is_file()
             raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "file").write_text("x")
     with pytest.raises(ValueError, match=f"^--out: {re.escape(str(tmp_path / 'file'))} exists and is not a directory$"):
         with locked_output_dir(tmp_path / "file", "eval", option="--out", error=ValueError):
             pass
+
+
+def test_one_lock_per_folder_whatever_the_command(tmp_path, capsys):
+    """An eval and a paper into one --out both write report.md: a run of one command refuses a
+    folder another command holds, naming the holder."""
+    out = tmp_path / "shared"
+    out.mkdir()
+    with directory_lock(out, "paper", option="--out", error=ValueError):
+        with pytest.raises(ValueError, match=re.escape(f"--out: {out} is being written by another rainbench paper "
+                                                       f"(pid {os.getpid()}); wait for it to finish or choose another --out")):
+            with locked_output_dir(out, "eval", option="--out", error=ValueError):
+                pass
+    with locked_output_dir(out, "eval", option="--out", error=ValueError):  # released
+        pass

@@ -757,7 +757,13 @@ def test_the_tone_curve_round_trips_display_values():
     assert light.dtype == np.float32 and light[0, 0] == 0.0 and light[-1, -1] == 1.0
     np.testing.assert_allclose(light, (values / 255.0) ** 2.2, rtol=1e-5, atol=1e-7)
     assert np.array_equal(tone.to_display(light), values)  # every display value comes back
-    assert tone.to_display(np.array([-0.5, 2.0], np.float32)).tolist() == [0, 255]  # clipped
+    assert tone.to_display(np.array([-0.5, 2.0, np.inf], np.float32)).tolist() == [0, 255, 255]  # clipped
+    assert tone.to_display(np.float32(1.0)).shape == () and int(tone.to_display(np.float32(1.0))) == 255
+    assert tone.to_display(np.zeros((0, 5, 3), np.float32)).shape == (0, 5, 3)
+    assert tone.to_linear(np.zeros((0, 5, 3), np.uint8)).shape == (0, 5, 3)
+    grey = np.full((4, 5, 1), 128, np.uint8)  # one channel: OpenCV's lookup would drop it
+    assert tone.to_linear(grey).shape == (4, 5, 1)
+    assert tone.to_display(tone.to_linear(grey)).tolist() == grey.tolist()
     assert float(tone.linear_value(128.0)) == pytest.approx((128 / 255) ** 2.2)
     with pytest.raises(TypeError, match="^display: expected uint8 values, got float64$"):
         tone.to_linear(np.zeros(3))

@@ -327,7 +327,7 @@ def robustness_section(robustness: Mapping[str, Sequence[Mapping[str, Any]]], le
              "mPC: mean AP@0.5 over the rainy rates; rPC = mPC / AP@0.5 Normal (Michaelis et al. 2019). "
              "Intervals: 95 % percentile bootstrap over frames, one set of resamples for every rate and "
              "every model, so each model's mPC difference from its reference (the model whose name it "
-             "extends, `rainbench-yolo11n-rain` from `rainbench-yolo11n`, else the first model) is paired: "
+             "extends, `rainbench-yolo11n-rain` from `rainbench-yolo11n`, else the first model that extends none) is paired: "
              "an interval that excludes 0 is a difference these frames support. Evaluate a clean-trained "
              "model with its rain-trained variants together to compare them (docs/models.md).", ""]
     for name, rows in robustness.items():
