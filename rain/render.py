@@ -20,7 +20,7 @@ from rainbench.rain import lens as lens_mod
 from rainbench.rain import physical as phys
 from rainbench.rain._seeding import check_seed_sequence
 from rainbench.rain.config import RainConfig
-from rainbench.rain.tone import linear_value, to_display, to_linear
+from rainbench.rain.tone import DISPLAY_LIGHT_GAMMA, linear_value, to_linear
 from rainbench.store.rates import MAX_RATE_MM_H
 
 
@@ -482,8 +482,13 @@ def _physical_sweep(
         for channel in range(3):
             plane = cv2.multiply(scene_minus_air[channel], gain)
             plane = cv2.scaleAdd(streak_opacity, radiance_minus_air[channel], plane)
-            channels.append(plane + np.float32(airlight[channel]))
-        rainy = to_display(cv2.merge(channels))
+            # + A, then the tone curve plane by plane (rainbench.rain.tone.to_display, without its
+            # copies: the terms are >= 0 but for float rounding, which OpenCV's pow takes as |x|,
+            # and values above 1 saturate at 255)
+            cv2.add(plane, float(airlight[channel]), dst=plane)
+            cv2.pow(plane, 1.0 / DISPLAY_LIGHT_GAMMA, dst=plane)
+            channels.append(cv2.convertScaleAbs(plane, alpha=255.0))
+        rainy = cv2.merge(channels)
         coverage = streak_opacity
         drop_count = streaks.visible_count()
 
