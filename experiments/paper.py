@@ -303,7 +303,8 @@ def _paper_into(config: PaperConfig, out_dir: Path, data_root: Path, *, class_id
     for name, rain_model, follows in conditions(config.rain_models):
         data_dir = data_root / name
         start = time.perf_counter()
-        run_dataset(replace(data, rain_model=rain_model, weather_follows_rate=follows), data_dir, workers=workers)
+        run_dataset(replace(data, rain_model=rain_model, weather_follows_rate=follows), data_dir, workers=workers,
+                    remedy=f"delete {data_dir} to generate it again, or choose another --data")
         timings[f"generate {name}"] = time.perf_counter() - start
         if progress:  # each phase's time as it ends: a run cut short still shows where it went
             print(f"paper: generate {name}: {timings[f'generate {name}']:.1f} s", file=sys.stderr, flush=True)

@@ -475,7 +475,8 @@ def prepare_data(recipe: Recipe, out: str | Path, *, workers: int = 1, export: b
         data_dir = out / "data" / folder
         manifest = data_dir / "manifest.json"
         before = manifest.read_bytes() if manifest.is_file() else None
-        run_dataset(config, data_dir, workers=workers, progress=progress)
+        run_dataset(config, data_dir, workers=workers, progress=progress,
+                    remedy=f"delete {data_dir} to generate it again, or choose another --out")
         if not export:
             continue
         done_marker = yolo / folder / ".exported"

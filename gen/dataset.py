@@ -130,28 +130,30 @@ def _remove_temporaries(root: Path) -> None:
             stale.unlink(missing_ok=True)
 
 
-def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool) -> dict[str, dict]:
+def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool,
+                       remedy: str | None = None) -> dict[str, dict]:
     """Clean temporaries, check the config, and return the reusable manifest entries by path.
-    The caller holds the directory's lock."""
+    The caller holds the directory's lock. ``remedy``: what a refusal advises instead of
+    ``--overwrite`` (for callers that have no such option)."""
     _remove_temporaries(root)
     try:
         manifest = read_manifest(root)
     except DatasetError as error:  # unreadable, or not a manifest of this version
         if not overwrite:
-            raise DatasetError(f"OUT: {error}; use --overwrite to replace the dataset in {root} "
-                               "or choose another OUT") from None
+            raise DatasetError(f"OUT: {error}; " + (remedy or f"use --overwrite to replace the dataset in {root} "
+                                                   "or choose another OUT")) from None
         _remove_dataset(root)
         return {}
     if manifest is None:
         if any(p.name not in (MANIFEST, LOCK) for p in root.iterdir()) and not overwrite:
-            raise DatasetError(f"OUT: {root} is not empty and has no manifest; use --overwrite "
-                               "or choose another OUT")
+            raise DatasetError(f"OUT: {root} is not empty and has no manifest; "
+                               + (remedy or "use --overwrite or choose another OUT"))
         return {}
     if manifest["config"] == json.loads(json.dumps(config.to_dict())):
         return {entry["path"]: entry for entry in manifest["shards"]}
     if not overwrite:
-        raise DatasetError(f"OUT: {root} holds a dataset of another config; use --overwrite to "
-                           "replace it or choose another OUT")
+        raise DatasetError(f"OUT: {root} holds a dataset of another config; "
+                           + (remedy or "use --overwrite to replace it or choose another OUT"))
     _remove_dataset(root)
     return {}
 
@@ -185,7 +187,7 @@ def _adoptable(path: Path, task: GenerateConfig) -> bool:
 def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
                 executor: str = "local", ray_address: str | None = None,
                 render_threads: int | None = None, threads: int | None = None,
-                overwrite: bool = False,
+                overwrite: bool = False, remedy: str | None = None,
                 progress: Callable[[int], None] | None = None) -> Path:
     """Generate (or finish) the dataset ``config`` in ``out``; returns the manifest path.
 
@@ -198,7 +200,9 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
     threads) in local workers; None keeps Mesa's default (all cores). ``threads``: rain,
     statistics and compression threads per worker (see :func:`generate_shard`; 1 = one core
     per worker); None gives each local worker cores / workers and each Ray task its node's
-    cores. ``progress(n)`` receives finished frames, skipped shards included.
+    cores. ``progress(n)`` receives finished frames, skipped shards included. ``remedy``: what
+    the refusal of an ``out`` holding something else advises instead of ``--overwrite`` (the
+    commands that generate as a step and have no such option: train, paper).
 
     The run holds ``out``'s lock throughout, writes the manifest before the first shard, and
     after a failure or an interrupt stops its workers, lists the shards that were finished,
@@ -214,7 +218,7 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
     root = Path(out)
     root.mkdir(parents=True, exist_ok=True)
     with _locked(root):
-        reusable = _prepare_directory(root, config, overwrite)
+        reusable = _prepare_directory(root, config, overwrite, remedy)
         fresh = not (root / MANIFEST).exists()
         tasks = config.tasks()
         entries: dict[int, dict] = {}

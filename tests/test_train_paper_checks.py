@@ -324,3 +324,17 @@ def test_one_lock_per_folder_whatever_the_command(tmp_path, capsys):
                 pass
     with locked_output_dir(out, "eval", option="--out", error=ValueError):  # released
         pass
+
+
+def test_paper_names_a_remedy_it_has_for_a_data_folder_holding_something_else(tmp_path, capsys, monkeypatch):
+    """A --data folder holding other files made paper advise --overwrite, an option it lacks."""
+    _no_cuda(monkeypatch)
+    monkeypatch.chdir(tmp_path)
+    taken = tmp_path / "pd" / "jeon2022"
+    taken.mkdir(parents=True)
+    (taken / "notes.txt").write_text("mine")
+    code, stdout, err = _run(capsys, "paper", *PAPER_TINY, "--model", "rainbench-yolo11n", "--out", "pp", "--data", "pd")
+    assert code == 2 and stdout == ""
+    _one_line_error(err, "OUT: pd/jeon2022 is not empty and has no manifest; delete pd/jeon2022 to generate it "
+                         "again, or choose another --data")
+    assert sorted(p.name for p in taken.iterdir()) == ["notes.txt"]
