@@ -251,11 +251,12 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
             return root / MANIFEST
         try:
             if executor == "ray":
-                _run_ray(tasks, pending, root, ray_address, threads, record, progress)
+                _run_ray(tasks, pending, root, ray_address, threads, record, progress, render_threads)
             elif workers == 1:
-                for index in pending:
-                    record(index, generate_shard(tasks[index], root, progress=progress,
-                                                 threads=local_threads))
+                with _render_threads_set(render_threads):
+                    for index in pending:
+                        record(index, generate_shard(tasks[index], root, progress=progress,
+                                                     threads=local_threads))
             else:
                 _run_local_pool(tasks, pending, root, workers, render_threads, local_threads,
                                 record, progress)
@@ -469,7 +470,35 @@ def _ray_connect(ray, ray_address: str | None) -> None:
                 signal.signal(signum, handler)
 
 
-def _run_ray(tasks, pending, root, ray_address, threads, record, progress) -> None:
+@contextlib.contextmanager
+def _render_threads_set(render_threads: int | None):
+    """``LP_NUM_THREADS`` set to ``render_threads`` in this process for the block (the one-worker
+    run renders here; Mesa reads it when this process's first GL context starts, as it does for
+    the command line), then restored; nothing when None."""
+    if render_threads is None:
+        yield
+        return
+    before = os.environ.get("LP_NUM_THREADS")
+    os.environ["LP_NUM_THREADS"] = str(render_threads)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("LP_NUM_THREADS", None)
+        else:
+            os.environ["LP_NUM_THREADS"] = before
+
+
+def ray_task_options(gpus: float, render_threads: int | None) -> dict:
+    """Ray options of a shard task: one CPU, a quarter of a GPU where the cluster has GPUs (EGL
+    renders on it), and ``LP_NUM_THREADS`` in the task's environment for ``render_threads``."""
+    options = {"num_cpus": 1, "num_gpus": 0.25 if gpus else 0}
+    if render_threads is not None:
+        options["runtime_env"] = {"env_vars": {"LP_NUM_THREADS": str(render_threads)}}
+    return options
+
+
+def _run_ray(tasks, pending, root, ray_address, threads, record, progress, render_threads=None) -> None:
     try:
         import ray  # noqa: PLC0415 -- optional extra rainbench[ray]
     except ImportError as error:
@@ -483,8 +512,7 @@ def _run_ray(tasks, pending, root, ray_address, threads, record, progress) -> No
     if devices and not gpus:  # the tasks could not see a GPU: fail now, not in every task
         raise DatasetError(f"--device {devices[0]}: the Ray cluster has no GPU for the statistics; "
                            "use --device cpu")
-    options = {"num_cpus": 1, "num_gpus": 0.25 if gpus else 0}
-    remote = ray.remote(_generate_task).options(**options)
+    remote = ray.remote(_generate_task).options(**ray_task_options(gpus, render_threads))
     refs = {remote.remote(tasks[i], str(root), threads): i for i in pending}
     remaining = list(refs)
     try:

@@ -1084,3 +1084,22 @@ def test_pt_files_load_safely_and_an_unsafe_one_needs_trust(tmp_path, monkeypatc
     assert marker.exists()  # the trusted, unsafe path is the full unpickler
     assert (f"rainbench: warning: loading {evil} with Python's full unpickler (it pickles posix.mkdir; "
             "trusted by --trust-pickle): this runs code from the file") in capsys.readouterr().err.splitlines()
+
+
+def test_render_threads_reach_the_one_worker_run_and_ray_tasks(tmp_path, monkeypatch):
+    """--render-threads set LP_NUM_THREADS in pool workers only: a --workers 1 run (rendering in
+    the command's own process) and Ray tasks ignored it."""
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    seen = []
+    real = ds.generate_shard
+
+    def spy(task, out_dir, **kwargs):
+        seen.append(os.environ.get("LP_NUM_THREADS"))
+        return real(task, out_dir, **kwargs)
+
+    monkeypatch.setattr(ds, "generate_shard", spy)
+    ds.run_dataset(DatasetConfig(**{**SMALL, "scenes": 1}), tmp_path / "one", workers=1, render_threads=1)
+    assert seen and set(seen) == {"1"} and "LP_NUM_THREADS" not in os.environ  # restored
+    assert ds.ray_task_options(0, 3) == {"num_cpus": 1, "num_gpus": 0,
+                                         "runtime_env": {"env_vars": {"LP_NUM_THREADS": "3"}}}
+    assert ds.ray_task_options(4, None) == {"num_cpus": 1, "num_gpus": 0.25}
