@@ -210,6 +210,8 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
     """
     if executor not in EXECUTORS:
         raise DatasetError(f"executor: expected one of {', '.join(EXECUTORS)}, got {executor!r}")
+    if executor == "ray":
+        check_ray_address(ray_address)
     if not (is_int(workers) and workers >= 1):
         raise DatasetError(f"WORKERS: expected an integer >= 1, got {workers!r}")
     if threads is not None and not (is_int(threads) and threads >= 1):
@@ -413,6 +415,25 @@ def _is_local_cluster(address: str) -> bool:
 RAY_CONNECT_TIMEOUT_S = 10.0
 """How long ``--ray-address HOST:PORT`` may take to accept a TCP connection before rainbench
 gives up (Ray itself retries an unreachable address for minutes)."""
+
+
+def check_ray_address(ray_address: object) -> str | None:
+    """``ray_address`` if it is a form Ray takes: None (a new local instance), ``auto``,
+    ``local``, ``HOST:PORT`` or ``ray://HOST[:PORT]``; else a one-line :class:`DatasetError`
+    (an empty address, ``:6379`` or ``http://...`` went to Ray, which answered with a traceback
+    or hung)."""
+    if ray_address is None or ray_address in ("auto", "local"):
+        return ray_address
+    expected = "expected auto, local, HOST:PORT or ray://HOST[:PORT]"
+    if not isinstance(ray_address, str):
+        raise DatasetError(f"--ray-address: {expected}, got {ray_address!r}")
+    client = ray_address.startswith("ray://")
+    rest = ray_address.removeprefix("ray://")
+    host, colon, port = rest.rpartition(":") if ":" in rest else (rest, "", "")
+    valid_port = (not colon and client) or (port.isdigit() and 1 <= int(port) <= 65535)
+    if "://" in rest or not host.strip("[]") or any(c.isspace() or c == "/" for c in rest) or not valid_port:
+        raise DatasetError(f"--ray-address: {expected}, got {ray_address!r}")
+    return ray_address
 
 
 def _check_reachable(ray_address: str | None) -> None:

@@ -189,6 +189,19 @@ def test_ray_address_needs_the_ray_executor(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("address", ["", ":6379", "http://head:6379", "head", "head:0", "head:99999", "ray://",
+                                     "a b:1"])
+def test_a_ray_address_ray_cannot_take_is_refused_before_anything_is_written(tmp_path, capsys, address):
+    """An empty address, ``:6379`` or ``http://...`` went to Ray (a traceback, or a hang)."""
+    out = tmp_path / "out"
+    code = _cli([*GENERATE, "--out", out, "--executor", "ray", "--ray-address", address])
+    _one_line_error(capsys, code, re.escape("--ray-address: expected auto, local, HOST:PORT or "
+                                            f"ray://HOST[:PORT], got {address!r}"))
+    assert not out.exists()
+    for good in (None, "auto", "local", "10.0.0.1:6379", "ray://head", "ray://head:10001", "[::1]:6379"):
+        assert ds.check_ray_address(good) == good
+
+
 def test_an_unreachable_ray_address_fails_at_once():
     """Ray itself retried ``--ray-address foo:1`` for minutes; nothing listens on port 1."""
     with pytest.raises(ds.DatasetError, match=r"^--ray-address 127\.0\.0\.1:1: nothing answers "
