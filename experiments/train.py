@@ -568,7 +568,13 @@ def _finished(path: Path, epochs: int | None = None) -> bool:
     its last epoch but before the strip, which ultralytics refuses to resume)."""
     import torch
 
-    epoch = int(torch.load(path, map_location="cpu", weights_only=False).get("epoch", -1))
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+        epoch = int(checkpoint.get("epoch", -1))
+    except Exception as error:  # noqa: BLE001 -- torch.load raises many kinds for a damaged file
+        reason = " ".join(str(error).split())[:200] or type(error).__name__
+        raise TrainError(f"{path}: cannot be read to resume the run ({type(error).__name__}: {reason}); "
+                         f"delete it to train that stage again") from None
     return epoch == -1 or (epochs is not None and epoch + 1 >= epochs)
 
 

@@ -145,6 +145,13 @@ def test_a_run_cut_off_after_its_last_epoch_counts_as_finished(tmp_path):
     for epoch, epochs, finished in ((-1, 4, True), (3, 4, True), (2, 4, False), (3, None, False)):
         torch.save({"epoch": epoch}, last)
         assert train._finished(last, epochs) is finished, (epoch, epochs)
+    # a last.pt cut short (the disk filled, the machine died while saving) is named, not a
+    # torch traceback's "PytorchStreamReader failed ..." without a file
+    whole = last.read_bytes()
+    last.write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(train.TrainError, match=f"^{re.escape(str(last))}: cannot be read to resume the run "
+                                               r"\(.+\); delete it to train that stage again$"):
+        train._finished(last, 4)
 
 
 def _write(path: Path, data: bytes) -> Path:
