@@ -145,7 +145,9 @@ def _prepare_directory(root: Path, config: DatasetConfig, overwrite: bool,
         _remove_dataset(root)
         return {}
     if manifest is None:
-        if any(p.name not in (MANIFEST, LOCK) for p in root.iterdir()) and not overwrite:
+        # folders are left alone (a dataset is files at the top: shards and the manifest), so
+        # `make scene`'s OUT/scene_*, `make paper`'s OUT/paper or preview's videos do not block it
+        if any(p.name not in (MANIFEST, LOCK) and not p.is_dir() for p in root.iterdir()) and not overwrite:
             raise DatasetError(f"OUT: {root} is not empty and has no manifest; "
                                + (remedy or "use --overwrite or choose another OUT"))
         return {}

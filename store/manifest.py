@@ -376,10 +376,13 @@ def missing_shards_problem(manifest_path: Path, manifest: dict) -> str | None:
 
 def unlisted_shards(root: str | Path) -> list[Path]:
     """``.h5`` files under dataset ``root`` that its manifest does not list (so not part of the
-    dataset: ``rainbench verify`` warns about them). Hidden temporary files and what hidden folders
-    hold (a killed run's ``.pieces.tmp-PID``) are not counted."""
+    dataset: ``rainbench verify`` warns about them). Hidden temporary files, what hidden folders
+    hold (a killed run's ``.pieces.tmp-PID``) and other datasets in subfolders (a folder with its
+    own manifest: ``make paper``'s ``OUT/paper/jeon2022``) are not counted."""
     root = Path(root)
     manifest = read_manifest(root)
     listed = {root / entry["path"] for entry in manifest["shards"]} if manifest else set()
+    others = {path.parent for path in root.rglob(MANIFEST) if path.parent != root}
     return sorted(path for path in root.rglob("*.h5")
-                  if not any(part.startswith(".") for part in path.relative_to(root).parts) and path not in listed)
+                  if not any(part.startswith(".") for part in path.relative_to(root).parts) and path not in listed
+                  and not any(parent in others for parent in path.parents))

@@ -273,3 +273,30 @@ def test_check_labels_refuses_foreign_names_and_unlabelled_ids(tmp_path):
                                         class_names=OLD_CLASS_NAMES)
     with pytest.raises(ShardFormatError, match=r"frame 0: label 0 has a class_id outside 0\.\.3"):
         open_checked(truck_in_old)
+
+
+def test_paper_report_says_the_visibility_bins_count_no_false_positives_and_explains_a_negative_share():
+    """A new user read AP 0.96 in a visibility bin beside an overall AP of 0.70 and a weather
+    share of -147 % without a word on either."""
+    from types import SimpleNamespace
+
+    from rainbench.eval.report.markdown import render_paper_md  # noqa: PLC0415
+
+    def records(heavy_car):
+        return [{"model": "m", "rate": rate, "class": "car", "ap50": ap, "f1": ap}
+                for rate, ap in ((0.0, 0.9), (100.0, heavy_car))]
+
+    entry = SimpleNamespace(ap50=0.95, n_gt=12)
+    text = render_paper_md(setup_lines=["setup"], table_one={"car": (2, 10)},
+                           records_by_rain={"jeon2022": records(0.7), "physical": records(0.7),
+                                            "physical-fixed-weather": records(0.3)},
+                           half_rates={}, breakdown_model="m",
+                           breakdowns={"visible fraction": {0.0: {"0.75-1.00": {"car": entry}}},
+                                       "box size": {0.0: {"large": {"car": entry}}}})
+    visibility = text.split("### AP@0.5 by visible fraction", 1)[1].split("###", 1)[0]
+    assert "count no false positives" in visibility
+    size = text.split("### AP@0.5 by box size", 1)[1]
+    assert "count no false positives" not in size
+    share = text.split("How much of the AP loss is the weather?", 1)[1].split("###", 1)[0]
+    assert "a negative share means the rain over the unchanged base weather cost more" in share
+    assert "| -200 % |" in share  # (0.2 - 0.6) / 0.2

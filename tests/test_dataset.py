@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -479,3 +480,22 @@ def test_reader_indexes_like_a_sequence(dataset_dir):
         reader.sample(-len(reader) - 1)
     with pytest.raises(TypeError, match=r"^sample index: expected an integer, got 2.0$"):
         reader.sample(2.0)
+
+
+def test_other_tools_folders_in_out_neither_block_generate_nor_warn_in_verify(dataset_dir, tmp_path, capsys):
+    """`make scene` (data/scene_paper) or `make paper` (data/paper/<rain model>) left folders in
+    the default OUT: `make dataset` then refused it as 'not empty', and `make verify` warned about
+    every shard of the paper's datasets."""
+    out = tmp_path / "data"
+    (out / "scene_paper").mkdir(parents=True)
+    (out / "scene_paper" / "scene.xml").write_text("<mujoco/>")
+    other = out / "paper" / "jeon2022"
+    shutil.copytree(dataset_dir, other)
+    ds.run_dataset(DatasetConfig(**SMALL), out, workers=1)
+    assert store.verify_dataset(out) == [] and store.unlisted_shards(out) == []
+    assert cli.main(["verify", str(out)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    stray = out / "old" / "scene000009_f00000.h5"  # a shard in a folder that is no dataset: still named
+    stray.parent.mkdir()
+    stray.write_bytes(b"x")
+    assert store.unlisted_shards(out) == [stray]

@@ -288,7 +288,11 @@ def _weather_share(records_by_rain: Mapping[str, Sequence[Mapping[str, Any]]]) -
              "Both datasets hold the same scene, actors and drops; only the world under the rain "
              "differs (sky, light, wet road, puddles, spray, exposure and noise follow the rate in "
              f"the first, and stay the base weather's in the second). Share = (AP loss with the "
-             f"weather - AP loss without) / AP loss with the weather, at {_rate_label(heavy, clean)}.", ""]
+             f"weather - AP loss without) / AP loss with the weather, at {_rate_label(heavy, clean)}. "
+             "The two effects do not add: a negative share means the rain over the unchanged base "
+             "weather cost more than the rain in its own weather (in daylight the rain's haze takes "
+             "the bright base sky's colour and washes out the frame, where the weather that follows "
+             "the rate darkens the sky and the camera's exposure brings the scene back).", ""]
     lines += _table(["Model", "Class", "AP@0.5 Normal", f"{heavy:g} mm/h, weather follows",
                      f"{heavy:g} mm/h, fixed weather", "Share of the loss from the weather"], rows)
     return lines + [""]
@@ -467,5 +471,13 @@ def render_paper_md(
                     row.append("n/a" if entry is None or entry.n_gt == 0 else f"{_fmt(entry.ap50)} ({entry.n_gt})")
                 rows.append(row)
         lines += _table(["Class", what.capitalize()] + [f"{r:g} mm/h" for r in rates], rows)
-        lines += ["", "Cells: AP@0.5 (ground-truth boxes in the bin)."]
+        caption = "Cells: AP@0.5 (ground-truth boxes in the bin)."
+        if what == "visible fraction":
+            # a detection matching no label has no visible fraction: it is left out of every bin
+            caption += (" Detections that match no label are left out of every bin (they have no "
+                        "visible fraction), so these APs count no false positives: they measure how "
+                        "well the labels of a bin are found and ranked, are higher than the overall "
+                        "AP and are not comparable with it or with the box-size table, which counts "
+                        "false positives as COCO's area ranges do.")
+        lines += ["", caption]
     return "\n".join(lines) + "\n"
