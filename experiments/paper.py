@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from rainbench.gen.config import PAPER_CLIP, RAIN_MODELS, DatasetConfig
 from rainbench.gen.dataset import run_dataset
@@ -303,8 +304,12 @@ def _paper_into(config: PaperConfig, out_dir: Path, data_root: Path, *, class_id
     for name, rain_model, follows in conditions(config.rain_models):
         data_dir = data_root / name
         start = time.perf_counter()
-        run_dataset(replace(data, rain_model=rain_model, weather_follows_rate=follows), data_dir, workers=workers,
-                    remedy=f"delete {data_dir} to generate it again, or choose another --data")
+        # the frames as they render (the phases ran minutes in silence)
+        with tqdm(total=data.scenes * data.frames, unit="frame", desc=f"generate {name}", disable=not progress,
+                  dynamic_ncols=True) as bar:
+            run_dataset(replace(data, rain_model=rain_model, weather_follows_rate=follows), data_dir,
+                        workers=workers, progress=bar.update,
+                        remedy=f"delete {data_dir} to generate it again, or choose another --data")
         timings[f"generate {name}"] = time.perf_counter() - start
         if progress:  # each phase's time as it ends: a run cut short still shows where it went
             print(f"paper: generate {name}: {timings[f'generate {name}']:.1f} s", file=sys.stderr, flush=True)

@@ -345,3 +345,28 @@ def test_paper_names_a_remedy_it_has_for_a_data_folder_holding_something_else(tm
     _one_line_error(err, "OUT: pd/jeon2022 is not empty and has no manifest; delete pd/jeon2022 to generate it "
                          "again, or choose another --data")
     assert sorted(p.name for p in taken.iterdir()) == ["notes.txt"]
+
+
+def test_paper_shows_the_frames_it_generates(tmp_path, capsys, monkeypatch):
+    """make paper's generation phases ran for minutes without a line; they show a frame bar."""
+    from rainbench.experiments import paper
+
+    class Stop(Exception):
+        pass
+
+    def generate(config, out, *, progress=None, **kwargs):
+        for _ in range(config.frames):
+            progress(1)
+        raise Stop
+
+    monkeypatch.setattr(paper, "run_dataset", generate)
+    dataset = DatasetConfig(frames=3, width=160, height=120, rates=(0.0, 50.0))
+    with pytest.raises(Stop):
+        run_paper(PaperConfig(dataset=dataset, rain_models=("jeon2022",), weights=("rainbench-yolo11n",),
+                              device="cpu"), tmp_path / "pp", tmp_path / "pd", progress=True)
+    err = capsys.readouterr().err
+    assert "generate jeon2022" in err and "3/3" in err
+    with pytest.raises(Stop):  # and nothing with progress off
+        run_paper(PaperConfig(dataset=dataset, rain_models=("jeon2022",), weights=("rainbench-yolo11n",),
+                              device="cpu"), tmp_path / "pp2", tmp_path / "pd2", progress=False)
+    assert capsys.readouterr().err == ""
