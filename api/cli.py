@@ -632,7 +632,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="rain rates in mm/h: 0:100:10, 0,25,50 or 50 (default: 0)")
     generate.add_argument("--rain-model", default=DatasetConfig.rain_model,
                           help=f"rain model: {', '.join(RAIN_MODELS)} (default {DatasetConfig.rain_model})")
-    generate.add_argument("--rain-seed", type=_seed, default=DatasetConfig.rain_seed)
+    generate.add_argument("--rain-seed", type=_seed, default=DatasetConfig.rain_seed,
+                          help=f"seed of the rain's drops, lens water and spray; the clean frames do not depend "
+                               f"on it (default {DatasetConfig.rain_seed})")
     generate.add_argument("--rain-option", type=_rain_option, action="append", default=[],
                           metavar="NAME=VALUE",
                           help="a rain model parameter (repeatable; rainbench.rain.RainConfig, "
@@ -671,7 +673,8 @@ def build_parser() -> argparse.ArgumentParser:
                                "computed: auto (a CUDA GPU if torch sees one, else cpu), cpu, cuda "
                                "or cuda:N; the figures agree to float32 rounding, and the manifest "
                                "records the device")
-    generate.add_argument("--executor", choices=("local", "ray"), default="local")
+    generate.add_argument("--executor", choices=("local", "ray"), default="local",
+                          help="local worker processes, or tasks on a Ray cluster (default local; docs/datasets.md)")
     generate.add_argument("--ray-address", default=None,
                           help="address of an existing Ray cluster (default: start a local one)")
     generate.add_argument("--overwrite", action="store_true",
@@ -739,8 +742,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="instead of --weights: DIR/<model>/rate_<rate>.json COCO results files")
     evaluate.add_argument("--out", required=True, help="results directory")
     evaluate.add_argument("--imgsz", type=_positive_int("IMGSZ", 8192, 32), default=None,
-                          help="letterbox size (default: a shipped model's own, 960 for both shipped models; "
-                               "640 for other models)")
+                          help="letterbox size (default: the model's card, a shipped model's or the .json beside "
+                               "a weights file: 960 for the nano and small models and their rain twins, 640 for "
+                               "the weak control; 640 without a card)")
     # inference flags default to None (EVAL_INFERENCE_DEFAULTS): refused with --predictions when given
     evaluate.add_argument("--batch", type=_positive_int("BATCH", 4096), default=None,
                           help=f"frames per detector call (default {EVAL_INFERENCE_DEFAULTS['batch']})")
@@ -751,9 +755,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--max-det", type=_positive_int("MAX_DET", 100_000), default=None,
                           help=f"detections per image (default {EVAL_INFERENCE_DEFAULTS['max_det']})")
     evaluate.add_argument("--report-conf", type=_number("REPORT_CONF", 0, 1), default=0.25,
-                          help="fixed threshold of the *_at_conf metrics and the detection strip")
+                          help="fixed threshold of the *_at_conf metrics and the detection strip (default 0.25)")
     evaluate.add_argument("--n-boot", type=_positive_int("N_BOOT", 1_000_000), default=1000,
-                          help="bootstrap resamples of the AP confidence intervals")
+                          help="bootstrap resamples of the AP confidence intervals (default 1000)")
     evaluate.add_argument("--class-map", default=None,
                           help="model class name -> rainbench id, e.g. car=2,pedestrian=0 "
                                "(needed unless the model is COCO-80)")
@@ -800,7 +804,8 @@ def build_parser() -> argparse.ArgumentParser:
     paper = sub.add_parser("paper", help="the seed paper's experiment: generate, evaluate, report beside the paper")
     _add_scene_args(paper)
     _add_layout_args(paper, hfov=False)
-    paper.add_argument("--scenes", type=_positive_int("SCENES", MAX_SCENES), default=DatasetConfig.scenes)
+    paper.add_argument("--scenes", type=_positive_int("SCENES", MAX_SCENES), default=DatasetConfig.scenes,
+                       help=f"number of scenes; scene k uses seed SEED + k (default {DatasetConfig.scenes})")
     paper.add_argument("--rates", default="0:100:10", help="RATES spec (default 0:100:10, the paper's)")
     paper.add_argument("--rain-models", default=",".join(RAIN_MODELS),
                        help=f"comma-separated rain models (default: {','.join(RAIN_MODELS)})")
@@ -813,8 +818,10 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--out", default="results/paper", help="results directory (default results/paper)")
     paper.add_argument("--imgsz", type=_positive_int("IMGSZ", 8192, 32), default=None,
                        help="letterbox size (default: each model's own, as rainbench eval)")
-    paper.add_argument("--batch", type=_positive_int("BATCH", 4096), default=32)
-    paper.add_argument("--n-boot", type=_positive_int("N_BOOT", 1_000_000), default=1000)
+    paper.add_argument("--batch", type=_positive_int("BATCH", 4096), default=32,
+                       help="frames per detector call (default 32)")
+    paper.add_argument("--n-boot", type=_positive_int("N_BOOT", 1_000_000), default=1000,
+                       help="bootstrap resamples of the intervals (default 1000)")
     paper.add_argument("--device", default=None,
                        help="torch device for evaluation and for the datasets' statistics, e.g. "
                             "cpu or 0 (default: CUDA 0 if present, else cpu)")
