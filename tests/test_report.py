@@ -126,6 +126,20 @@ def test_report_md_has_paper_tables():
     assert "| car | 12 | 12 | 12 |" in text
 
 
+def test_report_md_paper_rows_when_no_model_is_the_papers():
+    """A report of our own models had four '(paper)' columns of n/a in every row."""
+    records = [dict(record, model="rainbench-yolo11n") for record in _records(with_ci=False)]
+    text = render_report_md(records, paper=PAPER_TABLES)
+    table = text.split("## Table III.", 1)[1].split("##", 1)[0]
+    assert "(paper) |" not in table.splitlines()[2]  # the header: no paper columns
+    assert "| Model | Condition | Car | Person | Bicycle | Motorcycle |" in table
+    assert "| YOLOv4 (paper) | Normal | 0.640 | 0.771 | 0.913 | 0.263 |" in table
+    assert "|  | 100mm/h | 0.424 | 0.469 | 0.677 | 0.0043 |" in table
+    assert "| YOLOv7x (paper) | Normal |" in table and "n/a | n/a | n/a | n/a" not in table
+    one_rate = render_report_md([r for r in records if r["rate"] == 0.0], paper=PAPER_TABLES)
+    assert "(paper)" not in one_rate  # no table, no note
+
+
 def test_report_md_paper_columns_beside_ours():
     text = render_report_md(_records(with_ci=False), paper=PAPER_TABLES, paper_models={"mine": "YOLOv7x"})
     assert "| Model | Condition | Car | Car (paper) | Person | Person (paper) |" in text

@@ -66,10 +66,16 @@ def _degradation_table(
     paper_models: Mapping[str, str] | None,
 ) -> list[str]:
     """Table III / IV layout: rows model x {Normal, heavy rate, % drop}, columns classes (with a
-    paper column beside each class the paper reports)."""
+    paper column beside each class the paper reports, when an evaluated model is one of the
+    paper's; otherwise the paper's models follow as rows of their own, ``YOLOv4 (paper)``)."""
     paper_metric = (paper or {}).get(metric)
     paper_classes = {name for by_rate in (paper_metric or {}).values() for values in by_rate.values()
                      for name in values}
+    if paper_metric is not None and not any(_paper_model(model, paper_metric, paper_models) for model in models):
+        # none of ours is the paper's: its models as rows below ours, not columns of n/a
+        return _degradation_table(metric, models, classes, by_key, clean_rate, heavy_rate, None, None) + [
+            row for name in paper_metric
+            for row in _paper_rows(name, paper_metric[name], classes, clean_rate, heavy_rate)]
     header = ["Model", "Condition"]
     for class_name in classes:
         header.append(class_name.capitalize())
@@ -100,6 +106,25 @@ def _degradation_table(
                         row.append(_fmt(paper_rates.get(rate, {}).get(class_name)))
             rows.append(row)
     return _table(header, rows)
+
+
+def _paper_rows(name: str, by_rate: Mapping[float, Mapping[str, Any]], classes: Sequence[str],
+                clean_rate: float, heavy_rate: float) -> list[str]:
+    """Table lines of one of the paper's models (``<name> (paper)``: Normal, the heavy rate, %
+    drop) in the columns ``classes``; n/a where the paper has no value."""
+    lines = []
+    for position, rate in enumerate((clean_rate, heavy_rate, None)):
+        row = [f"{name} (paper)" if position == 0 else "",
+               _rate_label(rate, clean_rate) if rate is not None else "% drop"]
+        for class_name in classes:
+            published_clean = by_rate.get(clean_rate, {}).get(class_name)
+            if rate is None:
+                row.append(_fmt_pct(percent_drop(as_float(published_clean),
+                                                 as_float(by_rate.get(heavy_rate, {}).get(class_name)))))
+            else:
+                row.append(_fmt(by_rate.get(rate, {}).get(class_name)))
+        lines.append("| " + " | ".join(row) + " |")
+    return lines
 
 
 def _rate_table(metric: str, models, rates, classes, by_key, clean_rate: float, cell) -> list[str]:
@@ -168,7 +193,7 @@ def render_report_md(
     lines = [f"# {title}", ""]
     lines += [
         f"Models: {', '.join(models)}. Rates: {', '.join(f'{r:g}' for r in rates)} mm/h. "
-        "AP is COCO's 101-point interpolated AP (pycocotools, maxDets 100); F1, precision and recall "
+        "AP is COCO's 101-point interpolated AP (pycocotools' definition, maxDets 100); F1, precision and recall "
         "are taken at the confidence maximising the mean F1 over classes (YOLO convention). "
         f"% drop = 100 ({'Normal' if clean_rate == 0 else 'lowest rate'} - rain) / "
         f"{'Normal' if clean_rate == 0 else 'lowest rate'}.",
@@ -185,8 +210,10 @@ def render_report_md(
         lines += _degradation_table("ap50", models, classes, by_key, clean_rate, heavy, paper, paper_models)
         lines += ["", f"## Table IV. F1 degradation, {baseline} vs {heavy_label}", ""]
         lines += _degradation_table("f1", models, classes, by_key, clean_rate, heavy, paper, paper_models)
-    if paper is not None and set(classes) & set(TABLE_CLASS_ORDER):
-        lines += ["", "Paper columns: the seed paper's published values (Tables III and IV), for reference."]
+    if paper is not None and set(classes) & set(TABLE_CLASS_ORDER) and heavy != clean_rate:
+        lines += ["", "(paper): the seed paper's published values (Tables III and IV, CARLA Town04, "
+                      "COCO-trained detectors), for reference: beside a model of the same name, else "
+                      "as rows of their own."]
     for metric, label in (("ap50", "AP@0.5"), ("ap50_95", "AP@0.5:0.95"), ("f1", "F1")):
         lines += ["", f"## {label} by rainfall rate", ""]
         lines += _rate_table(metric, models, rates, classes, by_key, clean_rate, lambda r, m=metric: _fmt(r.get(m)))
