@@ -629,7 +629,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scene_args(generate)
     _add_layout_args(generate)
     generate.add_argument("--rates", default="0",
-                          help="rain rates in mm/h: 0:100:10, 0,25,50 or 50 (default: 0)")
+                          help="rain rates in mm/h: 0:100:10, 0,25,50 or 50 (default: 0, clean frames only; "
+                               "the paper's sweep, as make dataset: 0:100:10)")
     generate.add_argument("--rain-model", default=DatasetConfig.rain_model,
                           help=f"rain model: {', '.join(RAIN_MODELS)} (default {DatasetConfig.rain_model})")
     generate.add_argument("--rain-seed", type=_seed, default=DatasetConfig.rain_seed,

@@ -1,6 +1,6 @@
 """Physically based rain: falling drops drawn as streaks, extinction and airlight.
 
-Formulas and sources (all listed in /work/shared/rain-physics.md and docs/rain.md):
+Formulas and sources (all listed in docs/rain-physics.md and docs/rain.md):
 
 * Marshall-Palmer (1948) drop sizes: N(D) = N0 exp(-Lambda D), N0 = 8000 m^-3 mm^-1,
   Lambda = 4.1 R^-0.21 mm^-1 (R in mm/h, D diameter in mm).
