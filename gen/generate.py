@@ -54,7 +54,14 @@ def build_scene(config: GenerateConfig) -> SceneSetup:
                              np.random.default_rng(config.seed))
     model = build_spec(layout, config.width, config.height, config.hfov_deg).compile()
     classes = np.array([actor.class_id for actor in layout.actors], dtype=np.int32)
-    return SceneSetup(layout, model, geom_instance_table(model), classes)
+    table = geom_instance_table(model)
+    # labels index the classes by instance id: every actor's geoms must carry its own id
+    drawn = np.unique(table[table >= 0])
+    if any(actor.instance_id != index for index, actor in enumerate(layout.actors)) \
+            or not np.array_equal(drawn, np.arange(len(classes))):
+        raise RuntimeError(f"seed {config.seed}: the scene's actor geoms carry {drawn.size} distinct ids for "
+                           f"{len(classes)} actors 0..{len(classes) - 1}; the labels would be wrong")
+    return SceneSetup(layout, model, table, classes)
 
 
 def frame_labels(renderer: FrameRenderer, data: mujoco.MjData, visible: np.ndarray,

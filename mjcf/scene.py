@@ -8,6 +8,7 @@ PNG textures beside it, loadable with ``mujoco.MjModel.from_xml_path`` and MuJoC
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
@@ -280,13 +281,21 @@ def weather_sky_endpoints(weather) -> tuple[list[float], list[float]]:
 
 
 def geom_instance_table(model: mujoco.MjModel) -> np.ndarray:
-    """(ngeom,) int32: the actor instance id of every geom, -1 for static scenery."""
+    """(ngeom,) int32: the actor instance id of every geom (the digits of its ``actor<id>/``
+    prefix, :data:`ACTOR_PREFIX`: three or more), -1 for static scenery."""
     table = np.full(model.ngeom, -1, dtype=np.int32)
     for geom_id in range(model.ngeom):
-        name = model.geom(geom_id).name
-        if name.startswith("actor"):
-            table[geom_id] = int(name[5:8])
+        match = _ACTOR_NAME.match(model.geom(geom_id).name)
+        if match:
+            table[geom_id] = int(match.group(1))
     return table
+
+
+_ACTOR_NAME = re.compile(r"actor(\d+)/")
+"""An actor geom's name: ``actor<id>/...``. The id has three digits up to 999 and more beyond: a
+long residential clip has over a thousand actors (its parked cars grow with the road), and
+reading three digits gave ``actor1043/`` the id 104, a parked car's (its people, bicycles and
+motorcycle labelled as that car, merged with it)."""
 
 
 def export_scene(spec: mujoco.MjSpec, out_dir: str | Path) -> Path:

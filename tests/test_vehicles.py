@@ -320,3 +320,15 @@ def test_requested_sizes_are_built_exactly_even_at_the_limits(style):
     assert sized == sampled
     with pytest.raises(ValueError, match=rf"size: expected a {style} length in .* m, got 1.0"):
         V.sample_vehicle(style, np.random.default_rng(1), size=(1.0, w_low, h_low))
+
+
+def test_instance_ids_past_999_are_read_whole():
+    """A long residential clip has over a thousand actors; reading three digits of
+    ``actor1043/`` gave 104, a parked car's id: the clip's people, bicycles and motorcycle were
+    labelled as that car."""
+    spec = mujoco.MjSpec()
+    for name in ("actor007/body", "actor100/body", "actor999/wheel", "actor1000/body", "actor1009/x",
+                 "actor1043/rider", "actor12345/y", "scenery/road", "actorless"):
+        spec.worldbody.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.1, 0, 0])
+    table = geom_instance_table(spec.compile())
+    assert table.tolist() == [7, 100, 999, 1000, 1009, 1043, 12345, -1, -1]
