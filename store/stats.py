@@ -192,6 +192,11 @@ def label_stats(shards: Sequence[ShardLabels]) -> dict[str, Any]:
             "truncation_hist": _histogram(truncation[rows]),
             "per_frame": _per_frame(np.bincount(frame[rows], minlength=n_frames)),
         })
+    labelled = set(np.unique(class_id).tolist())
+    ignore_only = [{"class_id": int(value),
+                    "class": CLASS_NAMES[value] if 0 <= value < len(CLASS_NAMES) else str(value),
+                    "ignore_regions": int(np.count_nonzero(ignore_class_id == value))}
+                   for value in np.unique(ignore_class_id).tolist() if value not in labelled]
     return {
         "shards": len(shards),
         "scenes": len({shard.scene for shard in shards}),
@@ -202,6 +207,7 @@ def label_stats(shards: Sequence[ShardLabels]) -> dict[str, Any]:
         "percentiles": list(PERCENTILES),
         "bins": list(BIN_EDGES),
         "classes": classes,
+        "ignore_only_classes": ignore_only,
         "per_frame": _per_frame(np.bincount(frame, minlength=n_frames)),
         "layout": _group_counts(shards, "layout"),
         "time_of_day": _group_counts(shards, "time_of_day"),
@@ -243,6 +249,10 @@ def render_stats(stats: dict[str, Any]) -> str:
     lines += ["Objects and instances per class (the seed paper's Table I)"]
     rows = [[c["class"], str(c["class_id"]), str(c["objects"]), str(c["instances"]), str(c["ignore_regions"])]
             for c in classes]
+    # classes seen only as ignore regions: their rows make the column add up to "all"
+    rows += [[c["class"], str(c["class_id"]), "0", "0", str(c["ignore_regions"])]
+             for c in stats.get("ignore_only_classes", [])]
+    rows.sort(key=lambda row: int(row[1]))
     rows.append(["all", "", str(stats["objects"]), str(stats["instances"]), str(stats["ignore_regions"])])
     lines += _text_table(["class", "id", "objects", "instances", "ignore regions"], rows) + [""]
     if classes:

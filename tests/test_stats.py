@@ -176,3 +176,22 @@ def test_bad_paths_and_corrupt_shards_are_one_line_errors(data, tmp_path, capsys
     assert err.startswith(f"rainbench: error: {broken / 'scene000000_f00000.h5'}: ")
     with pytest.raises(ShardFormatError, match="scene000000_f00000.h5: not a readable HDF5 shard"):
         dataset_stats(broken)
+
+
+def test_classes_seen_only_as_ignore_regions_are_counted(tmp_path, capsys):
+    """The per-class ignore column did not add up to "all": a class with ignore regions and no
+    label (at small sizes most people and bikes) was left out."""
+    root = tmp_path / "only"
+    root.mkdir()
+    write_labelled_shard(root, [[(CAR, 1, box(24), 1.0, 0.0)], []],
+                         ignore=[[(PERSON, 7, (5, 5, 8, 12))], [(PERSON, 7, (6, 5, 9, 12)), (3, 9, (30, 5, 33, 9))]])
+    stats = dataset_stats(root)
+    assert [c["class"] for c in stats["classes"]] == ["car"]
+    assert stats["ignore_only_classes"] == [{"class_id": 0, "class": "person", "ignore_regions": 2},
+                                            {"class_id": 3, "class": "motorcycle", "ignore_regions": 1}]
+    assert sum(c["ignore_regions"] for c in stats["classes"] + stats["ignore_only_classes"]) == stats["ignore_regions"]
+    text = render_stats(stats)
+    table = text.split("(the seed paper's Table I)", 1)[1].split("\n\n", 1)[0]
+    rows = [line.split() for line in table.splitlines()[3:]]
+    assert rows == [["person", "0", "0", "0", "2"], ["car", "2", "1", "1", "0"],
+                    ["motorcycle", "3", "0", "0", "1"], ["all", "1", "1", "3"]]
