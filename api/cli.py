@@ -253,13 +253,13 @@ def _finished_dataset(data: str | Path, allow_incomplete: bool, flag: str = "DAT
     """Refuse a dataset directory whose manifest says it is incomplete (an interrupted or running
     ``rainbench generate``): results from it would cover only its finished shards while looking
     whole. With ``allow_incomplete`` it is read, with a one-line warning."""
-    from rainbench.store.manifest import MANIFEST, missing_shards_problem, read_manifest, unfinished_listing
+    from rainbench.store.manifest import MANIFEST, missing_shards_problem, read_manifest, unfinished_count
 
     if not Path(data).is_dir():
         return  # one shard file: no manifest to say
-    listed = unfinished_listing(data)
+    manifest = read_manifest(data)
+    listed = unfinished_count(manifest)
     if listed is None:
-        manifest = read_manifest(data)
         # a manifest edited by hand (or by another tool) may say complete and list fewer shards
         missing = missing_shards_problem(Path(data) / MANIFEST, manifest) if manifest is not None else None
         if missing:

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .manifest import DatasetError, entry_problem, listed_shards
+from .manifest import DatasetError, entry_problem, read_listing, unfinished_count
 from .rates import MissingRate, rate_decimal, rate_rows
 from .shard import open_checked, open_shard, read_frame_ignore, read_frame_labels, read_rgb, rgb_checksum
 
@@ -77,12 +77,16 @@ class Dataset:
 
     Attributes: ``shards`` (list of paths), ``rates`` (tuple of floats: the selected rates as
     their decimals), ``images`` (tuple of :class:`Image` in image-id order), ``root`` (the
-    dataset directory, or None for shard files).
+    dataset directory, or None for shard files), ``unfinished`` (the finished shards listed by
+    the manifest of a dataset whose generation has not finished; None when complete or without
+    a manifest).
     """
 
     def __init__(self, data: str | Path | Sequence[str | Path],
                  rates: Sequence[float | str] | None = None, *, labels_only: bool = False) -> None:
-        listed = listed_shards(data)  # each shard with its manifest entry (None without one)
+        # each shard with its manifest entry (None without one), and the manifest: read once
+        listed, manifest = read_listing(data)
+        self.unfinished: int | None = unfinished_count(manifest)
         self.shards: list[Path] = [path for path, _ in listed]
         single = not isinstance(data, (list, tuple))
         self.root: Path | None = Path(data) if single and Path(data).is_dir() else None

@@ -100,13 +100,10 @@ def read_manifest(root: str | Path) -> dict | None:
     return check_manifest(manifest, path)
 
 
-def unfinished_listing(data: str | Path | Sequence[str | Path]) -> int | None:
-    """How many finished shards the manifest of dataset directory ``data`` lists when it says
-    the dataset is incomplete (an interrupted or still running ``rainbench generate``); None for
-    a complete dataset, shard files, or a directory without a manifest."""
-    if isinstance(data, (list, tuple)) or not Path(data).is_dir():
-        return None
-    manifest = read_manifest(data)
+def unfinished_count(manifest: dict | None) -> int | None:
+    """How many finished shards ``manifest`` (:func:`read_manifest`'s) lists when it says the
+    dataset is incomplete (an interrupted or still running ``rainbench generate``); None for a
+    complete dataset or no manifest."""
     if manifest is None or manifest["complete"]:
         return None
     return len(manifest["shards"])
@@ -204,6 +201,12 @@ def list_shards(data: str | Path | Sequence[str | Path]) -> list[Path]:
 def listed_shards(data: str | Path | Sequence[str | Path]) -> list[tuple[Path, dict | None]]:
     """:func:`list_shards`'s paths, in its order, each with its manifest entry (None for shard
     files, or in a directory without a manifest): the manifest is read once."""
+    return read_listing(data)[0]
+
+
+def read_listing(data: str | Path | Sequence[str | Path]) -> tuple[list[tuple[Path, dict | None]], dict | None]:
+    """(:func:`listed_shards`, the manifest they come from or None), from one read."""
+    manifest = None
     if isinstance(data, (list, tuple)):
         listed = [(Path(p), None) for p in data]
     else:
@@ -223,7 +226,7 @@ def listed_shards(data: str | Path | Sequence[str | Path]) -> list[tuple[Path, d
     missing = [str(path) for path, _ in listed if not path.is_file()]
     if missing:
         raise DatasetError(f"{missing[0]}: shard listed but missing")
-    return listed
+    return listed, manifest
 
 
 def verify_dataset(root: str | Path) -> list[str]:

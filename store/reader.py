@@ -30,7 +30,7 @@ import numpy as np
 
 from .classes import parse_classes
 from .dataset import Dataset
-from .manifest import DatasetError, unfinished_listing
+from .manifest import DatasetError
 from .shard import read_rgb
 
 _LABEL_KEYS = ("bbox", "class_id", "instance_id", "visible_fraction", "truncation")
@@ -78,14 +78,14 @@ class ShardReader:
                  allow_incomplete: bool = False) -> None:
         self.min_visible_fraction = _fraction(min_visible_fraction)
         self.classes = None if classes is None else np.asarray(_class_ids(classes), np.int64)
-        listed = unfinished_listing(data)
+        self.dataset = Dataset(data, rates)
+        listed = self.dataset.unfinished
         if listed is not None and not allow_incomplete:
             raise DatasetError(f"{data} is an incomplete dataset (its manifest lists {listed} finished shards "
                                "and says \"complete\": false): run the same rainbench generate again to finish "
                                "it, or pass allow_incomplete=True to read the finished shards only")
         if listed is not None:
             warnings.warn(f"{data} is incomplete: reading its {listed} finished shards only", stacklevel=2)
-        self.dataset = Dataset(data, rates)
         self.shards = self.dataset.shards
         self.rates: tuple[float, ...] = self.dataset.rates
         self._rate_rows = [np.asarray([self.dataset.rate_row(rate, shard) for rate in self.rates])
@@ -98,15 +98,18 @@ class ShardReader:
     def locate(self, index: int) -> tuple[int, int, int]:
         """(shard number, frame, rate number) of sample ``index`` (an integer, numpy or 0-d tensor
         included; negative counts from the end, as for a list)."""
+        image, rate = divmod(self._position(index), len(self.rates))  # samples: images in id order, then rates
+        return self.dataset.images[image].shard_index, self.dataset.images[image].frame, rate
+
+    def _position(self, index) -> int:
+        """``index`` as a position in 0..len - 1 (:meth:`locate`'s rules); errors name it."""
         try:
             index = operator.index(index)
         except TypeError:
             raise TypeError(f"sample index: expected an integer, got {index!r}") from None
         if not -len(self) <= index < len(self):
             raise IndexError(f"sample index {index} out of range 0..{len(self) - 1}")
-        index %= len(self)
-        image, rate = divmod(index, len(self.rates))  # samples: images in id order, then rates
-        return self.dataset.images[image].shard_index, self.dataset.images[image].frame, rate
+        return index % len(self)
 
     def _shard_labels(self, shard: int) -> dict[str, np.ndarray]:
         if shard not in self._labels:
@@ -117,8 +120,8 @@ class ShardReader:
 
     def sample(self, index: int) -> tuple[np.ndarray, dict]:
         """Image (H, W, 3) uint8 RGB and its target (numpy; keys in the module docstring)."""
+        index = self._position(index)
         shard, frame, rate_number = self.locate(index)
-        index = operator.index(index) % len(self)
         handle = self.dataset.handle(shard)
         image = read_rgb(handle, int(self._rate_rows[shard][rate_number]), frame)
         labels = self._shard_labels(shard)
