@@ -75,10 +75,12 @@ def check_environment(
     PyOpenGL; ``glfw`` without a display fails at the first render). One-line
     :class:`GLBackendError` naming the variable, what is missing and what works instead."""
     current = environ.get("MUJOCO_GL")
-    if not current:
-        return
     find_library = find_library or ctypes.util.find_library
     working = [name for name in AUTO_ORDER if find_library(BACKENDS[name][0])]
+    if not current:
+        if working:  # the backend configure() will choose
+            _check_pyopengl_platform(environ, working[0], "")
+        return
     instead = (f"set MUJOCO_GL={working[0]} (installed here) or unset MUJOCO_GL" if working
                else "; ".join(f"install {BACKENDS[n][1]} for {n}" for n in AUTO_ORDER))
     if current.strip().lower() not in VALID_VALUES:  # as MuJoCo reads it: case and spaces ignored
@@ -92,6 +94,45 @@ def check_environment(
     if current == "glfw" and not (environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY")):
         raise GLBackendError(f"MUJOCO_GL=glfw: needs a display and DISPLAY is unset; rainbench "
                              f"renders offscreen: {instead}")
+    _check_pyopengl_platform(environ, current, f"MUJOCO_GL={current}")
+
+
+def _check_pyopengl_platform(environ: MutableMapping[str, str], backend: str, chosen_by: str) -> None:
+    """Refuse a ``PYOPENGL_PLATFORM`` other than ``backend`` for the offscreen backends: MuJoCo's
+    EGL and OSMesa contexts need PyOpenGL on the same platform, and fail at the first renderer
+    with a message that blames a missing package. ``chosen_by`` names where the backend came
+    from (empty: rainbench chose it)."""
+    platform = environ.get("PYOPENGL_PLATFORM", "")
+    if backend not in BACKENDS or not platform or platform.strip().lower() == backend:
+        return
+    source = chosen_by or f"the {backend} backend rainbench chose (MUJOCO_GL unset)"
+    raise GLBackendError(f"PYOPENGL_PLATFORM={platform} conflicts with {source}: MuJoCo's "
+                         f"{backend} rendering needs PyOpenGL on the same platform; unset "
+                         f"PYOPENGL_PLATFORM or set it to {backend}")
+
+
+def context_failure_message(backend: str, error: BaseException,
+                            find_library: Callable[[str], str | None] | None = None,
+                            environ: MutableMapping[str, str] | None = None) -> str:
+    """One line for an OpenGL context that could not be made with ``MUJOCO_GL=backend`` (empty:
+    unset): a missing library names its package; an installed one that failed says so, with
+    MuJoCo's reason, instead of asking to install what is there."""
+    find_library = find_library or ctypes.util.find_library
+    environ = os.environ if environ is None else environ
+    reason = " ".join(str(error).split()) or type(error).__name__
+    shown = f"MUJOCO_GL={backend or 'unset'}"
+    if backend == "glfw":
+        display = environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY") or "unset"
+        return (f"{shown}: no window could be opened on display {display} ({reason}); rainbench "
+                "renders offscreen: unset MUJOCO_GL or set it to egl or osmesa")
+    if backend in BACKENDS and find_library(BACKENDS[backend][0]):
+        others = [name for name in AUTO_ORDER if name != backend and find_library(BACKENDS[name][0])]
+        instead = f"try MUJOCO_GL={others[0]}" if others else (
+            f"install {BACKENDS[[n for n in AUTO_ORDER if n != backend][0]][1]} for another backend")
+        return (f"{shown}: the {BACKENDS[backend][0]} library is installed but no OpenGL context "
+                f"could be made ({reason}); check the GPU driver or Mesa installation, or {instead}")
+    tried = (backend,) if backend in BACKENDS else AUTO_ORDER
+    return f"{missing_backend_message(tried)} ({shown}: {reason})"
 
 
 def configure(
@@ -117,7 +158,12 @@ def __getattr__(name: str):
     this way, so the backend is chosen when MuJoCo is first needed (a scene is built or rendered),
     never by ``import rainbench``."""
     if name == "mujoco":
-        configure(os.environ)
+        if "mujoco" not in sys.modules:  # MuJoCo reads MUJOCO_GL once, at its first import
+            user_set = os.environ.get("MUJOCO_GL")
+            configured = configure(os.environ)
+            if configured:  # a PyOpenGL platform of another backend fails only at the first render
+                backend = configured.strip().lower()
+                _check_pyopengl_platform(os.environ, backend, f"MUJOCO_GL={backend}" if user_set else "")
         try:
             import mujoco  # noqa: PLC0415
         except (AttributeError, ImportError, RuntimeError, OSError) as error:

@@ -184,7 +184,8 @@ def shard_attrs(config: GenerateConfig, layout: L.Layout) -> dict:
         "scene_seed": config.seed, "rain_seed": config.rain_seed,
         "frame_offset": config.frame_offset, "fps": config.fps,
         "class_names": json.dumps(list(L.CLASS_NAMES)), "rain_model": config.rain_model,
-        "gl_backend": os.environ.get("MUJOCO_GL", ""), "generator_version": __version__,
+        # as MuJoCo reads it (case and spaces ignored): "EGL" renders what "egl" does
+        "gl_backend": os.environ.get("MUJOCO_GL", "").strip().lower(), "generator_version": __version__,
         "config": config.to_json(),
     }
 

@@ -12,6 +12,7 @@ import ctypes
 import math
 import os
 import threading
+import warnings
 from collections.abc import Callable
 
 import cv2
@@ -26,7 +27,7 @@ from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, Wea
                                      puddle_water,
                                      road_mirror_weight, streak_reflection)
 
-from rainbench.gl import AUTO_ORDER, BACKENDS, GLBackendError, missing_backend_message
+from rainbench.gl import GLBackendError, context_failure_message
 from rainbench.gl import state as _gl_state
 from .weather import WeatherRig
 
@@ -223,8 +224,10 @@ class FrameRenderer:
         self._shadow_clip = float(model.vis.map.shadowclip * extent)
         self.backend = os.environ.get("MUJOCO_GL", "")
         try:
-            self._gl_context = mujoco.GLContext(padded_w, padded_h)
-            self._gl_context.make_current()
+            with warnings.catch_warnings():  # GLFW reports its failures as warnings too: the error says it once
+                warnings.simplefilter("ignore")
+                self._gl_context = mujoco.GLContext(padded_w, padded_h)
+                self._gl_context.make_current()
             self._mjr_context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
             self._label_context = self._mjr_context
             samples = int(model.vis.quality.offsamples)
@@ -237,16 +240,15 @@ class FrameRenderer:
                 finally:
                     model.vis.quality.offsamples = samples
         except Exception as error:  # GL failures surface as several exception types
-            self.close()
+            with warnings.catch_warnings():  # freeing a failed GLFW context warns again
+                warnings.simplefilter("ignore")
+                self.close()
             if _gl_state.mujoco_imported_first and self.backend:
                 raise GLBackendError(
                     f"mujoco was imported before rainbench set MUJOCO_GL={self.backend}: import "
                     "rainbench first, or set MUJOCO_GL in the environment"
                 ) from error
-            tried = (self.backend,) if self.backend in BACKENDS else AUTO_ORDER
-            raise GLBackendError(
-                f"{missing_backend_message(tried)} (MUJOCO_GL={self.backend or 'unset'}: {error})"
-            ) from error
+            raise GLBackendError(context_failure_message(self.backend, error)) from error
         for context in (self._mjr_context, self._label_context):
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, context)
             context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR

@@ -199,11 +199,11 @@ class ShardWriter:
         if "depth" in store:
             f.create_dataset("depth", shape=(num_frames, height, width), dtype=np.float32,
                              chunks=(1, height, width), compression="gzip", compression_opts=1,
-                             shuffle=True)
+                             shuffle=True, fillvalue=np.inf)  # the fill is the sky: no geometry
         if "instance" in store:
             f.create_dataset("instance", shape=(num_frames, height, width), dtype=np.int32,
                              chunks=(1, height, width), compression="gzip", compression_opts=1,
-                             shuffle=True)
+                             shuffle=True, fillvalue=-1)  # the fill is no actor (0 is an actor's id)
         f.create_dataset("camera/K", data=np.asarray(K, dtype=np.float64))
         if weather is not None:  # one record per rate: /weather/<field> (R,) float64
             if len(weather) != num_rates:
@@ -414,17 +414,117 @@ def open_shard(path: str | Path) -> h5py.File:
         if handle.attrs.get("format") != FORMAT:
             raise ShardFormatError(f"{path}: not a rainbench shard (format attribute "
                                    f"{handle.attrs.get('format')!r})")
-        version = int(handle.attrs.get("format_version", -1))
-        if version not in READABLE_VERSIONS:
-            raise ShardFormatError(f"{path}: unknown format_version {version}; this rainbench "
+        if "format_version" not in handle.attrs:
+            raise ShardFormatError(f"{path}: no format_version attribute; this rainbench reads "
+                                   f"versions {', '.join(map(str, READABLE_VERSIONS))}")
+        version = handle.attrs["format_version"]
+        version = _plain(version)
+        if not _is_integer(version) or int(version) not in READABLE_VERSIONS:
+            shown = version if _is_integer(version) else f"{version!r} (not an integer)"
+            raise ShardFormatError(f"{path}: unknown format_version {shown}; this rainbench "
                                    f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
-        for key in ("rates", "rgb", "labels/offsets", "labels/bbox", "camera/K"):
+        for key in REQUIRED_DATASETS:
             if key not in handle:
                 raise ShardFormatError(f"{path}: incomplete shard, /{key} is missing")
+        _check_attributes(handle, path)
     except BaseException:
         handle.close()
         raise
     return handle
+
+
+REQUIRED_DATASETS = ("rates", "rgb", "camera/K", "camera/T_world_cam", "labels/offsets",
+                     "labels/bbox", "rain/drop_count", "rain/ssim", "rain/psnr")
+"""Datasets every shard of every readable version holds (the other labels are checked by
+:func:`check_labels`; ``/ignore``, ``/depth``, ``/instance`` and ``/weather`` are optional)."""
+RAIN_MODEL_VALUES = ("jeon2022", "physical")
+SKY_VALUES = ("clear", "cloudy", "overcast")
+TIME_OF_DAY_VALUES = ("day", "dusk", "night")
+LAYOUT_VALUES = ("street", "intersection", "curved", "highway", "residential")
+"""The values docs/format.md allows for the ``rain_model``, ``sky``, ``time_of_day`` and
+``layout`` attributes (the generator's own lists; a test keeps them equal)."""
+
+
+def _plain(value):
+    """An attribute value as Python shows it in a message (numpy scalars as their item)."""
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _is_integer(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_attributes(handle: h5py.File, path) -> None:
+    """Refuse root attributes of the wrong type or outside docs/format.md's values: ``width`` and
+    ``height`` positive integers; where present, ``fps`` a positive finite number, ``rain_model``,
+    ``sky``, ``time_of_day`` and ``layout`` among their values, ``weather_follows_rate`` a bool and
+    ``config`` a JSON object."""
+    attrs = handle.attrs
+
+    def text(key):
+        value = attrs[key]
+        return value.decode() if isinstance(value, bytes) else value
+
+    for key in ("width", "height"):
+        if key not in attrs or not _is_integer(attrs[key]) or attrs[key] < 1:
+            raise ShardFormatError(f"{path}: attribute {key} is {_plain(attrs.get(key))!r}; expected a "
+                                   "positive integer of pixels")
+    if "fps" in attrs:
+        fps = attrs["fps"]
+        if not isinstance(fps, (int, float, np.integer, np.floating)) or isinstance(fps, (bool, np.bool_)) \
+                or not (np.isfinite(fps) and fps > 0):
+            raise ShardFormatError(f"{path}: attribute fps is {_plain(fps)!r}; expected a positive number")
+    for key, allowed in (("rain_model", RAIN_MODEL_VALUES), ("sky", SKY_VALUES),
+                         ("time_of_day", TIME_OF_DAY_VALUES), ("layout", LAYOUT_VALUES)):
+        if key in attrs and text(key) not in allowed:
+            raise ShardFormatError(f"{path}: attribute {key} is {text(key)!r}; expected one of "
+                                   f"{', '.join(allowed)}")
+    if "weather_follows_rate" in attrs and not isinstance(attrs["weather_follows_rate"], (bool, np.bool_)):
+        raise ShardFormatError(f"{path}: attribute weather_follows_rate is "
+                               f"{_plain(attrs['weather_follows_rate'])!r}; expected a bool")
+    if "config" in attrs:
+        try:
+            config = json.loads(text("config"))
+        except (TypeError, ValueError, RecursionError):
+            config = None
+        if not isinstance(config, dict):
+            raise ShardFormatError(f"{path}: attribute config is not a JSON object")
+
+
+def _check_frame_data(handle: h5py.File, path, num_rates: int, frames: int) -> None:
+    """Refuse the per-frame arrays a reader or an export would serve wrong: ``/rain/*`` (R, N)
+    with drop counts >= 0, SSIM in [-1, 1] and PSNR >= 0 (``inf`` allowed); ``/camera/T_world_cam``
+    (N, 4, 4) finite; ``/weather/<field>`` (R,) finite where present."""
+    try:
+        arrays = {key: handle[key][()] for key in ("rain/drop_count", "rain/ssim", "rain/psnr",
+                                                   "camera/T_world_cam")}
+        weather = {key: handle[f"weather/{key}"][()] for key in handle["weather"]} if "weather" in handle else {}
+    except (KeyError, OSError, TypeError, ValueError, AttributeError) as error:
+        raise ShardFormatError(f"{path}: per-frame data unreadable ({type(error).__name__}: {error})") from None
+    expected = {"rain/drop_count": (num_rates, frames), "rain/ssim": (num_rates, frames),
+                "rain/psnr": (num_rates, frames), "camera/T_world_cam": (frames, 4, 4)}
+    for key, shape in expected.items():
+        if arrays[key].shape != shape or arrays[key].dtype.kind not in "fiu":
+            raise ShardFormatError(f"{path}: /{key} has shape {arrays[key].shape} "
+                                   f"{arrays[key].dtype}, expected {shape} numbers")
+    with np.errstate(invalid="ignore"):
+        bad = {
+            "rain/drop_count": arrays["rain/drop_count"] < 0,
+            "rain/ssim": ~((arrays["rain/ssim"] >= -1) & (arrays["rain/ssim"] <= 1)),
+            "rain/psnr": ~(arrays["rain/psnr"] >= 0),
+            "camera/T_world_cam": ~np.isfinite(arrays["camera/T_world_cam"]).all(axis=(1, 2)),
+        }
+    what = {"rain/drop_count": "a negative drop count", "rain/ssim": "an SSIM outside [-1, 1]",
+            "rain/psnr": "a PSNR that is NaN or negative", "camera/T_world_cam": "a non-finite pose"}
+    for key, rows in bad.items():
+        if rows.any():
+            index = np.argwhere(rows)[0]
+            frame = int(index[-1]) if rows.ndim == 2 else int(index[0])
+            raise ShardFormatError(f"{path}: frame {frame}: /{key} holds {what[key]}")
+    for key, values in weather.items():
+        if values.shape != (num_rates,) or values.dtype.kind not in "fiu" or not np.isfinite(values).all():
+            raise ShardFormatError(f"{path}: /weather/{key} is not {num_rates} finite numbers "
+                                   "(one per rate)")
 
 
 def read_frame_labels(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
@@ -505,8 +605,9 @@ def check_labels(handle, path: str | Path | None = None) -> None:
                                    "ascending finite rates >= 0")
     frames, num_rates = rgb_shape[1], rgb_shape[0]
     for key in _LABEL_SHAPES:
-        if key not in arrays and key not in ("rain_coverage", "contrast_loss"):
+        if key not in arrays:
             raise ShardFormatError(f"{path}: incomplete shard, /labels/{key} is missing")
+    _check_frame_data(handle, path, num_rates, frames)
     offsets = arrays["offsets"]
     count = arrays["bbox"].shape[0] if arrays["bbox"].ndim else -1
     _check_offsets(path, "labels", offsets, frames, count)
@@ -547,10 +648,9 @@ def check_labels(handle, path: str | Path | None = None) -> None:
         for key in ("visible_fraction", "truncation"):
             values = arrays[key].astype(np.float64)
             refuse(np.flatnonzero(~((values >= 0) & (values <= 1))), f"has {key} outside [0, 1]")
-        for key in ("rain_coverage", "contrast_loss"):
-            if key in arrays:
-                values = arrays[key].astype(np.float64)
-                refuse(np.flatnonzero(~np.isfinite(values).all(axis=0)), f"has a non-finite {key}")
+        for key in ("rain_coverage", "contrast_loss"):  # an opacity and a clipped loss: [0, 1]
+            values = arrays[key].astype(np.float64)
+            refuse(np.flatnonzero(~((values >= 0) & (values <= 1)).all(axis=0)), f"has {key} outside [0, 1]")
     if "ignore" in handle:
         _check_ignore(handle, path, frames, width, height, len(class_names))
 

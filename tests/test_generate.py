@@ -3,6 +3,7 @@
 import hashlib
 import json
 import math
+import re
 import threading
 import time
 
@@ -17,7 +18,8 @@ from rainbench.gen.config import GenerateConfig
 from rainbench.gen.generate import build_scene, frame_labels, generate_shard, render_clip
 from rainbench.gen.render import FrameRenderer
 from rainbench.store.labels import FrameLabels
-from rainbench.store.shard import ShardFormatError, ShardWriter, open_shard, read_frame_ignore, read_frame_labels
+from rainbench.store.shard import (ShardFormatError, ShardWriter, open_checked, open_shard, read_frame_ignore,
+                                   read_frame_labels)
 from rainbench.mjcf import layout as L
 from rainbench.mjcf.scene import build_spec, export_scene
 
@@ -46,6 +48,8 @@ def test_shard_layout_follows_format_v2(small_shard):
         assert f.attrs["sky"] in ("clear", "cloudy", "overcast")
         assert not f.attrs["weather_follows_rate"]  # jeon2022's default: the paper's method
         assert f["weather/rain_mm_h"][()].tolist() == [0.0]
+        # an unwritten chunk reads as sky and no actor, not as depth 0 and actor 0
+        assert (f["depth"].fillvalue, f["instance"].fillvalue) == (np.inf, -1)
         assert json.loads(f.attrs["class_names"]) == ["person", "bicycle", "car", "motorcycle",
                                                       "airplane", "bus", "train", "truck"]
         assert f.attrs["layout"] in L.LAYOUTS and f.attrs["time_of_day"] in ("day", "dusk", "night")
@@ -397,6 +401,85 @@ def test_depth_is_rendered_only_where_it_is_used():
         assert full["labels"].visible_fraction.tobytes() == lean["labels"].visible_fraction.tobytes()
 
 
+def _delete(key):
+    def edit(f):
+        del f[key]
+    return edit
+
+
+def _set_attr(key, value):
+    def edit(f):
+        f.attrs[key] = value
+    return edit
+
+
+def _scale(key, factor=None, value=None, at=(0, 0)):
+    def edit(f):
+        data = f[key][()]
+        data[at] = value if value is not None else data[at] * factor
+        del f[key]
+        f.create_dataset(key, data=data)
+    return edit
+
+
+# Found by a format audit: each edit passed `verify` and every reader (its manifest rehashed),
+# and the COCO export wrote rain_coverage 0.0 for every box of a shard without it.
+BAD_SHARDS = {
+    "no rain_coverage": (_delete("labels/rain_coverage"), r"incomplete shard, /labels/rain_coverage is missing"),
+    "no contrast_loss": (_delete("labels/contrast_loss"), r"incomplete shard, /labels/contrast_loss is missing"),
+    "no ssim": (_delete("rain/ssim"), r"incomplete shard, /rain/ssim is missing"),
+    "no drop_count": (_delete("rain/drop_count"), r"incomplete shard, /rain/drop_count is missing"),
+    "no poses": (_delete("camera/T_world_cam"), r"incomplete shard, /camera/T_world_cam is missing"),
+    "no format_version": (lambda f: f.attrs.__delitem__("format_version"), r"no format_version attribute; this rainbench reads versions 1, 2"),
+    "version as text": (_set_attr("format_version", "2"), r"unknown format_version '2' \(not an integer\)"),
+    "version 1.7": (_set_attr("format_version", 1.7), r"unknown format_version 1.7 \(not an integer\)"),
+    "height as text": (_set_attr("height", "120"), r"attribute height is '120'; expected a positive integer of pixels"),
+    "sky purple": (_set_attr("sky", "purple"), r"attribute sky is 'purple'; expected one of clear, cloudy, overcast"),
+    "layout moon": (_set_attr("layout", "moon"), r"attribute layout is 'moon'; expected one of street, intersection, curved, highway, residential"),
+    "time noon": (_set_attr("time_of_day", "noon"), r"attribute time_of_day is 'noon'; expected one of day, dusk, night"),
+    "rain model": (_set_attr("rain_model", "bogus"), r"attribute rain_model is 'bogus'; expected one of jeon2022, physical"),
+    "fps negative": (_set_attr("fps", -3.0), r"attribute fps is -3.0; expected a positive number"),
+    "config not json": (_set_attr("config", "{not json"), r"attribute config is not a JSON object"),
+    "follows as text": (_set_attr("weather_follows_rate", "yes"), r"attribute weather_follows_rate is 'yes'; expected a bool"),
+    "ssim nan": (_scale("rain/ssim", value=np.nan, at=(1, 1)), r"frame 1: /rain/ssim holds an SSIM outside \[-1, 1\]"),
+    "psnr negative": (_scale("rain/psnr", value=-1.0, at=(1, 0)), r"frame 0: /rain/psnr holds a PSNR that is NaN or negative"),
+    "drops negative": (_scale("rain/drop_count", value=-4, at=(1, 1)), r"frame 1: /rain/drop_count holds a negative drop count"),
+    "pose nan": (_scale("camera/T_world_cam", value=np.nan, at=(1, 0, 3)), r"frame 1: /camera/T_world_cam holds a non-finite pose"),
+    "coverage 5": (_scale("labels/rain_coverage", value=5.0, at=(1, 0)), r"frame 0: label 0 has rain_coverage outside \[0, 1\]"),
+    "weather nan": (_scale("weather/gain", value=np.nan, at=(0,)), r"/weather/gain is not 2 finite numbers \(one per rate\)"),
+}
+
+
+@pytest.fixture(scope="module")
+def rainy_shard(tmp_path_factory):
+    """Two frames at 0 and 50 mm/h with labels in frame 0."""
+    out = tmp_path_factory.mktemp("rainy")
+    return generate_shard(GenerateConfig(seed=5, frame_offset=60, frames=2, width=160, height=120,
+                                         rates=(0.0, 50.0)), out)
+
+
+@pytest.mark.parametrize("case", BAD_SHARDS)
+def test_a_shard_missing_or_out_of_range_data_is_refused_naming_the_file(tmp_path, rainy_shard, case):
+    edit, message = BAD_SHARDS[case]
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(rainy_shard.read_bytes())
+    open_checked(bad).close()  # the unedited copy reads
+    with h5py.File(bad, "a") as f:
+        edit(f)
+    with pytest.raises(ShardFormatError, match=rf"^{re.escape(str(bad))}: {message}"):
+        open_checked(bad).close()
+
+
+def test_the_format_vocabularies_are_the_generator_s():
+    from rainbench.mjcf.layout import LAYOUTS
+    from rainbench.rain.config import RAIN_MODELS
+    from rainbench.rain.weather import SKIES, TIMES_OF_DAY
+    from rainbench.store import shard
+
+    assert (shard.RAIN_MODEL_VALUES, shard.SKY_VALUES, shard.TIME_OF_DAY_VALUES, shard.LAYOUT_VALUES) == (
+        tuple(RAIN_MODELS), tuple(SKIES), tuple(TIMES_OF_DAY), tuple(LAYOUTS))
+
+
 def test_open_shard_rejects_bad_files(tmp_path, small_shard):
     junk = tmp_path / "junk.h5"
     junk.write_bytes(b"not hdf5 at all")
@@ -412,3 +495,14 @@ def test_open_shard_rejects_bad_files(tmp_path, small_shard):
         f.attrs["format_version"] = 3
     with pytest.raises(ShardFormatError, match="unknown format_version 3"):
         open_shard(future)
+
+
+def test_the_gl_backend_attribute_is_the_backend_mujoco_reads(monkeypatch):
+    """``MUJOCO_GL=EGL`` (MuJoCo ignores case and spaces) was recorded as 'EGL', so shards of the
+    same backend looked like two backends to a per-backend comparison."""
+    from rainbench.gen.generate import shard_attrs
+
+    config = GenerateConfig(frames=2, width=32, height=24)
+    monkeypatch.setenv("MUJOCO_GL", " EGL ")
+    layout = L.sample_layout(config.seed, config.scenario_config(), np.random.default_rng(config.seed))
+    assert shard_attrs(config, layout)["gl_backend"] == "egl"

@@ -1,5 +1,7 @@
 """Rendering and labels on tiny inline scenes whose answers are known from projection math."""
 
+import re
+
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 import pytest
@@ -84,6 +86,45 @@ def test_missing_gl_backend_names_the_packages():
     assert gl.configure(env, find_library=lambda name: "lib.so") == "osmesa"  # user's choice kept
     env = {}
     assert gl.configure(env, find_library=lambda name: "lib" + name) == "egl"
+
+
+def _found(*libraries):
+    return lambda name: f"lib{name}.so" if name in libraries else None
+
+
+@pytest.mark.parametrize("environ, message", [
+    ({"PYOPENGL_PLATFORM": "osmesa"}, "PYOPENGL_PLATFORM=osmesa conflicts with the egl backend rainbench "
+     "chose (MUJOCO_GL unset): MuJoCo's egl rendering needs PyOpenGL on the same platform; unset "
+     "PYOPENGL_PLATFORM or set it to egl"),
+    ({"MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "glx"}, "PYOPENGL_PLATFORM=glx conflicts with MUJOCO_GL=egl: "
+     "MuJoCo's egl rendering needs PyOpenGL on the same platform; unset PYOPENGL_PLATFORM or set it to egl"),
+])
+def test_a_pyopengl_platform_that_conflicts_is_named(environ, message):
+    """It failed at the first renderer as 'tried egl (install libegl1)', on a machine with EGL."""
+    with pytest.raises(gl.GLBackendError, match=re.escape(message)):
+        gl.check_environment(environ, find_library=_found("EGL"))
+
+
+@pytest.mark.parametrize("environ", [{"MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "EGL"}, {"PYOPENGL_PLATFORM": "egl"},
+                                     {"MUJOCO_GL": "glfw", "DISPLAY": ":0", "PYOPENGL_PLATFORM": "glx"}, {}])
+def test_a_pyopengl_platform_that_agrees_passes(environ):
+    gl.check_environment(environ, find_library=_found("EGL"))
+
+
+def test_a_context_failure_says_whether_the_library_is_there():
+    error = RuntimeError("Cannot initialize a EGL device display.")
+    assert gl.context_failure_message("egl", error, _found("EGL")) == (
+        "MUJOCO_GL=egl: the EGL library is installed but no OpenGL context could be made (Cannot "
+        "initialize a EGL device display.); check the GPU driver or Mesa installation, or install "
+        "libosmesa6 for another backend")
+    assert gl.context_failure_message("egl", error, _found("EGL", "OSMesa")).endswith("or try MUJOCO_GL=osmesa")
+    assert gl.context_failure_message("", error, _found()) == (
+        "no OpenGL backend for offscreen rendering: tried egl (install libegl1), osmesa (install "
+        "libosmesa6); install one of these packages, or set MUJOCO_GL to a backend that works on this "
+        "machine (MUJOCO_GL=unset: Cannot initialize a EGL device display.)")
+    assert gl.context_failure_message("glfw", RuntimeError("no\nwindow"), _found("EGL"), {"DISPLAY": ":99"}) == (
+        "MUJOCO_GL=glfw: no window could be opened on display :99 (no window); rainbench renders "
+        "offscreen: unset MUJOCO_GL or set it to egl or osmesa")
 
 
 def test_an_actor_alone_in_a_window_is_the_window_of_the_whole_canvas(make_tiny_scene):
