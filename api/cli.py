@@ -211,7 +211,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
     _choose_gl(args.gl)
     from tqdm import tqdm
 
-    from rainbench.gen.dataset import run_dataset
+    from rainbench.gen.dataset import run_dataset, start_bar_at
 
     workers = args.workers or min(os.cpu_count() or 1, config.shard_count)
     if args.threads is not None:
@@ -223,7 +223,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
         manifest = run_dataset(config, out, workers=workers, executor=args.executor,
                                ray_address=args.ray_address, render_threads=args.render_threads,
                                threads=args.threads,
-                               overwrite=args.overwrite, progress=bar.update)
+                               overwrite=args.overwrite, progress=bar.update,
+                               kept=start_bar_at(bar))
     print(manifest)
     return 0
 
@@ -361,6 +362,12 @@ def _videos_dir(data: str | Path) -> Path:
     return data / "videos" if data.is_dir() else data.parent / "videos"
 
 
+DEFAULT_TILE_WIDTH = 400
+"""``preview``'s tile width in pixels: four 800x600 rates side by side fit a 1600 px screen."""
+TILE_WIDTH_RANGE = (32, 8192)
+"""``preview --tile-width`` bounds: a legible rate label; a sheet of four tiles under 2^15 px wide."""
+
+
 def cmd_preview(args: argparse.Namespace) -> int:
     if not args.video:
         for flag, given in (("--rates", args.rates is not None), ("--overwrite", args.overwrite)):
@@ -370,6 +377,13 @@ def cmd_preview(args: argparse.Namespace) -> int:
     elif args.frame is not None:
         raise CliError("--frame: only used without --video (a video shows every frame; --frame "
                        "picks the montage's frame)")
+    elif args.tile_width is not None:
+        raise CliError("--tile-width: only used without --video (a video keeps the images' size; "
+                       "--tile-width sizes the montage's tiles)")
+    tile_width = DEFAULT_TILE_WIDTH if args.tile_width is None else args.tile_width
+    if not TILE_WIDTH_RANGE[0] <= tile_width <= TILE_WIDTH_RANGE[1]:
+        raise CliError(f"--tile-width: expected {TILE_WIDTH_RANGE[0]}..{TILE_WIDTH_RANGE[1]} "
+                       f"pixels, got {tile_width}")
     _finished_dataset(args.shard, args.allow_incomplete, "SHARD")
     if args.video:
         from rainbench.store.video import write_videos
@@ -409,7 +423,7 @@ def cmd_preview(args: argparse.Namespace) -> int:
     rates = np.asarray(dataset.rates)
     boxes = (labels["bbox"], labels["class_id"]) if args.boxes else (None, None)
     sheet = montage(images, rates, boxes=boxes[0], class_ids=boxes[1],
-                    ignore_boxes=ignore if args.boxes else None)
+                    ignore_boxes=ignore if args.boxes else None, tile_width=tile_width)
     out.parent.mkdir(parents=True, exist_ok=True)  # a missing folder is made, as export and generate do
     write_png(out, sheet)
     print(out)
@@ -711,6 +725,10 @@ def build_parser() -> argparse.ArgumentParser:
                          help="PNG path or directory, made if missing (default: beside the shard)")
     preview.add_argument("--boxes", action="store_true",
                          help="draw the labels (class colours) and the ignore regions (grey)")
+    preview.add_argument("--tile-width", type=int, default=None,
+                         help=f"each rate's tile width in pixels, {TILE_WIDTH_RANGE[0]}.."
+                              f"{TILE_WIDTH_RANGE[1]} (default {DEFAULT_TILE_WIDTH}; the "
+                              "image's own width for full resolution; not with --video)")
     preview.add_argument("--video", action="store_true",
                          help="one MP4 per rate over every frame instead (in --out, default "
                               "DATA/videos; for one shard, the videos folder beside it)")

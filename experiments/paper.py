@@ -24,7 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from rainbench.gen.config import PAPER_CLIP, RAIN_MODELS, DatasetConfig
-from rainbench.gen.dataset import run_dataset
+from rainbench.gen.dataset import run_dataset, start_bar_at
 from rainbench.store import Dataset, read_frame_ignore, read_frame_labels
 
 from rainbench.store.locks import locked_output_dir
@@ -308,7 +308,7 @@ def _paper_into(config: PaperConfig, out_dir: Path, data_root: Path, *, class_id
         with tqdm(total=data.scenes * data.frames, unit="frame", desc=f"generate {name}", disable=not progress,
                   dynamic_ncols=True) as bar:
             run_dataset(replace(data, rain_model=rain_model, weather_follows_rate=follows), data_dir,
-                        workers=workers, progress=bar.update,
+                        workers=workers, progress=bar.update, kept=start_bar_at(bar),
                         remedy=f"delete {data_dir} to generate it again, or choose another --data")
         timings[f"generate {name}"] = time.perf_counter() - start
         if progress:  # each phase's time as it ends: a run cut short still shows where it went

@@ -186,11 +186,23 @@ def _adoptable(path: Path, task: GenerateConfig) -> bool:
     return True
 
 
+def start_bar_at(bar) -> Callable[[int], None]:
+    """:func:`run_dataset`'s ``kept`` callback for a ``tqdm`` bar: the kept frames become the
+    bar's starting count, so its frames/s and time left count only what this run renders (they
+    arrived all at once and read as thousands of frames a second)."""
+    def start(frames: int) -> None:
+        bar.initial = bar.n = bar.last_print_n = frames
+        bar.refresh()
+
+    return start
+
+
 def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
                 executor: str = "local", ray_address: str | None = None,
                 render_threads: int | None = None, threads: int | None = None,
                 overwrite: bool = False, remedy: str | None = None,
-                progress: Callable[[int], None] | None = None) -> Path:
+                progress: Callable[[int], None] | None = None,
+                kept: Callable[[int], None] | None = None) -> Path:
     """Generate (or finish) the dataset ``config`` in ``out``; returns the manifest path.
 
     ``workers`` processes (local) or Ray tasks render one shard each; the bytes do not depend on
@@ -202,7 +214,9 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
     threads) in local workers; None keeps Mesa's default (all cores). ``threads``: rain,
     statistics and compression threads per worker (see :func:`generate_shard`; 1 = one core
     per worker); None gives each local worker cores / workers and each Ray task its node's
-    cores. ``progress(n)`` receives finished frames, skipped shards included. ``remedy``: what
+    cores. ``progress(n)`` receives finished frames; the frames of shards kept from an earlier
+    run go, all at once before anything renders, to ``kept(n)`` when given (a progress bar
+    started there counts this run's rate only: :func:`start_bar_at`), else to ``progress``. ``remedy``: what
     the refusal of an ``out`` holding something else advises instead of ``--overwrite`` (the
     commands that generate as a step and have no such option: train, paper).
 
@@ -227,6 +241,7 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
         tasks = config.tasks()
         entries: dict[int, dict] = {}
         pending: list[int] = []
+        kept_frames = 0
         for index, task in enumerate(tasks):
             name = shard_name(task.seed, task.frame_offset)
             entry = reusable.get(name)
@@ -239,8 +254,11 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
             else:
                 pending.append(index)
                 continue
-            if progress:
-                progress(task.frames)
+            kept_frames += task.frames
+        if kept is not None:
+            kept(kept_frames)
+        elif progress and kept_frames:
+            progress(kept_frames)
 
         def save() -> Path:
             return write_manifest(root, config.to_dict(), [entries[i] for i in sorted(entries)],

@@ -19,7 +19,8 @@ IGNORE_COLOUR = (150, 150, 150)
 def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
             boxes: np.ndarray | None = None, class_ids: np.ndarray | None = None,
             tile_width: int = 400, ignore_boxes: np.ndarray | None = None) -> np.ndarray:
-    """Tile ``images`` (R, H, W, 3) uint8 with "<rate> mm/h" printed on each; returns RGB uint8.
+    """Tile ``images`` (R, H, W, 3) uint8 with "<rate> mm/h" printed on each, each resized to
+    ``tile_width`` pixels wide (aspect kept); returns RGB uint8.
 
     Optional ``boxes`` (M, 4) xyxy pixel-edge and ``class_ids`` (M,) are drawn on every tile in
     their class colours, and ``ignore_boxes`` (N, 4) xyxy pixel-edge (the frame's ignore
@@ -29,6 +30,8 @@ def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
         raise ValueError(f"images: expected (R, H, W, 3) uint8, got {images.shape} {images.dtype}")
     if rates.shape != (images.shape[0],):
         raise ValueError(f"rates: expected shape ({images.shape[0]},), got {rates.shape}")
+    if isinstance(tile_width, bool) or not isinstance(tile_width, (int, np.integer)) or tile_width < 1:
+        raise ValueError(f"tile_width: expected a positive integer of pixels, got {tile_width!r}")
     count, height, width = images.shape[:3]
     columns = columns or min(4, count)
     rows = math.ceil(count / columns)

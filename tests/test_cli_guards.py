@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import h5py
 import pytest
 
@@ -583,6 +584,46 @@ def test_an_unknown_mujoco_gl_lists_the_values_that_work(tmp_path, command):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("extra, message", [
+    ({"PYOPENGL_PLATFORM": "osmesa"}, "PYOPENGL_PLATFORM=osmesa conflicts with MUJOCO_GL=egl: MuJoCo's egl "
+     "rendering needs PyOpenGL on the same platform; unset PYOPENGL_PLATFORM or set it to egl"),
+    ({"__EGL_VENDOR_LIBRARY_FILENAMES": "/nonexistent/vendor.json"},
+     "MUJOCO_GL=egl: the EGL library is installed but no OpenGL context could be made ("),
+], ids=["pyopengl", "broken-egl"])
+def test_an_installed_backend_that_fails_is_not_called_missing(tmp_path, extra, message):
+    """Both said 'tried egl (install libegl1); install one of these packages' on a machine with
+    EGL installed (a GL audit)."""
+    import ctypes.util
+
+    if ctypes.util.find_library("EGL") is None:
+        pytest.fail("these machines have EGL (Mesa's software renderer): the test needs it")
+    env = {key: item for key, item in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    result = subprocess.run([sys.executable, "-m", "rainbench.cli", "generate", *TINY, "--out", tmp_path / "out"],
+                            capture_output=True, text=True, timeout=300,
+                            env={**env, "MUJOCO_GL": "egl", **extra})
+    lines = result.stderr.splitlines()
+    assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("rainbench: error: " + message), lines
+    assert "install libegl1" not in lines[0]
+    assert not (tmp_path / "out" / "manifest.json").exists()
+
+
+def test_the_python_api_names_a_conflicting_pyopengl_platform_before_importing_mujoco():
+    """``from rainbench.gl import mujoco`` with PYOPENGL_PLATFORM=glx imported MuJoCo, whose
+    first renderer then failed blaming a missing libegl1; MUJOCO_GL=disable (no rendering wanted)
+    still imports."""
+    env = {key: item for key, item in os.environ.items() if key not in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY")}
+    code = "from rainbench.gl import mujoco; print('imported')"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                            env={**env, "PYOPENGL_PLATFORM": "glx"})
+    assert result.returncode == 1 and result.stderr.splitlines()[-1] == (
+        "rainbench.gl.GLBackendError: PYOPENGL_PLATFORM=glx conflicts with the egl backend rainbench chose "
+        "(MUJOCO_GL unset): MuJoCo's egl rendering needs PyOpenGL on the same platform; unset "
+        "PYOPENGL_PLATFORM or set it to egl")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                            env={**env, "MUJOCO_GL": "disable"})
+    assert (result.returncode, result.stdout.strip()) == (0, "imported")
+
+
 def test_preview_makes_a_missing_out_folder(small, tmp_path, capsys):
     out = tmp_path / "new" / "deeper" / "montage.png"
     assert _cli(["preview", small, "--out", out]) == 0
@@ -614,6 +655,32 @@ def test_preview_video_refuses_frame(small, tmp_path, capsys, frame):
     _one_line_error(capsys, code, re.escape(
         "--frame: only used without --video (a video shows every frame; --frame picks the montage's frame)"))
     assert not (tmp_path / "videos").exists()
+
+
+@pytest.mark.parametrize("tile_width", [None, "96", "1000"])
+def test_preview_tile_width_sets_the_sheet(small, tmp_path, capsys, tile_width):
+    """Tiles were 400 px whatever the images: a 1920x1080 dataset could not be previewed at its
+    own resolution. Two rates of 96x72 images side by side, each tile ``--tile-width`` wide."""
+    out = tmp_path / "montage.png"
+    code = _cli(["preview", small, "--out", out, *(["--tile-width", tile_width] if tile_width else [])])
+    assert code == 0, capsys.readouterr().err
+    width = int(tile_width or 400)
+    assert cv2.imread(str(out)).shape == (round(72 * width / 96), 2 * width, 3)
+
+
+@pytest.mark.parametrize("tile_width", ["31", "8193", "-400", "0"])
+def test_preview_refuses_a_tile_width_out_of_range(small, tmp_path, capsys, tile_width):
+    out = tmp_path / "montage.png"
+    _one_line_error(capsys, _cli(["preview", small, "--out", out, "--tile-width", tile_width]),
+                    re.escape(f"--tile-width: expected 32..8192 pixels, got {tile_width}"))
+    assert not out.exists()
+
+
+def test_preview_video_refuses_tile_width(small, tmp_path, capsys):
+    _one_line_error(capsys, _cli(["preview", small, "--video", "--tile-width", "200", "--out", tmp_path / "v"]),
+                    re.escape("--tile-width: only used without --video (a video keeps the images' size; "
+                              "--tile-width sizes the montage's tiles)"))
+    assert not (tmp_path / "v").exists()
 
 
 @pytest.mark.parametrize("target, found", [

@@ -1,6 +1,7 @@
 """Datasets: manifest, resume after crashes, verify, worker-count independence, Ray, readers."""
 
 import dataclasses
+import io
 import json
 import shutil
 import signal
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from torch.utils.data import DataLoader
+from tqdm import tqdm
 
 from rainbench import ShardDataset, cli, store
 from rainbench.gen import dataset as ds
@@ -201,9 +203,18 @@ def test_resume_after_an_interrupted_run(dataset_dir, tmp_path):
     assert names == ["manifest.json", "scene000000_f00000.h5"]  # nothing partial, no temp file
     assert json.loads((tmp_path / store.MANIFEST).read_text())["complete"] is False
     (tmp_path / ".scene000000_f00002.h5.tmp-99999").write_bytes(b"left by kill -9")
-    ds.run_dataset(DatasetConfig(**SMALL), tmp_path, workers=1)
+    # the resumed run's bar starts at the kept shard's frames: its rate counts rendered frames
+    # only (they arrived as progress at once and read as thousands of frames a second)
+    rendered = []
+    with tqdm(total=8, file=io.StringIO()) as bar:
+        ds.run_dataset(DatasetConfig(**SMALL), tmp_path, workers=1,
+                       progress=lambda n: (rendered.append(n), bar.update(n)), kept=ds.start_bar_at(bar))
+        assert (bar.initial, bar.n, sum(rendered)) == (2, 8, 6)
     assert _hashes(tmp_path) == _hashes(dataset_dir)
     assert not list(tmp_path.glob(".*tmp*"))
+    done = []  # without ``kept`` the kept frames go to progress, in one call before any rendering
+    ds.run_dataset(DatasetConfig(**SMALL), tmp_path, workers=1, progress=done.append)
+    assert done == [8]
 
 
 def test_kill_9_mid_run_then_resume(tmp_path):

@@ -16,7 +16,7 @@ from rainbench.eval.report.figures import plot_detection_strip
 from rainbench.eval.report.markdown import render_report_md
 from rainbench.eval.report.paper import PAPER_TABLES, TABLE_CLASS_ORDER
 from rainbench.eval.report.plots import plot_metric_vs_rate
-from rainbench.eval.report.records import RECORD_FIELDS, metric_records, read_metrics, robustness_records, write_metrics
+from rainbench.eval.report.records import RECORD_FIELDS, index_records, metric_records, read_metrics, robustness_records, write_metrics
 from rainbench.store.classes import CLASS_COLOURS, PAPER_CLASSES
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -191,6 +191,33 @@ def test_plot_metric_vs_rate_writes_png(tmp_path):
         plot_metric_vs_rate(records, "map", tmp_path / "x.png")
 
 
+def _grey_text_pixels(image, left, right):
+    """Pixels of the 0.4 grey that only the empty-panel note uses, around the middle of columns
+    ``left:right`` of a one-row plot (axes lines and labels are black, grids light, lines
+    coloured)."""
+    middle_row, middle_column = image.shape[0] // 2, (left + right) // 2
+    centre = image[middle_row - 25 : middle_row + 25, middle_column - 40 : middle_column + 40].astype(int)
+    return int(np.count_nonzero((np.abs(centre - 102) <= 12).all(axis=-1)))
+
+
+def test_a_class_without_labelled_boxes_gets_a_note_not_an_empty_panel(tmp_path):
+    """A class with no labelled boxes at any rate plotted as a blank panel, which reads as a
+    plotting fault; its panel now says why it is empty, and the other panels carry no note."""
+    records = []
+    for record in _records():
+        if record["class_id"] == PAPER_CLASSES[1]:
+            record = {**record, "n_gt": 0, "ap50": float("nan"), "ap50_ci_low": float("nan"),
+                      "ap50_ci_high": float("nan")}
+        records.append(record)
+    image = cv2.imread(str(plot_metric_vs_rate(records, "ap50", tmp_path / "ap50.png")))
+    classes = index_records(records)[2]
+    empty = classes.index(next(r["class"] for r in records if r["class_id"] == PAPER_CLASSES[1]))
+    panel = image.shape[1] // len(classes)
+    counts = [_grey_text_pixels(image, index * panel, (index + 1) * panel) for index in range(len(classes))]
+    assert counts[empty] > 30, counts
+    assert all(count == 0 for index, count in enumerate(counts) if index != empty), counts
+
+
 def test_plot_detection_strip_draws_boxes(tmp_path):
     rng = np.random.default_rng(0)
     frames = {rate: rng.integers(0, 40, (60, 80, 3), dtype=np.uint8) for rate in (0.0, 10.0, 20.0, 30.0, 40.0)}
@@ -273,3 +300,11 @@ def test_robustness_section_shows_intervals_and_paired_differences():
     assert "| clean | car | 141 | 0.940 (0.900-0.970) | 0.300 | 0.100 (0.060-0.160) | 0.250 (0.210-0.300) | " \
            "0.266 (0.226-0.319) |  |" in lines
     assert any(line.endswith("| +0.087 (+0.041 to +0.127) vs clean |") for line in lines)
+
+    # rows come per class id (person 0 before car 2); the table lists them in the other tables'
+    # order, car first, each model's rows together
+    person = {**clean, "class": "person", "n_gt": 57}
+    lines = robustness_section({"physical": [person, clean, {**rain, "class": "person"}, rain]})
+    cells = [line.split("|")[1:3] for line in lines if line.startswith("| ") and "Model" not in line]
+    assert [(model.strip(), name.strip()) for model, name in cells] == [
+        ("clean", "car"), ("", "person"), ("clean-rain", "car"), ("", "person")]

@@ -248,6 +248,9 @@ def test_preview_draws_ignore_regions_in_grey_under_the_labels():
     assert tuple(sheet[59, 30]) == CLASS_COLOURS[2]  # a label is drawn over a region on the same box
     with pytest.raises(ValueError, match=r"ignore_boxes: expected finite x1, y1, x2, y2, got \[nan"):
         montage(image, np.array([0.0]), ignore_boxes=np.array([[np.nan, 0, 5, 5]], np.float32))
+    for bad in (0, -5, 2.5, True):
+        with pytest.raises(ValueError, match=r"tile_width: expected a positive integer of pixels, got "):
+            montage(image, np.array([0.0]), tile_width=bad)
 
 
 HDF5_FULL_DISK = ("Disable slist on flush dest failure failed (file write failed: time = Wed Nov 25 "

@@ -341,6 +341,15 @@ def _signed_interval(row: Mapping[str, Any], key: str) -> str:
     return f"{point:+.3f} ({low:+.3f} to {high:+.3f})" if not math.isnan(low) else f"{point:+.3f}"
 
 
+def _in_table_class_order(rows: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    """``rows`` (``model``, ``class`` keys) with each model's rows in the tables' class order
+    (:func:`~rainbench.eval.report.records.index_records`: the paper's order, then class ids),
+    models in their first-appearance order."""
+    models = list(dict.fromkeys(row["model"] for row in rows))
+    classes = index_records([{**row, "rate": 0.0} for row in rows])[2]
+    return sorted(rows, key=lambda row: (models.index(row["model"]), classes.index(row["class"])))
+
+
 def robustness_section(robustness: Mapping[str, Sequence[Mapping[str, Any]]], level: str = "###") -> list[str]:
     """Section comparing models' robustness with intervals, one table per dataset.
 
@@ -368,7 +377,7 @@ def robustness_section(robustness: Mapping[str, Sequence[Mapping[str, Any]]], le
         lines += [f"{name}:", ""] if name else []
         table_rows = []
         previous = None
-        for row in rows:
+        for row in _in_table_class_order(rows):
             model = row["model"] if row["model"] != previous else ""
             previous = row["model"]
             reference = row.get("reference")

@@ -14,7 +14,7 @@ import numpy as np
 
 from rainbench.store.images import file_error
 from .paper import PAPER_COLORS
-from .records import as_float, index_records
+from .records import as_float, index_records, is_missing
 
 METRIC_LABELS: dict[str, str] = {
     "ap50": "AP@0.5",
@@ -58,7 +58,7 @@ def plot_metric_vs_rate(
     n_rows = math.ceil(len(classes) / n_columns)
     figure = Figure(figsize=(3.6 * n_columns, 3.0 * n_rows), dpi=100)
     FigureCanvasAgg(figure)
-    axes = figure.subplots(n_rows, n_columns, squeeze=False, sharey=True)
+    axes = figure.subplots(n_rows, n_columns, squeeze=False, sharex=True, sharey=True)
     default_colors = [f"C{i}" for i in range(10)]
     for position, class_name in enumerate(classes):
         axis = axes[position // n_columns][position % n_columns]
@@ -74,6 +74,15 @@ def plot_metric_vs_rate(
                 high = np.array([as_float(row.get(high_key)) for row in rows])
                 if np.any(np.isfinite(low)):
                     axis.fill_between(x, low, high, color=color, alpha=0.15, linewidth=0)
+        plotted = [as_float(row.get(metric)) for model in models for rate in rates
+                   for row in [by_key.get((model, rate, class_name))] if row is not None]
+        if not any(math.isfinite(value) for value in plotted):
+            # an empty panel reads as a plotting fault: say why it is empty
+            labelled = sum(int(row["n_gt"]) for key, row in by_key.items()
+                           if key[2] == class_name and not is_missing(row.get("n_gt")))
+            reason = "no labelled boxes" if labelled == 0 else "no values"
+            axis.text(0.5, 0.5, f"{reason}\nof this class", transform=axis.transAxes,
+                      ha="center", va="center", color="0.4", fontsize=9)
         axis.set_title(class_name)
         axis.set_xlabel("rainfall rate (mm/h)")
         axis.set_ylim(0, 1.02)
