@@ -26,6 +26,8 @@ THREADS ?=
 DEVICE ?=
 # OVERWRITE=1: replace a dataset of another config in OUT (generate --overwrite)
 OVERWRITE ?=
+# make verify: IMAGES=1 also decodes every stored image (verify --images)
+IMAGES ?=
 # make eval variables
 RESULTS ?= results/eval
 WEIGHTS ?=
@@ -102,7 +104,7 @@ paper: $(STAMP)
 		$(foreach c,$(COMPARE),--compare $(call q,$(c)))
 
 verify: $(STAMP)
-	$(BIN)/rainbench verify $(call q,$(OUT))
+	$(BIN)/rainbench verify $(call q,$(OUT))$(if $(IMAGES), --images)
 
 scene: $(STAMP)
 	$(BIN)/rainbench scene $(SCENE_FLAGS) --frames $(call q,$(FRAMES)) \

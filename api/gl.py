@@ -69,17 +69,21 @@ def find_backend(
 def check_environment(
     environ: MutableMapping[str, str],
     find_library: Callable[[str], str | None] | None = None,
+    rendering: bool = True,
 ) -> None:
     """Refuse a ``MUJOCO_GL`` set by the user that cannot render here, before mujoco is imported
     (importing it with ``MUJOCO_GL=osmesa`` and no OSMesa fails with an AttributeError deep in
     PyOpenGL; ``glfw`` without a display fails at the first render). One-line
-    :class:`GLBackendError` naming the variable, what is missing and what works instead."""
+    :class:`GLBackendError` naming the variable, what is missing and what works instead, and a
+    ``PYOPENGL_PLATFORM`` of another backend (:func:`check_pyopengl_platform`). With
+    ``rendering`` False (MuJoCo is needed but nothing is rendered: ``rainbench scene``), only
+    what breaks the import is refused, not ``glfw`` without a display nor PyOpenGL's platform."""
     current = environ.get("MUJOCO_GL")
     find_library = find_library or ctypes.util.find_library
     working = [name for name in AUTO_ORDER if find_library(BACKENDS[name][0])]
     if not current:
-        if working:  # the backend configure() will choose
-            _check_pyopengl_platform(environ, working[0], "")
+        if working and rendering:  # the backend configure() will choose
+            check_pyopengl_platform(environ, working[0], "")
         return
     instead = (f"set MUJOCO_GL={working[0]} (installed here) or unset MUJOCO_GL" if working
                else "; ".join(f"install {BACKENDS[n][1]} for {n}" for n in AUTO_ORDER))
@@ -91,19 +95,23 @@ def check_environment(
     if current in BACKENDS and not find_library(BACKENDS[current][0]):
         raise GLBackendError(f"MUJOCO_GL={current}: the {BACKENDS[current][0]} library is not "
                              f"installed (package {BACKENDS[current][1]}); {instead}")
-    if current == "glfw" and not (environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY")):
+    if rendering and current == "glfw" and not (environ.get("DISPLAY") or environ.get("WAYLAND_DISPLAY")):
         raise GLBackendError(f"MUJOCO_GL=glfw: needs a display and DISPLAY is unset; rainbench "
                              f"renders offscreen: {instead}")
-    _check_pyopengl_platform(environ, current, f"MUJOCO_GL={current}")
+    if rendering:
+        check_pyopengl_platform(environ, current, f"MUJOCO_GL={current}")
 
 
-def _check_pyopengl_platform(environ: MutableMapping[str, str], backend: str, chosen_by: str) -> None:
-    """Refuse a ``PYOPENGL_PLATFORM`` other than ``backend`` for the offscreen backends: MuJoCo's
-    EGL and OSMesa contexts need PyOpenGL on the same platform, and fail at the first renderer
-    with a message that blames a missing package. ``chosen_by`` names where the backend came
-    from (empty: rainbench chose it)."""
+def check_pyopengl_platform(environ: MutableMapping[str, str], backend: str, chosen_by: str) -> None:
+    """Refuse a ``PYOPENGL_PLATFORM`` other than ``backend`` (``MUJOCO_GL`` as MuJoCo reads it)
+    for the offscreen backends: MuJoCo's EGL and OSMesa contexts need PyOpenGL on the same
+    platform (MuJoCo compares it lower-cased), and otherwise fail at the first renderer with a
+    message that blames a missing package; building and exporting scenes need no context and
+    are not affected. ``chosen_by`` names where the backend came from (empty: rainbench chose
+    it, ``MUJOCO_GL`` being unset)."""
     platform = environ.get("PYOPENGL_PLATFORM", "")
-    if backend not in BACKENDS or not platform or platform.strip().lower() == backend:
+    backend = backend.strip().lower()
+    if backend not in BACKENDS or not platform or platform.lower() == backend:
         return
     source = chosen_by or f"the {backend} backend rainbench chose (MUJOCO_GL unset)"
     raise GLBackendError(f"PYOPENGL_PLATFORM={platform} conflicts with {source}: MuJoCo's "
@@ -119,6 +127,7 @@ def context_failure_message(backend: str, error: BaseException,
     MuJoCo's reason, instead of asking to install what is there."""
     find_library = find_library or ctypes.util.find_library
     environ = os.environ if environ is None else environ
+    backend = backend.strip().lower()  # as MuJoCo reads it
     reason = " ".join(str(error).split()) or type(error).__name__
     shown = f"MUJOCO_GL={backend or 'unset'}"
     if backend == "glfw":
@@ -158,12 +167,7 @@ def __getattr__(name: str):
     this way, so the backend is chosen when MuJoCo is first needed (a scene is built or rendered),
     never by ``import rainbench``."""
     if name == "mujoco":
-        if "mujoco" not in sys.modules:  # MuJoCo reads MUJOCO_GL once, at its first import
-            user_set = os.environ.get("MUJOCO_GL")
-            configured = configure(os.environ)
-            if configured:  # a PyOpenGL platform of another backend fails only at the first render
-                backend = configured.strip().lower()
-                _check_pyopengl_platform(os.environ, backend, f"MUJOCO_GL={backend}" if user_set else "")
+        configure(os.environ)
         try:
             import mujoco  # noqa: PLC0415
         except (AttributeError, ImportError, RuntimeError, OSError) as error:

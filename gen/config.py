@@ -147,7 +147,8 @@ class ClipConfig:
             check_layout(self.layout)
         if self.time_of_day is not None:
             check_time_of_day(self.time_of_day)
-        if self.weather_follows_rate not in (None, True, False):
+        if self.weather_follows_rate is not None and not isinstance(self.weather_follows_rate, bool):
+            # 1 == True: an int passed the old "in (None, True, False)" and was stored as an int
             raise DatasetError(f"weather_follows_rate: expected True, False or None, got "
                                f"{self.weather_follows_rate!r}")
         if not (isinstance(self.stats_device, str) and STATS_DEVICE.fullmatch(self.stats_device)):

@@ -191,6 +191,7 @@ def start_bar_at(bar) -> Callable[[int], None]:
     bar's starting count, so its frames/s and time left count only what this run renders (they
     arrived all at once and read as thousands of frames a second)."""
     def start(frames: int) -> None:
+        bar.reset(total=bar.total)  # the clock too: checking the kept shards took time, not frames
         bar.initial = bar.n = bar.last_print_n = frames
         bar.refresh()
 

@@ -27,7 +27,7 @@ from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, Wea
                                      puddle_water,
                                      road_mirror_weight, streak_reflection)
 
-from rainbench.gl import GLBackendError, context_failure_message
+from rainbench.gl import GLBackendError, check_pyopengl_platform, context_failure_message
 from rainbench.gl import state as _gl_state
 from .weather import WeatherRig
 
@@ -223,6 +223,9 @@ class FrameRenderer:
         self._tan_y = math.tan(math.radians(model.cam_fovy[self.camera_id]) / 2)
         self._shadow_clip = float(model.vis.map.shadowclip * extent)
         self.backend = os.environ.get("MUJOCO_GL", "")
+        # a PyOpenGL platform of another backend makes no context, and MuJoCo's error blames a
+        # missing package: say so first (MUJOCO_GL unset: nothing chose a backend to check)
+        check_pyopengl_platform(os.environ, self.backend, f"MUJOCO_GL={self.backend.strip().lower()}")
         try:
             with warnings.catch_warnings():  # GLFW reports its failures as warnings too: the error says it once
                 warnings.simplefilter("ignore")

@@ -229,8 +229,12 @@ def read_listing(data: str | Path | Sequence[str | Path]) -> tuple[list[tuple[Pa
     return listed, manifest
 
 
-def verify_dataset(root: str | Path) -> list[str]:
-    """Problems of dataset ``root``, one line each, naming the file (empty list: all good)."""
+def verify_dataset(root: str | Path, images: bool = False) -> list[str]:
+    """Problems of dataset ``root``, one line each, naming the file (empty list: all good).
+
+    With ``images``, every stored image (and depth and instance map) of every shard that passes
+    the other checks is decoded as well (:func:`undecodable_problem`): a chunk damaged in a file
+    whose manifest was rewritten to match passes the sha256, not this."""
     root = Path(root)
     manifest = read_manifest(root)
     if manifest is None:
@@ -266,9 +270,35 @@ def verify_dataset(root: str | Path) -> list[str]:
                     # a shard stores float32 rates; the manifest the rates as given (12.3, not 12.300000190734863)
                     problems.append(f"{path}: its rates {_rates_text(handle['rates'][()])} disagree "
                                     f"with the manifest's {_rates_text(entry['rates'])}")
+                elif images:
+                    problem = undecodable_problem(handle, path)
+                    if problem is not None:
+                        problems.append(problem)
         except ShardFormatError as error:
             problems.append(str(error))
     return problems
+
+
+def undecodable_problem(handle, path: str | Path) -> str | None:
+    """The first image, depth map or instance map of an open shard that does not decode, as one
+    line naming the file and the frame (None: every one decodes). About 4 ms an 800x600 image."""
+    from .shard import read_rgb  # noqa: PLC0415 -- the decoder the readers use
+
+    num_rates, frames = handle["rgb"].shape[:2]
+    for frame in range(frames):
+        for rate_row in range(num_rates):
+            try:
+                read_rgb(handle, rate_row, frame)
+            except ShardFormatError as error:
+                return str(error)
+        for key in ("depth", "instance"):
+            if key in handle:
+                try:
+                    handle[key][frame]
+                except (OSError, ValueError, RuntimeError) as error:
+                    reason = " ".join(str(error).split())
+                    return f"{path}: /{key} chunk of frame {frame} is corrupt ({reason})"
+    return None
 
 
 def _rates_text(rates) -> str:

@@ -12,6 +12,8 @@ import numpy as np
 from .classes import CLASS_COLOURS
 from .images import write_image
 
+MAX_SHEET_PIXELS = 1 << 27
+"""A montage's largest size (about 400 MB of RGB): four 8192x4096 tiles."""
 IGNORE_COLOUR = (150, 150, 150)
 """RGB of ignore regions (actors too small or hidden to be labels) in previews."""
 
@@ -36,7 +38,11 @@ def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
     columns = columns or min(4, count)
     rows = math.ceil(count / columns)
     scale = tile_width / width
-    tile_h = round(height * scale)
+    tile_h = max(1, round(height * scale))
+    if rows * tile_h * columns * tile_width > MAX_SHEET_PIXELS:
+        raise ValueError(f"tile_width: {tile_width} px tiles of {width}x{height} images make a "
+                         f"{columns * tile_width}x{rows * tile_h} sheet, over {MAX_SHEET_PIXELS} "
+                         "pixels; choose narrower tiles")
     sheet = np.full((rows * tile_h, columns * tile_width, 3), 255, np.uint8)
     for index, (image, rate) in enumerate(zip(images, rates)):
         tile = cv2.resize(image, (tile_width, tile_h), interpolation=cv2.INTER_AREA)

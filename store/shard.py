@@ -491,9 +491,15 @@ def _check_attributes(handle: h5py.File, path) -> None:
             raise ShardFormatError(f"{path}: attribute config is not a JSON object")
 
 
+SSIM_TOLERANCE = 1e-5
+"""How far outside [-1, 1] a stored SSIM may lie: it is computed in float32, and an image against
+itself (or one the rain left unchanged) can come out a few units in the last place above 1."""
+
+
 def _check_frame_data(handle: h5py.File, path, num_rates: int, frames: int) -> None:
     """Refuse the per-frame arrays a reader or an export would serve wrong: ``/rain/*`` (R, N)
-    with drop counts >= 0, SSIM in [-1, 1] and PSNR >= 0 (``inf`` allowed); ``/camera/T_world_cam``
+    with drop counts >= 0, SSIM in [-1, 1] (to :data:`SSIM_TOLERANCE`) and PSNR >= 0 (``inf``
+    allowed); ``/camera/T_world_cam``
     (N, 4, 4) finite; ``/weather/<field>`` (R,) finite where present."""
     try:
         arrays = {key: handle[key][()] for key in ("rain/drop_count", "rain/ssim", "rain/psnr",
@@ -510,7 +516,7 @@ def _check_frame_data(handle: h5py.File, path, num_rates: int, frames: int) -> N
     with np.errstate(invalid="ignore"):
         bad = {
             "rain/drop_count": arrays["rain/drop_count"] < 0,
-            "rain/ssim": ~((arrays["rain/ssim"] >= -1) & (arrays["rain/ssim"] <= 1)),
+            "rain/ssim": ~((arrays["rain/ssim"] >= -1 - SSIM_TOLERANCE) & (arrays["rain/ssim"] <= 1 + SSIM_TOLERANCE)),
             "rain/psnr": ~(arrays["rain/psnr"] >= 0),
             "camera/T_world_cam": ~np.isfinite(arrays["camera/T_world_cam"]).all(axis=(1, 2)),
         }
@@ -570,8 +576,9 @@ def check_labels(handle, path: str | Path | None = None) -> None:
     ``0 <= y1 < y2 <= H``, amodal boxes finite and ordered, ``class_names`` the first names of
     :data:`rainbench.store.classes.CLASS_NAMES` (older shards list 4, newer 8: the ids mean the
     same), class ids naming a class of ``class_names`` that rainbench labels (not 4 airplane or
-    6 train), instance ids >= 0, visible fractions and truncations in [0, 1], and finite per-box
-    rain statistics.
+    6 train), instance ids >= 0, visible fractions, truncations and the per-box rain statistics
+    in [0, 1], and the per-frame data of :func:`_check_frame_data` (``/rain/*``, poses,
+    ``/weather``).
     """
     path = path if path is not None else handle.filename
     try:

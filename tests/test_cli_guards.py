@@ -260,6 +260,7 @@ def test_make_targets_pass_each_value_as_one_argument(tmp_path):
     assert paper[:5] == ["paper", "--out", "p'q", "--data", f"{odd}/paper"]
     assert [paper[i + 1] for i, a in enumerate(paper) if a == "--model"] == ["m'1", "m2"]
     assert _make_argv(tmp_path, "verify", f"OUT={odd}") == [["verify", odd]]
+    assert _make_argv(tmp_path, "verify", f"OUT={odd}", "IMAGES=1") == [["verify", odd, "--images"]]
     assert _make_argv(tmp_path, "train", "RECIPE=my recipe.yaml", f"TRAIN_OUT={odd}") == [
         ["train", "--recipe", "my recipe.yaml", "--out", odd]]
 
@@ -275,6 +276,31 @@ def test_make_scene_takes_the_clip_settings_and_a_folder_per_scene(tmp_path):
     assert night[-3:] == ["--out", "data/scene_3_highway_night", "--overwrite"]
     [chosen] = _make_argv(tmp_path, "scene", "SEED=3", "SCENE_OUT=my scene")
     assert chosen[-2:] == ["--out", "my scene"]
+
+
+def test_verify_images_finds_a_damaged_chunk_whose_manifest_was_rewritten(small, tmp_path, capsys):
+    """Bytes flipped inside an image chunk, the manifest rehashed to match: verify said ok and
+    every reader then failed on that image (a format audit). ``--images`` decodes them."""
+    data = tmp_path / "data"
+    shutil.copytree(small, data)
+    shard = data / "scene000000_f00002.h5"
+    with h5py.File(shard, "r") as handle:
+        info = handle["rgb"].id.get_chunk_info_by_coord((1, 1, 0, 0, 0))
+    raw = bytearray(shard.read_bytes())
+    middle = info.byte_offset + info.size // 2
+    raw[middle:middle + 16] = bytes(255 - b for b in raw[middle:middle + 16])
+    shard.write_bytes(bytes(raw))
+    manifest = json.loads((data / store.MANIFEST).read_text())
+    for entry in manifest["shards"]:
+        if entry["path"] == shard.name:
+            entry["sha256"] = sha256_of(shard)
+    (data / store.MANIFEST).write_text(json.dumps(manifest))
+    assert _cli(["verify", data]) == 0 and capsys.readouterr().out.strip() == f"{data}: ok"
+    assert _cli(["verify", data, "--images"]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(
+        f"rainbench: bad: {shard}: /rgb chunk of rate row 1, frame 1 is corrupt ("), err
+    assert _cli(["verify", small, "--images"]) == 0
 
 
 # -- a corrupt manifest and --overwrite ---------------------------------------------------------
@@ -607,21 +633,25 @@ def test_an_installed_backend_that_fails_is_not_called_missing(tmp_path, extra, 
     assert not (tmp_path / "out" / "manifest.json").exists()
 
 
-def test_the_python_api_names_a_conflicting_pyopengl_platform_before_importing_mujoco():
-    """``from rainbench.gl import mujoco`` with PYOPENGL_PLATFORM=glx imported MuJoCo, whose
-    first renderer then failed blaming a missing libegl1; MUJOCO_GL=disable (no rendering wanted)
-    still imports."""
+def test_the_python_api_names_a_conflicting_pyopengl_platform_at_the_first_renderer():
+    """With PYOPENGL_PLATFORM=glx the first renderer failed blaming a missing libegl1. Building a
+    scene needs no context and still works; the renderer names the variable."""
     env = {key: item for key, item in os.environ.items() if key not in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY")}
-    code = "from rainbench.gl import mujoco; print('imported')"
+    code = ("from rainbench.gl import mujoco\n"
+            "import numpy as np\n"
+            "from rainbench.gen.render import FrameRenderer\n"
+            "spec = mujoco.MjSpec()\n"
+            "spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[5, 5, 0.1])\n"
+            "spec.worldbody.add_body(name='ego', mocap=True).add_camera(name='ego')\n"
+            "model = spec.compile()\n"
+            "print('built', flush=True)\n"
+            "FrameRenderer(model, 32, 24, np.full(model.ngeom, -1, np.int32))\n")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                             env={**env, "PYOPENGL_PLATFORM": "glx"})
-    assert result.returncode == 1 and result.stderr.splitlines()[-1] == (
-        "rainbench.gl.GLBackendError: PYOPENGL_PLATFORM=glx conflicts with the egl backend rainbench chose "
-        "(MUJOCO_GL unset): MuJoCo's egl rendering needs PyOpenGL on the same platform; unset "
-        "PYOPENGL_PLATFORM or set it to egl")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                            env={**env, "MUJOCO_GL": "disable"})
-    assert (result.returncode, result.stdout.strip()) == (0, "imported")
+    assert result.returncode == 1 and result.stdout.strip() == "built", result.stderr
+    assert result.stderr.splitlines()[-1] == (
+        "rainbench.gl.GLBackendError: PYOPENGL_PLATFORM=glx conflicts with MUJOCO_GL=egl: MuJoCo's egl "
+        "rendering needs PyOpenGL on the same platform; unset PYOPENGL_PLATFORM or set it to egl")
 
 
 def test_preview_makes_a_missing_out_folder(small, tmp_path, capsys):

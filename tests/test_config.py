@@ -126,6 +126,7 @@ def test_a_dataset_can_hold_part_of_a_longer_clip():
     (dict(rain_options=[("exposure_s", 0.01)]), r"^rain_options: expected a mapping of rain "
                                                 r"options, got list$"),
     (dict(weather_follows_rate="yes"), r"^weather_follows_rate: expected True, False or None"),
+    (dict(weather_follows_rate=1), r"^weather_follows_rate: expected True, False or None, got 1$"),
 ])
 def test_every_field_is_checked_with_one_line_naming_it(fields, pattern):
     for kind in (DatasetConfig, GenerateConfig):

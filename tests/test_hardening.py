@@ -1103,3 +1103,14 @@ def test_render_threads_reach_the_one_worker_run_and_ray_tasks(tmp_path, monkeyp
     assert ds.ray_task_options(0, 3) == {"num_cpus": 1, "num_gpus": 0,
                                          "runtime_env": {"env_vars": {"LP_NUM_THREADS": "3"}}}
     assert ds.ray_task_options(4, None) == {"num_cpus": 1, "num_gpus": 0.25}
+
+
+def test_scene_export_needs_no_display_with_mujoco_gl_glfw(tmp_path):
+    """``rainbench scene`` renders nothing, yet refused MUJOCO_GL=glfw without a display ('needs a
+    display'); MuJoCo imports with it, and the file is written."""
+    env = {key: item for key, item in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    result = subprocess.run([sys.executable, "-m", "rainbench.cli", "scene", "--out", str(tmp_path / "scene"),
+                             "--frames", "2", "--width", "16", "--height", "16"],
+                            capture_output=True, text=True, timeout=300, env={**env, "MUJOCO_GL": "glfw"})
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "scene" / "scene.xml").is_file()

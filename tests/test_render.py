@@ -1,6 +1,9 @@
 """Rendering and labels on tiny inline scenes whose answers are known from projection math."""
 
+import os
 import re
+import subprocess
+import sys
 
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
@@ -111,6 +114,23 @@ def test_a_pyopengl_platform_that_agrees_passes(environ):
     gl.check_environment(environ, find_library=_found("EGL"))
 
 
+def test_scene_building_is_not_refused_for_pyopengl_s_platform():
+    """Exporting a scene makes no GL context: PyOpenGL's platform does not matter there."""
+    gl.check_environment({"MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "glx"}, find_library=_found("EGL"),
+                         rendering=False)
+    gl.check_environment({"PYOPENGL_PLATFORM": "glx"}, find_library=_found("EGL"), rendering=False)
+
+
+def test_mujoco_imported_before_rainbench_is_still_diagnosed():
+    """A guard that skipped ``configure`` once mujoco was imported left the flag the renderer's
+    'import rainbench first' message needs unset (a review)."""
+    env = {key: item for key, item in os.environ.items() if key != "MUJOCO_GL"}
+    code = ("import mujoco, os\nfrom rainbench import gl\nfrom rainbench.gl import mujoco as m\n"
+            "print(gl.state.mujoco_imported_first, os.environ.get('MUJOCO_GL'))\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert result.stdout.split() == ["True", "egl"], result.stderr
+
+
 def test_a_context_failure_says_whether_the_library_is_there():
     error = RuntimeError("Cannot initialize a EGL device display.")
     assert gl.context_failure_message("egl", error, _found("EGL")) == (
@@ -118,6 +138,8 @@ def test_a_context_failure_says_whether_the_library_is_there():
         "initialize a EGL device display.); check the GPU driver or Mesa installation, or install "
         "libosmesa6 for another backend")
     assert gl.context_failure_message("egl", error, _found("EGL", "OSMesa")).endswith("or try MUJOCO_GL=osmesa")
+    # MuJoCo ignores case and spaces: so does the message (EGL was told to install libegl1)
+    assert gl.context_failure_message(" EGL", error, _found("EGL")) == gl.context_failure_message("egl", error, _found("EGL"))
     assert gl.context_failure_message("", error, _found()) == (
         "no OpenGL backend for offscreen rendering: tried egl (install libegl1), osmesa (install "
         "libosmesa6); install one of these packages, or set MUJOCO_GL to a backend that works on this "

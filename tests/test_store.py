@@ -251,6 +251,12 @@ def test_preview_draws_ignore_regions_in_grey_under_the_labels():
     for bad in (0, -5, 2.5, True):
         with pytest.raises(ValueError, match=r"tile_width: expected a positive integer of pixels, got "):
             montage(image, np.array([0.0]), tile_width=bad)
+    wide = np.zeros((1, 16, 8192, 3), np.uint8)  # a tile one pixel high, not none
+    assert montage(wide, np.array([0.0]), tile_width=32).shape == (1, 32, 3)
+    tall = np.zeros((4, 8192, 16, 3), np.uint8)  # 8192 px tiles would be 4 GB of sheet
+    with pytest.raises(ValueError, match=r"tile_width: 8192 px tiles of 16x8192 images make a 32768x4194304 "
+                                         r"sheet, over 134217728 pixels; choose narrower tiles"):
+        montage(tall, np.zeros(4), tile_width=8192)
 
 
 HDF5_FULL_DISK = ("Disable slist on flush dest failure failed (file write failed: time = Wed Nov 25 "

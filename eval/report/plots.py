@@ -91,6 +91,8 @@ def plot_metric_vs_rate(
             axis.set_ylabel(ylabel or METRIC_LABELS.get(metric, metric))
     for position in range(len(classes), n_rows * n_columns):
         axes[position // n_columns][position % n_columns].set_visible(False)
+    for position in range(len(classes)):  # sharex hides the rates on all but the bottom row
+        axes[position // n_columns][position % n_columns].xaxis.set_tick_params(labelbottom=True)
     axes[0][0].legend(fontsize=8)
     figure.tight_layout()
     out_png = Path(out_png)
