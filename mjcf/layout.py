@@ -611,6 +611,8 @@ class _Builder:
         self.road_surfaces: list[Slab] = []
         self.roads: list[Road] = []
         self._counts: dict[str, int] = {}
+        self._path_boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # of self.placed, as needed
+        self.building_footprints: list[tuple] = []  # ((x, y), (half_x, half_y), yaw) of each building
 
     def label(self, base: str) -> str:
         """A fresh prop name ``base{n}``."""
@@ -651,6 +653,43 @@ class _Builder:
                    and _footprints_overlap(unit, other, self.times, near[index],
                                            COLLISION_MARGIN_M)
                    for index, other in enumerate(self.placed))
+
+    def walker_distance(self, x: float, y: float, cap: float) -> float:
+        """How near the pedestrians placed so far come to the point (x, y) over the clip (their
+        centres' paths: polylines through the planning-time positions), at most ``cap``. Paths
+        whose bounding box lies ``cap`` or farther away are not looked at (long clips place
+        thousands)."""
+        point = np.array([x, y])
+        nearest = cap
+        for index, (unit, centres) in enumerate(zip(self.placed, self._centres)):
+            if unit.kind != "pedestrian":
+                continue
+            low, high = self._path_boxes.get(index) or self._path_boxes.setdefault(
+                index, (centres.min(axis=0), centres.max(axis=0)))
+            if np.any(point < low - nearest) or np.any(point > high + nearest):
+                continue
+            if len(centres) == 1:
+                nearest = min(nearest, float(np.linalg.norm(centres[0] - point)))
+                continue
+            start, step = centres[:-1], np.diff(centres, axis=0)
+            length = np.einsum("ij,ij->i", step, step)
+            along = np.clip(np.einsum("ij,ij->i", point - start, step) / np.maximum(length, 1e-12), 0.0, 1.0)
+            nearest = min(nearest, float(np.min(np.linalg.norm(start + along[:, None] * step - point, axis=1))))
+        return nearest
+
+    def clear_of_walkers(self, x: float, y: float, clearance: float) -> float:
+        """``x``, or the nearest of ``x`` +- 0.5, +- 1.0, ... (up to 4 m) whose point (x, y) no
+        pedestrian comes within ``clearance`` of: where a pole goes along the road (no draws,
+        so the scenery after it is unchanged). Where none is clear (a walker walks the whole
+        stretch), the one the pedestrians pass farthest from."""
+        best, best_distance = x, -1.0
+        for shift in (0.0, *(sign * 0.5 * k for k in range(1, 9) for sign in (1.0, -1.0))):
+            distance = self.walker_distance(x + shift, y, clearance)
+            if distance >= clearance:
+                return x + shift
+            if distance > best_distance:
+                best, best_distance = x + shift, distance
+        return best
 
     def place(self, make, what: str, roles: tuple[tuple[int, str], ...]) -> Unit:
         """:meth:`try_place` with 200 tries, or a one-line RuntimeError."""
@@ -841,8 +880,17 @@ def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
                centre + rng.uniform(-0.35, 0.3) * half_height))
 
 
+POLE_WALKER_CLEARANCE_M = 0.9
+"""How near a pedestrian's centre may pass a lamp or sign pole: half a shoulder width (0.25 m), an
+open umbrella's reach beyond it (0.5 m) and the pole or sign plate (0.15 m)."""
+BUSH_WALKER_CLEARANCE_M = 0.35
+"""How near a pedestrian's centre may pass a bush's edge (about a walking person's half width)."""
+
+
 def _lamp(builder: _Builder, x: float, y: float, towards: float, z0: float = 0.0) -> None:
-    """A street light at (x, y) whose arm reaches 1.8 m in direction ``towards`` (radians)."""
+    """A street light at (x, y), moved along x clear of the pedestrians' paths
+    (:data:`POLE_WALKER_CLEARANCE_M`), whose arm reaches 1.8 m in direction ``towards`` (radians)."""
+    x = builder.clear_of_walkers(x, y, POLE_WALKER_CLEARANCE_M)
     c, s = math.cos(towards), math.sin(towards)
     builder.prop("pole", "cylinder", (0.08, 4.0), (x, y, z0 + 4.0), rgba=POLE_METAL)
     builder.prop("pole_arm", "box", (0.9, 0.04, 0.04), (x + 0.9 * c, y + 0.9 * s, z0 + 7.9),
@@ -853,7 +901,10 @@ def _lamp(builder: _Builder, x: float, y: float, towards: float, z0: float = 0.0
 
 def _sign(builder: _Builder, x: float, y: float, facing: float, rng: np.random.Generator,
           height: float = 2.3, round_plate: bool | None = None) -> None:
-    """A road sign: a pole and a plate (round or square) whose face looks along ``facing``."""
+    """A road sign at (x, y), moved along x clear of the pedestrians' paths
+    (:data:`POLE_WALKER_CLEARANCE_M`): a pole and a plate (round or square) whose face looks
+    along ``facing``."""
+    x = builder.clear_of_walkers(x, y, POLE_WALKER_CLEARANCE_M)
     plate = _pick(rng, SIGN_PLATES)
     round_plate = bool(rng.random() < 0.5) if round_plate is None else round_plate
     builder.prop("sign_pole", "cylinder", (0.04, height / 2), (x, y, height / 2), rgba=POLE_METAL)
@@ -866,20 +917,30 @@ def _sign(builder: _Builder, x: float, y: float, facing: float, rng: np.random.G
 
 
 def _bush(builder: _Builder, x: float, y: float, rng: np.random.Generator) -> None:
+    """A bush at (x, y), left out (its draws made all the same) where a pedestrian would walk
+    through it (:data:`BUSH_WALKER_CLEARANCE_M` beyond its widest half-axis)."""
     r = rng.uniform(0.5, 0.9)
-    builder.prop("bush", "ellipsoid", (r * 1.3, r, r * 0.8), (x, y, r * 0.6),
-                 yaw_quat(rng.uniform(0, math.pi)), rgba=HEDGE)
+    yaw = rng.uniform(0, math.pi)
+    if builder.walker_distance(x, y, r * 1.3 + BUSH_WALKER_CLEARANCE_M) < r * 1.3 + BUSH_WALKER_CLEARANCE_M:
+        return
+    builder.prop("bush", "ellipsoid", (r * 1.3, r, r * 0.8), (x, y, r * 0.6), yaw_quat(yaw), rgba=HEDGE)
 
 
 def _building(builder: _Builder, x: float, y: float, yaw: float, size, rng: np.random.Generator,
               roof: bool = False) -> None:
-    """A building of full ``size`` (along yaw, across, height) centred at (x, y)."""
+    """A building of full ``size`` (along yaw, across, height) centred at (x, y); left out (its
+    draws made all the same, so the scenery after it is unchanged) where its footprint would
+    overlap a building already placed (the corners of a junction, where two streets' rows meet)."""
     facade = int(rng.integers(len(FACADES)))
+    colour = _pick(rng, ROOFS) if roof else None
     sx, sy, sz = size
+    footprint = ((float(x), float(y)), (sx / 2, sy / 2), float(yaw))
+    if any(_rectangles_overlap(footprint, other) for other in builder.building_footprints):
+        return
+    builder.building_footprints.append(footprint)
     builder.prop("building", "box", (sx / 2, sy / 2, sz / 2), (x, y, sz / 2), yaw_quat(yaw),
                  f"facade{facade}")
     if roof:  # a gable roof of two tilted slabs, ridge along the yaw direction
-        colour = _pick(rng, ROOFS)
         pitch = math.radians(32)
         half_span = sy / 2 / math.cos(pitch) + 0.3
         for side in (-1, 1):
@@ -887,6 +948,21 @@ def _building(builder: _Builder, x: float, y: float, yaw: float, size, rng: np.r
             builder.prop("roof", "box", (sx / 2 + 0.3, half_span / 2, 0.08),
                          (x + ox, y + oy, sz + math.tan(pitch) * sy / 4),
                          yaw_quat(yaw, 0.0, -side * pitch), rgba=colour)
+
+
+def _rectangles_overlap(first, second, margin: float = 0.05) -> bool:
+    """Whether two rectangles ``((cx, cy), (half_x, half_y), yaw)`` in the ground plane overlap
+    by more than ``margin`` metres (separating axes: the four edge directions)."""
+    (c1, h1, yaw1), (c2, h2, yaw2) = first, second
+    axes1 = np.array([[math.cos(yaw1), math.sin(yaw1)], [-math.sin(yaw1), math.cos(yaw1)]])
+    axes2 = np.array([[math.cos(yaw2), math.sin(yaw2)], [-math.sin(yaw2), math.cos(yaw2)]])
+    offset = np.subtract(c2, c1)
+    for axis in (*axes1, *axes2):
+        reach1 = h1[0] * abs(axes1[0] @ axis) + h1[1] * abs(axes1[1] @ axis)
+        reach2 = h2[0] * abs(axes2[0] @ axis) + h2[1] * abs(axes2[1] @ axis)
+        if abs(offset @ axis) >= reach1 + reach2 - margin:
+            return False
+    return True
 
 
 # -- the layouts ---------------------------------------------------------------------------------
@@ -1083,11 +1159,12 @@ def _sample_street(b: _Builder) -> None:
             if abs(x - crosswalk_x) > 4.0:
                 _lamp(b, x, side * POLE_Y, -side * math.pi / 2)
             x += 30.0
+        # signs by the curb, where the sidewalk walkers (PEDESTRIAN_Y_RANGE) pass them by 0.5 m
         for x in (crosswalk_x - side * 6.0,):  # crossing signs facing the oncoming traffic
-            _sign(b, x, side * (POLE_Y + 0.3), math.pi if side < 0 else 0.0, rng, round_plate=False)
+            _sign(b, x, side * (POLE_Y + 0.1), math.pi if side < 0 else 0.0, rng, round_plate=False)
         x = x_min + rng.uniform(10, 40)
         while x < x_max:
-            _sign(b, x, side * (POLE_Y + 0.4), math.pi if side < 0 else 0.0, rng)
+            _sign(b, x, side * (POLE_Y + 0.1), math.pi if side < 0 else 0.0, rng)
             x += rng.uniform(50.0, 90.0)
 
 
@@ -1441,10 +1518,20 @@ def _sample_highway(b: _Builder, lanes: int) -> None:
         while x < view[1]:
             y = side * (half + rng.uniform(7.0, 20.0))
             if rng.random() < 0.7:
-                _tree(b, x, y, rng.uniform(0.9, 1.4))
+                # under the deck a tree grew through it: it stands beside the deck instead (the
+                # same draws, so everything after it is unchanged)
+                _tree(b, _beside_deck(x, overpass_x, deck_half + HIGHWAY_DECK_TREE_CLEARANCE), y,
+                      rng.uniform(0.9, 1.4))
             else:
-                _bush(b, x, y, rng)
+                _bush(b, x, y, rng)  # a bush (at most 1.8 m) fits under the 6 m clearance
             x += rng.uniform(6.0, 18.0)
+
+
+def _beside_deck(x: float, deck_x: float, reach: float) -> float:
+    """``x``, or the nearer edge of [deck_x - reach, deck_x + reach] when it lies inside."""
+    if abs(x - deck_x) >= reach:
+        return x
+    return deck_x + math.copysign(reach, x - deck_x)
 
 
 HIGHWAY_LANE_WIDTH = 3.6
@@ -1452,6 +1539,7 @@ HIGHWAY_SHOULDER = 3.0
 HIGHWAY_MEDIAN = 1.2
 HIGHWAY_DECK_WIDTH = 12.0
 HIGHWAY_DECK_CLEARANCE = 6.0
+HIGHWAY_DECK_TREE_CLEARANCE = 4.5  # a roadside tree's crown reaches at most 4.4 m from its trunk (scale 1.4)
 RESIDENTIAL_LANE = 3.0
 RESIDENTIAL_PARKING = 2.2
 RESIDENTIAL_SIDEWALK = 2.0
@@ -1538,7 +1626,7 @@ def _sample_residential(b: _Builder) -> None:
                             stride_length=float(rng.uniform(1.1, 1.5)))
             stepped = b.try_place(make, ((PERSON, "pedestrian"),), tries=60)
         if stepped is None:  # no free gap: a walker on the sidewalk instead
-            _sidewalk_walker(b, road, person, (half + 0.6, half + RESIDENTIAL_SIDEWALK - 0.6))
+            _sidewalk_walker(b, road, person, (half + 0.8, half + RESIDENTIAL_SIDEWALK - 0.6))
     _riders(b, road, road.lane_offset(0) - 0.8, moto_speed=(5.0, 9.0), bike_speed=(3.0, 5.5))
     s_lo, s_hi = _span(b, road, 40.0, 120.0)
     road = Road(road.start, (), 1, RESIDENTIAL_LANE, RESIDENTIAL_PARKING, 0.0,
@@ -1570,7 +1658,12 @@ def _sample_residential(b: _Builder) -> None:
             house_w = min(width - 3.0, rng.uniform(9.0, 13.0))
             house_x = x + width / 2 + rng.uniform(-1.0, 1.0)
             if abs(house_x - drive) < house_w / 2 + 1.5:  # the driveway leads past the house
-                house_x = drive + math.copysign(house_w / 2 + 1.8, x + width / 2 - drive)
+                towards = math.copysign(1.0, x + width / 2 - drive)
+                # on the lot's wider side of the driveway, and inside the lot (it was pushed into
+                # the neighbour's house): narrower where the side is short
+                room = (x + width - 0.3) - (drive + 1.8) if towards > 0 else (drive - 1.8) - (x + 0.3)
+                house_w = max(4.0, min(house_w, room))
+                house_x = drive + towards * (house_w / 2 + 1.8)
             house_d = rng.uniform(8.0, 11.0)
             _building(b, house_x, side * (garden + depth + house_d / 2), 0.0,
                       (house_w, house_d, rng.uniform(4.5, 7.0)), rng, roof=True)
@@ -1579,8 +1672,8 @@ def _sample_residential(b: _Builder) -> None:
             _lamp(b, x, side * (half + 0.3), -side * math.pi / 2)
             x += 40.0
         x = s_lo + rng.uniform(5, 40)
-        while x < s_hi:
-            _sign(b, x, side * (half + 0.45), math.pi if side < 0 else 0.0, rng)
+        while x < s_hi:  # by the curb like the lamps: the walkers keep 0.8 m from it
+            _sign(b, x, side * (half + 0.3), math.pi if side < 0 else 0.0, rng)
             x += rng.uniform(45.0, 80.0)
 
 

@@ -159,8 +159,10 @@ traffic signal lamps (``scenery/signal_lamp*``) are not street lights."""
 # -- light receivers -----------------------------------------------------------------------------
 RECEIVER_MATERIALS = ("asphalt", "concrete")
 RECEIVER_MIN_HALF_M = 2.0
+RECEIVER_MIN_WIDTH_HALF_M = 0.5
 RECEIVER_MAX_TOP_M = 0.5
-"""Road and sidewalk boxes (world geoms of these materials, longer than 4 m, their top face
+"""Road and sidewalk boxes (world geoms of these materials, longer than 4 m and at least 1 m wide
+(not a barrier's foot, whose plane would float over the road beside it), their top face
 level and at most 0.5 m up: not decks a camera can pass under) are replaced by planes at their
 top faces after dark: a box face has numquads^2 (16) quads, so per-vertex lighting cannot draw a
 20 m pool on a 400 m road; a plane is drawn as a grid of up to 200 x 200 quads
@@ -269,7 +271,8 @@ def _plane_receivers(scenery_geoms: Sequence) -> None:
         quat = np.asarray(geom.quat, dtype=np.float64)
         level = abs(quat[1]) < 1e-9 and abs(quat[2]) < 1e-9  # turned about z only
         top = float(geom.pos[2]) + half_z
-        if not level or max(half_x, half_y) < RECEIVER_MIN_HALF_M or top > RECEIVER_MAX_TOP_M:
+        if not level or max(half_x, half_y) < RECEIVER_MIN_HALF_M or top > RECEIVER_MAX_TOP_M \
+                or min(half_x, half_y) < RECEIVER_MIN_WIDTH_HALF_M:
             continue
         geom.type = mujoco.mjtGeom.mjGEOM_PLANE
         geom.pos = [float(geom.pos[0]), float(geom.pos[1]), top]

@@ -597,3 +597,18 @@ def test_parked_vehicles_keep_their_lamps_off(time_of_day):
     assert lit_bodies and lit_bodies <= moving
     beams = {model.light(i).name for i in range(model.nlight) if model.light(i).name.endswith("_beam")}
     assert not {f"{tod.LIGHT_PREFIX}{name}_beam" for name in parked} & beams
+
+
+def test_after_dark_the_road_becomes_planes_but_the_barrier_foot_stays_a_box():
+    """The highway's jersey-barrier foot (0.64 m wide, 0.32 m high, concrete) was turned into a
+    plane at its top after dark like the road, and floated: the far carriageway's markings showed
+    under it (a scene audit, seed 3 at dusk)."""
+    from rainbench.gen.config import GenerateConfig
+    from rainbench.gen.generate import build_scene
+
+    model = build_scene(GenerateConfig(seed=3, layout="highway", time_of_day="dusk", frames=10, width=64,
+                                       height=48)).model
+    types = {model.geom(i).name: int(model.geom_type[i]) for i in range(model.ngeom)}
+    feet = [name for name in types if name.startswith("scenery/barrier_foot")]
+    assert feet and all(types[name] == mujoco.mjtGeom.mjGEOM_BOX for name in feet)
+    assert sum(kind == mujoco.mjtGeom.mjGEOM_PLANE for kind in types.values()) >= 2  # the carriageways
