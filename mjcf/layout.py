@@ -611,8 +611,13 @@ class _Builder:
         self.road_surfaces: list[Slab] = []
         self.roads: list[Road] = []
         self._counts: dict[str, int] = {}
-        self._path_boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # of self.placed, as needed
+        self._walkers_indexed = 0  # self.placed[:this] are in the walker chunks
+        self._walker_chunks: list[np.ndarray] = []
+        self._walker_chunk_boxes: list[np.ndarray] = []  # (x_min, y_min, x_max, y_max) of each chunk
+        self._walker_box_array = np.zeros((0, 4))
+        self._poles: dict[tuple[int, int], list[tuple[float, float]]] = {}  # by 1 m cell
         self.building_footprints: list[tuple] = []  # ((x, y), (half_x, half_y), yaw) of each building
+        self._building_grid: dict[tuple[int, int], list[int]] = {}
 
     def label(self, base: str) -> str:
         """A fresh prop name ``base{n}``."""
@@ -654,42 +659,92 @@ class _Builder:
                                            COLLISION_MARGIN_M)
                    for index, other in enumerate(self.placed))
 
+    def _index_walkers(self) -> None:
+        """Cut the paths of the ground-level pedestrians placed since the last call into chunks
+        of :data:`WALKER_CHUNK_POINTS` planning-time positions, each with its bounding box, so
+        that a query looks only at the chunks near it (an hour-long clip has thousands of
+        points per walker)."""
+        if self._walkers_indexed == len(self.placed):
+            return
+        for unit, centres in zip(self.placed[self._walkers_indexed:], self._centres[self._walkers_indexed:]):
+            if unit.kind != "pedestrian" or unit.level != 0:  # the overpass's walkers are above
+                continue
+            for begin in range(0, max(len(centres) - 1, 1), WALKER_CHUNK_POINTS):
+                piece = centres[begin:begin + WALKER_CHUNK_POINTS + 1]
+                self._walker_chunks.append(piece)
+                self._walker_chunk_boxes.append(np.concatenate([piece.min(axis=0), piece.max(axis=0)]))
+        self._walkers_indexed = len(self.placed)
+        self._walker_box_array = np.array(self._walker_chunk_boxes).reshape(-1, 4)
+
     def walker_distance(self, x: float, y: float, cap: float) -> float:
-        """How near the pedestrians placed so far come to the point (x, y) over the clip (their
-        centres' paths: polylines through the planning-time positions), at most ``cap``. Paths
-        whose bounding box lies ``cap`` or farther away are not looked at (long clips place
-        thousands)."""
+        """How near the ground-level pedestrians placed so far come to the point (x, y) over the
+        clip (their centres' paths: polylines through the planning-time positions), at most
+        ``cap``."""
+        self._index_walkers()
         point = np.array([x, y])
+        boxes = self._walker_box_array
+        near = np.flatnonzero((boxes[:, 0] - cap <= x) & (boxes[:, 1] - cap <= y)
+                              & (boxes[:, 2] + cap >= x) & (boxes[:, 3] + cap >= y))
         nearest = cap
-        for index, (unit, centres) in enumerate(zip(self.placed, self._centres)):
-            if unit.kind != "pedestrian":
+        for index in near:
+            piece = self._walker_chunks[index]
+            if len(piece) == 1:
+                nearest = min(nearest, float(np.linalg.norm(piece[0] - point)))
                 continue
-            low, high = self._path_boxes.get(index) or self._path_boxes.setdefault(
-                index, (centres.min(axis=0), centres.max(axis=0)))
-            if np.any(point < low - nearest) or np.any(point > high + nearest):
-                continue
-            if len(centres) == 1:
-                nearest = min(nearest, float(np.linalg.norm(centres[0] - point)))
-                continue
-            start, step = centres[:-1], np.diff(centres, axis=0)
+            start, step = piece[:-1], np.diff(piece, axis=0)
             length = np.einsum("ij,ij->i", step, step)
             along = np.clip(np.einsum("ij,ij->i", point - start, step) / np.maximum(length, 1e-12), 0.0, 1.0)
             nearest = min(nearest, float(np.min(np.linalg.norm(start + along[:, None] * step - point, axis=1))))
         return nearest
 
-    def clear_of_walkers(self, x: float, y: float, clearance: float) -> float:
-        """``x``, or the nearest of ``x`` +- 0.5, +- 1.0, ... (up to 4 m) whose point (x, y) no
-        pedestrian comes within ``clearance`` of: where a pole goes along the road (no draws,
-        so the scenery after it is unchanged). Where none is clear (a walker walks the whole
-        stretch), the one the pedestrians pass farthest from."""
-        best, best_distance = x, -1.0
+    def place_pole(self, x: float, y: float, direction: float) -> tuple[float, float]:
+        """Where a lamp or sign pole meant for (x, y) stands: there, or the nearest of the points
+        +- 0.5, +- 1.0, ... m (up to 4 m) along ``direction`` (radians: the road's heading there)
+        that no ground-level pedestrian's path comes within :data:`POLE_WALKER_CLEARANCE_M` of
+        and no pole placed before stands within :data:`POLE_SPACING_M` of. Where no point is
+        clear of the walkers (one walks the whole stretch), the one they pass farthest from. No
+        draws: the scenery after it is unchanged. The pole is recorded for the next."""
+        along = np.array([math.cos(direction), math.sin(direction)])
+        best, best_distance = (x, y), -1.0
         for shift in (0.0, *(sign * 0.5 * k for k in range(1, 9) for sign in (1.0, -1.0))):
-            distance = self.walker_distance(x + shift, y, clearance)
-            if distance >= clearance:
-                return x + shift
+            cx, cy = x + shift * along[0], y + shift * along[1]
+            if self._pole_near(cx, cy):
+                continue
+            distance = self.walker_distance(cx, cy, POLE_WALKER_CLEARANCE_M)
+            if distance >= POLE_WALKER_CLEARANCE_M:
+                best = (cx, cy)
+                break
             if distance > best_distance:
-                best, best_distance = x + shift, distance
-        return best
+                best, best_distance = (cx, cy), distance
+        cell = (math.floor(best[0]), math.floor(best[1]))
+        self._poles.setdefault(cell, []).append(best)
+        return float(best[0]), float(best[1])
+
+    def _pole_near(self, x: float, y: float) -> bool:
+        cx, cy = math.floor(x), math.floor(y)  # 1 m cells: a neighbour within 0.5 m is in the 3x3
+        return any(math.hypot(x - px, y - py) < POLE_SPACING_M
+                   for i in (cx - 1, cx, cx + 1) for j in (cy - 1, cy, cy + 1)
+                   for px, py in self._poles.get((i, j), ()))
+
+    def building_fits(self, footprint) -> bool:
+        """Whether a building footprint ``((x, y), (half_x, half_y), yaw)`` overlaps none placed
+        before; if it fits, it is recorded. Buildings are looked up in a grid of
+        :data:`BUILDING_CELL_M` cells by their bounding boxes (a long clip has thousands)."""
+        (x, y), (half_x, half_y), _ = footprint
+        reach = math.hypot(half_x, half_y)
+        cells = [(i, j) for i in range(math.floor((x - reach) / BUILDING_CELL_M), math.floor((x + reach) / BUILDING_CELL_M) + 1)
+                 for j in range(math.floor((y - reach) / BUILDING_CELL_M), math.floor((y + reach) / BUILDING_CELL_M) + 1)]
+        seen: set[int] = set()
+        for cell in cells:
+            for index in self._building_grid.get(cell, ()):
+                if index not in seen:
+                    seen.add(index)
+                    if _rectangles_overlap(footprint, self.building_footprints[index]):
+                        return False
+        self.building_footprints.append(footprint)
+        for cell in cells:
+            self._building_grid.setdefault(cell, []).append(len(self.building_footprints) - 1)
+        return True
 
     def place(self, make, what: str, roles: tuple[tuple[int, str], ...]) -> Unit:
         """:meth:`try_place` with 200 tries, or a one-line RuntimeError."""
@@ -880,6 +935,12 @@ def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
                centre + rng.uniform(-0.35, 0.3) * half_height))
 
 
+POLE_SPACING_M = 0.5
+"""The least distance between two lamp or sign poles' axes (each moved clear of the walkers)."""
+WALKER_CHUNK_POINTS = 32
+"""Planning-time positions per chunk of a walker's path in :meth:`_Builder.walker_distance`."""
+BUILDING_CELL_M = 20.0
+"""Cell of the grid :meth:`_Builder.building_fits` looks buildings up in."""
 POLE_WALKER_CLEARANCE_M = 0.9
 """How near a pedestrian's centre may pass a lamp or sign pole: half a shoulder width (0.25 m), an
 open umbrella's reach beyond it (0.5 m) and the pole or sign plate (0.15 m)."""
@@ -890,7 +951,7 @@ BUSH_WALKER_CLEARANCE_M = 0.35
 def _lamp(builder: _Builder, x: float, y: float, towards: float, z0: float = 0.0) -> None:
     """A street light at (x, y), moved along x clear of the pedestrians' paths
     (:data:`POLE_WALKER_CLEARANCE_M`), whose arm reaches 1.8 m in direction ``towards`` (radians)."""
-    x = builder.clear_of_walkers(x, y, POLE_WALKER_CLEARANCE_M)
+    x, y = builder.place_pole(x, y, towards + math.pi / 2)  # along the road: square to the arm
     c, s = math.cos(towards), math.sin(towards)
     builder.prop("pole", "cylinder", (0.08, 4.0), (x, y, z0 + 4.0), rgba=POLE_METAL)
     builder.prop("pole_arm", "box", (0.9, 0.04, 0.04), (x + 0.9 * c, y + 0.9 * s, z0 + 7.9),
@@ -904,7 +965,7 @@ def _sign(builder: _Builder, x: float, y: float, facing: float, rng: np.random.G
     """A road sign at (x, y), moved along x clear of the pedestrians' paths
     (:data:`POLE_WALKER_CLEARANCE_M`): a pole and a plate (round or square) whose face looks
     along ``facing``."""
-    x = builder.clear_of_walkers(x, y, POLE_WALKER_CLEARANCE_M)
+    x, y = builder.place_pole(x, y, facing)  # along the road: a sign faces along it
     plate = _pick(rng, SIGN_PLATES)
     round_plate = bool(rng.random() < 0.5) if round_plate is None else round_plate
     builder.prop("sign_pole", "cylinder", (0.04, height / 2), (x, y, height / 2), rgba=POLE_METAL)
@@ -921,7 +982,8 @@ def _bush(builder: _Builder, x: float, y: float, rng: np.random.Generator) -> No
     through it (:data:`BUSH_WALKER_CLEARANCE_M` beyond its widest half-axis)."""
     r = rng.uniform(0.5, 0.9)
     yaw = rng.uniform(0, math.pi)
-    if builder.walker_distance(x, y, r * 1.3 + BUSH_WALKER_CLEARANCE_M) < r * 1.3 + BUSH_WALKER_CLEARANCE_M:
+    reach = r * 1.3 + BUSH_WALKER_CLEARANCE_M
+    if builder.walker_distance(x, y, reach) < reach:
         return
     builder.prop("bush", "ellipsoid", (r * 1.3, r, r * 0.8), (x, y, r * 0.6), yaw_quat(yaw), rgba=HEDGE)
 
@@ -934,10 +996,8 @@ def _building(builder: _Builder, x: float, y: float, yaw: float, size, rng: np.r
     facade = int(rng.integers(len(FACADES)))
     colour = _pick(rng, ROOFS) if roof else None
     sx, sy, sz = size
-    footprint = ((float(x), float(y)), (sx / 2, sy / 2), float(yaw))
-    if any(_rectangles_overlap(footprint, other) for other in builder.building_footprints):
+    if not builder.building_fits(((float(x), float(y)), (sx / 2, sy / 2), float(yaw))):
         return
-    builder.building_footprints.append(footprint)
     builder.prop("building", "box", (sx / 2, sy / 2, sz / 2), (x, y, sz / 2), yaw_quat(yaw),
                  f"facade{facade}")
     if roof:  # a gable roof of two tilted slabs, ridge along the yaw direction
@@ -1329,7 +1389,7 @@ def _sample_intersection(b: _Builder) -> None:
                 _building(b, junction_x + side * (setback + depth / 2), y + width / 2,
                           math.pi / 2, (width, depth, height), rng)
                 y += width + rng.uniform(0.3, 6.0)
-        _sign(b, junction_x - side * (cross_half + 7.0), side * (main_half + 0.7),
+        _sign(b, junction_x - side * (cross_half + 7.0), side * (main_half + 0.3),
               math.pi if side < 0 else 0.0, rng, round_plate=False)
 
 
@@ -1626,7 +1686,7 @@ def _sample_residential(b: _Builder) -> None:
                             stride_length=float(rng.uniform(1.1, 1.5)))
             stepped = b.try_place(make, ((PERSON, "pedestrian"),), tries=60)
         if stepped is None:  # no free gap: a walker on the sidewalk instead
-            _sidewalk_walker(b, road, person, (half + 0.8, half + RESIDENTIAL_SIDEWALK - 0.6))
+            _sidewalk_walker(b, road, person, (half + 0.6, half + RESIDENTIAL_SIDEWALK - 0.6))
     _riders(b, road, road.lane_offset(0) - 0.8, moto_speed=(5.0, 9.0), bike_speed=(3.0, 5.5))
     s_lo, s_hi = _span(b, road, 40.0, 120.0)
     road = Road(road.start, (), 1, RESIDENTIAL_LANE, RESIDENTIAL_PARKING, 0.0,
@@ -1672,7 +1732,7 @@ def _sample_residential(b: _Builder) -> None:
             _lamp(b, x, side * (half + 0.3), -side * math.pi / 2)
             x += 40.0
         x = s_lo + rng.uniform(5, 40)
-        while x < s_hi:  # by the curb like the lamps: the walkers keep 0.8 m from it
+        while x < s_hi:  # by the curb like the lamps (0.5 m apart at least: place_pole)
             _sign(b, x, side * (half + 0.3), math.pi if side < 0 else 0.0, rng)
             x += rng.uniform(45.0, 80.0)
 

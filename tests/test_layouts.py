@@ -527,3 +527,27 @@ def test_no_two_buildings_stand_in_each_other(name):
         assert footprints
         assert not any(L._rectangles_overlap(footprints[i], footprints[j])
                        for i in range(len(footprints)) for j in range(i + 1, len(footprints))), seed
+
+
+def _poles(layout):
+    return [np.array(prop.pos[:2]) for prop in layout.props
+            if (prop.name.startswith("pole") and prop.name[4:].isdigit()) or prop.name.startswith("sign_pole")]
+
+
+@pytest.mark.parametrize("name", ["street", "residential", "curved", "intersection"])
+def test_poles_moved_clear_of_people_stay_clear_of_each_other_and_of_the_traffic(name):
+    """A review of the pole moves: signs put on the lamps' line met lamps moved to the same gap
+    (0.06 m apart), and on the curved road a move along world x took lamps into the bicycle lane
+    (a bicycle's centre 0.09 m from a pole). Poles now move along the road and keep 0.5 m apart."""
+    times = L.planning_times(20.0)
+    for seed in range(8):
+        layout = _layout_of(name, seed)
+        poles = _poles(layout)
+        assert poles
+        gaps = [float(np.linalg.norm(a - b)) for i, a in enumerate(poles) for b in poles[i + 1:]]
+        assert min(gaps) >= 0.5 - 1e-9, (seed, min(gaps))
+        for unit in layout.units:
+            if unit.kind in ("car", "bicycle", "motorcycle"):
+                path = L.unit_position(unit, times)
+                nearest = min(float(np.linalg.norm(path - pole, axis=1).min()) for pole in poles)
+                assert nearest >= unit.footprint[1] / 2 + 0.3, (seed, unit.name, nearest)
