@@ -949,8 +949,9 @@ BUSH_WALKER_CLEARANCE_M = 0.35
 
 
 def _lamp(builder: _Builder, x: float, y: float, towards: float, z0: float = 0.0) -> None:
-    """A street light at (x, y), moved along x clear of the pedestrians' paths
-    (:data:`POLE_WALKER_CLEARANCE_M`), whose arm reaches 1.8 m in direction ``towards`` (radians)."""
+    """A street light at (x, y), moved along the road clear of the pedestrians' paths and the
+    other poles (:meth:`_Builder.place_pole`), whose arm reaches 1.8 m in direction ``towards``
+    (radians)."""
     x, y = builder.place_pole(x, y, towards + math.pi / 2)  # along the road: square to the arm
     c, s = math.cos(towards), math.sin(towards)
     builder.prop("pole", "cylinder", (0.08, 4.0), (x, y, z0 + 4.0), rgba=POLE_METAL)
@@ -962,8 +963,8 @@ def _lamp(builder: _Builder, x: float, y: float, towards: float, z0: float = 0.0
 
 def _sign(builder: _Builder, x: float, y: float, facing: float, rng: np.random.Generator,
           height: float = 2.3, round_plate: bool | None = None) -> None:
-    """A road sign at (x, y), moved along x clear of the pedestrians' paths
-    (:data:`POLE_WALKER_CLEARANCE_M`): a pole and a plate (round or square) whose face looks
+    """A road sign at (x, y), moved along the road clear of the pedestrians' paths and the other
+    poles (:meth:`_Builder.place_pole`): a pole and a plate (round or square) whose face looks
     along ``facing``."""
     x, y = builder.place_pole(x, y, facing)  # along the road: a sign faces along it
     plate = _pick(rng, SIGN_PLATES)
