@@ -83,7 +83,7 @@ def check_environment(
     working = [name for name in AUTO_ORDER if find_library(BACKENDS[name][0])]
     if not current:
         if working and rendering:  # the backend configure() will choose
-            check_pyopengl_platform(environ, working[0], "")
+            check_pyopengl_platform(environ, working[0])
         return
     instead = (f"set MUJOCO_GL={working[0]} (installed here) or unset MUJOCO_GL" if working
                else "; ".join(f"install {BACKENDS[n][1]} for {n}" for n in AUTO_ORDER))
@@ -99,21 +99,22 @@ def check_environment(
         raise GLBackendError(f"MUJOCO_GL=glfw: needs a display and DISPLAY is unset; rainbench "
                              f"renders offscreen: {instead}")
     if rendering:
-        check_pyopengl_platform(environ, current, f"MUJOCO_GL={current}")
+        check_pyopengl_platform(environ, current)
 
 
-def check_pyopengl_platform(environ: MutableMapping[str, str], backend: str, chosen_by: str) -> None:
-    """Refuse a ``PYOPENGL_PLATFORM`` other than ``backend`` (``MUJOCO_GL`` as MuJoCo reads it)
-    for the offscreen backends: MuJoCo's EGL and OSMesa contexts need PyOpenGL on the same
-    platform (MuJoCo compares it lower-cased), and otherwise fail at the first renderer with a
-    message that blames a missing package; building and exporting scenes need no context and
-    are not affected. ``chosen_by`` names where the backend came from (empty: rainbench chose
-    it, ``MUJOCO_GL`` being unset)."""
+def check_pyopengl_platform(environ: MutableMapping[str, str], backend: str) -> None:
+    """Refuse a ``PYOPENGL_PLATFORM`` other than ``backend`` (``MUJOCO_GL`` as MuJoCo reads it,
+    or the backend rainbench will choose where ``MUJOCO_GL`` is unset) for the offscreen
+    backends: MuJoCo's EGL and OSMesa contexts need PyOpenGL on the same platform (MuJoCo
+    compares it lower-cased), and otherwise fail at the first renderer with a message that
+    blames a missing package; building and exporting scenes need no context and are not
+    affected."""
     platform = environ.get("PYOPENGL_PLATFORM", "")
     backend = backend.strip().lower()
     if backend not in BACKENDS or not platform or platform.lower() == backend:
         return
-    source = chosen_by or f"the {backend} backend rainbench chose (MUJOCO_GL unset)"
+    source = (f"MUJOCO_GL={backend}" if environ.get("MUJOCO_GL", "").strip()
+              else f"the {backend} backend rainbench chose (MUJOCO_GL unset)")
     raise GLBackendError(f"PYOPENGL_PLATFORM={platform} conflicts with {source}: MuJoCo's "
                          f"{backend} rendering needs PyOpenGL on the same platform; unset "
                          f"PYOPENGL_PLATFORM or set it to {backend}")

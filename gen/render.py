@@ -225,7 +225,7 @@ class FrameRenderer:
         self.backend = os.environ.get("MUJOCO_GL", "")
         # a PyOpenGL platform of another backend makes no context, and MuJoCo's error blames a
         # missing package: say so first (MUJOCO_GL unset: nothing chose a backend to check)
-        check_pyopengl_platform(os.environ, self.backend, f"MUJOCO_GL={self.backend.strip().lower()}")
+        check_pyopengl_platform(os.environ, self.backend)
         try:
             with warnings.catch_warnings():  # GLFW reports its failures as warnings too: the error says it once
                 warnings.simplefilter("ignore")

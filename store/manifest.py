@@ -19,7 +19,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from .rates import check_rate_list
-from .shard import ShardFormatError, open_checked, shard_name
+from .shard import ShardFormatError, open_checked, read_rgb, shard_name
 
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "rainbench.manifest"
@@ -282,8 +282,6 @@ def verify_dataset(root: str | Path, images: bool = False) -> list[str]:
 def undecodable_problem(handle, path: str | Path) -> str | None:
     """The first image, depth map or instance map of an open shard that does not decode, as one
     line naming the file and the frame (None: every one decodes). About 4 ms an 800x600 image."""
-    from .shard import read_rgb  # noqa: PLC0415 -- the decoder the readers use
-
     num_rates, frames = handle["rgb"].shape[:2]
     for frame in range(frames):
         for rate_row in range(num_rates):

@@ -417,8 +417,7 @@ def open_shard(path: str | Path) -> h5py.File:
         if "format_version" not in handle.attrs:
             raise ShardFormatError(f"{path}: no format_version attribute; this rainbench reads "
                                    f"versions {', '.join(map(str, READABLE_VERSIONS))}")
-        version = handle.attrs["format_version"]
-        version = _plain(version)
+        version = _plain(handle.attrs["format_version"])
         if not _is_integer(version) or int(version) not in READABLE_VERSIONS:
             shown = version if _is_integer(version) else f"{version!r} (not an integer)"
             raise ShardFormatError(f"{path}: unknown format_version {shown}; this rainbench "
