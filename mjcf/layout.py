@@ -617,7 +617,9 @@ class _Builder:
         self._walker_box_array = np.zeros((0, 4))
         self._poles: dict[tuple[int, int], list[tuple[float, float]]] = {}  # by 1 m cell
         self.building_footprints: list[tuple] = []  # ((x, y), (half_x, half_y), yaw) of each building
+        self.building_tops: list[float] = []  # the height of each building's highest point (m)
         self._building_grid: dict[tuple[int, int], list[int]] = {}
+        self._trees: list[tuple[tuple[float, float], list[int]]] = []  # trunk (x, y), crown props' indices
 
     def label(self, base: str) -> str:
         """A fresh prop name ``base{n}``."""
@@ -726,25 +728,57 @@ class _Builder:
                    for i in (cx - 1, cx, cx + 1) for j in (cy - 1, cy, cy + 1)
                    for px, py in self._poles.get((i, j), ()))
 
-    def building_fits(self, footprint) -> bool:
+    def building_fits(self, footprint, top: float = math.inf) -> bool:
         """Whether a building footprint ``((x, y), (half_x, half_y), yaw)`` overlaps none placed
-        before; if it fits, it is recorded. Buildings are looked up in a grid of
-        :data:`BUILDING_CELL_M` cells by their bounding boxes (a long clip has thousands)."""
-        (x, y), (half_x, half_y), _ = footprint
-        reach = math.hypot(half_x, half_y)
-        cells = [(i, j) for i in range(math.floor((x - reach) / BUILDING_CELL_M), math.floor((x + reach) / BUILDING_CELL_M) + 1)
-                 for j in range(math.floor((y - reach) / BUILDING_CELL_M), math.floor((y + reach) / BUILDING_CELL_M) + 1)]
+        before; if it fits, it is recorded with ``top``, the height of its highest point (m).
+        Buildings are looked up in a grid of :data:`BUILDING_CELL_M` cells by their bounding
+        boxes (a long clip has thousands)."""
+        if any(self._rectangles_near(footprint, _rectangles_overlap)):
+            return False
+        self.building_footprints.append(footprint)
+        self.building_tops.append(float(top))
+        for cell in _cells_of(footprint):
+            self._building_grid.setdefault(cell, []).append(len(self.building_footprints) - 1)
+        return True
+
+    def _rectangles_near(self, footprint, test):
+        """The indices of the buildings whose grid cells ``footprint``'s bounding box meets and
+        for which ``test(footprint, building footprint)`` holds, each once."""
         seen: set[int] = set()
-        for cell in cells:
+        for cell in _cells_of(footprint):
             for index in self._building_grid.get(cell, ()):
                 if index not in seen:
                     seen.add(index)
-                    if _rectangles_overlap(footprint, self.building_footprints[index]):
-                        return False
-        self.building_footprints.append(footprint)
-        for cell in cells:
-            self._building_grid.setdefault(cell, []).append(len(self.building_footprints) - 1)
-        return True
+                    if test(footprint, self.building_footprints[index]):
+                        yield index
+
+    def add_tree(self, trunk: tuple[float, float], first_crown_prop: int) -> None:
+        """Record a tree whose crown is ``self.props[first_crown_prop:]`` (for
+        :meth:`_fit_tree_crowns`)."""
+        self._trees.append(((float(trunk[0]), float(trunk[1])),
+                            list(range(first_crown_prop, len(self.props)))))
+
+    def _fit_tree_crowns(self) -> None:
+        """Keep every tree's crown out of the buildings (they are placed in any order: the
+        junction's cross streets plant their trees first). A crown that would reach into a wall
+        below the building's top is narrowed about its trunk (its parts' horizontal sizes and
+        offsets scaled alike, down to :data:`TREE_CROWN_MIN_WIDTH`), as street trees are pruned
+        along facades, and where that is not enough leans away from the nearest wall, by at most
+        :data:`TREE_CROWN_MAX_LEAN_M`. No draws: the rest of the layout is unchanged."""
+        for trunk, indices in self._trees:
+            parts = [self.props[index] for index in indices]
+            reach = max(math.hypot(part.pos[0] - trunk[0], part.pos[1] - trunk[1]) + part.size[0]
+                        for part in parts) + TREE_FACADE_CLEARANCE_M
+            area = ((trunk[0], trunk[1]), (reach, reach), 0.0)
+            near = list(self._rectangles_near(area, lambda a, b: _rectangles_overlap(a, b, 0.0)))
+            if not near:
+                continue
+            walls = [(self.building_footprints[index], self.building_tops[index]) for index in near]
+            scale, shift = _crown_fit(trunk, parts, walls)
+            if scale == 1.0 and shift == (0.0, 0.0):
+                continue
+            for index, part in zip(indices, parts):
+                self.props[index] = _fitted_crown_part(part, trunk, scale, shift)
 
     def place(self, make, what: str, roles: tuple[tuple[int, str], ...]) -> Unit:
         """:meth:`try_place` with 200 tries, or a one-line RuntimeError."""
@@ -789,6 +823,7 @@ class _Builder:
         return unit_distance(self.ego, meet_time) + ahead - direction * speed * meet_time
 
     def build(self, camera_height, camera_pitch_deg, sun_direction) -> Layout:
+        self._fit_tree_crowns()
         xs = [centres[:, 0] for centres in self._centres]
         ys = [centres[:, 1] for centres in self._centres]
         for prop in self.props:
@@ -904,6 +939,7 @@ def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
     drawn from the tree's own generator (:data:`TREE_STREAM`)."""
     rng = np.random.default_rng([builder.seed, TREE_STREAM, builder._counts.get("tree", 0)])
     tint = np.array(FOLIAGE_TINTS[int(rng.integers(len(FOLIAGE_TINTS)))])
+    first_crown_prop = len(builder.props) + 1  # after the trunk
 
     def crown(name: str, shape: str, size, pos) -> None:
         shade = tuple(float(c) for c in np.clip(tint * rng.uniform(0.9, 1.1), 0.0, 1.0))
@@ -920,6 +956,7 @@ def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
         crown("tree_crown", "ellipsoid", (radius, radius, half_height), (0.0, 0.0, top))
         crown("tree_lobe", "sphere", (0.75 * radius,),
               (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), top + 0.6 * half_height))
+        builder.add_tree((x, y), first_crown_prop)
         return
     trunk = rng.uniform(1.45, 1.9)
     radius, half_height = rng.uniform(1.6, 2.1), rng.uniform(1.9, 2.4)
@@ -933,6 +970,7 @@ def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
         crown("tree_lobe", "sphere", (rng.uniform(0.55, 0.75) * radius,),
               (reach * math.cos(angle), reach * math.sin(angle),
                centre + rng.uniform(-0.35, 0.3) * half_height))
+    builder.add_tree((x, y), first_crown_prop)
 
 
 POLE_SPACING_M = 0.5
@@ -997,12 +1035,13 @@ def _building(builder: _Builder, x: float, y: float, yaw: float, size, rng: np.r
     facade = int(rng.integers(len(FACADES)))
     colour = _pick(rng, ROOFS) if roof else None
     sx, sy, sz = size
-    if not builder.building_fits(((float(x), float(y)), (sx / 2, sy / 2), float(yaw))):
+    pitch = math.radians(32)
+    top = sz + math.tan(pitch) * sy / 2 + 0.2 if roof else sz  # the ridge, slab thickness and all
+    if not builder.building_fits(((float(x), float(y)), (sx / 2, sy / 2), float(yaw)), top):
         return
     builder.prop("building", "box", (sx / 2, sy / 2, sz / 2), (x, y, sz / 2), yaw_quat(yaw),
                  f"facade{facade}")
     if roof:  # a gable roof of two tilted slabs, ridge along the yaw direction
-        pitch = math.radians(32)
         half_span = sy / 2 / math.cos(pitch) + 0.3
         for side in (-1, 1):
             ox, oy = -math.sin(yaw) * side * sy / 4, math.cos(yaw) * side * sy / 4
@@ -1024,6 +1063,98 @@ def _rectangles_overlap(first, second, margin: float = 0.05) -> bool:
         if abs(offset @ axis) >= reach1 + reach2 - margin:
             return False
     return True
+
+
+def _cells_of(footprint) -> list[tuple[int, int]]:
+    """The :data:`BUILDING_CELL_M` grid cells that the bounding box of a rectangle
+    ``((x, y), (half_x, half_y), yaw)`` (any yaw) meets."""
+    (x, y), (half_x, half_y), _ = footprint
+    reach = math.hypot(half_x, half_y)
+    return [(i, j)
+            for i in range(math.floor((x - reach) / BUILDING_CELL_M), math.floor((x + reach) / BUILDING_CELL_M) + 1)
+            for j in range(math.floor((y - reach) / BUILDING_CELL_M), math.floor((y + reach) / BUILDING_CELL_M) + 1)]
+
+
+def _rectangle_distance(x: float, y: float, footprint) -> tuple[float, tuple[float, float]]:
+    """Signed distance (m; negative inside) from the point (x, y) to the rectangle
+    ``((cx, cy), (half_x, half_y), yaw)`` and the unit direction (dx, dy) from the rectangle's
+    nearest boundary point outwards through the point (from its centre when inside)."""
+    (cx, cy), (half_x, half_y), yaw = footprint
+    c, s = math.cos(yaw), math.sin(yaw)
+    u, v = c * (x - cx) + s * (y - cy), -s * (x - cx) + c * (y - cy)
+    out_u, out_v = abs(u) - half_x, abs(v) - half_y
+    if out_u <= 0.0 and out_v <= 0.0:  # inside: out through the nearer side
+        du, dv = (math.copysign(1.0, u), 0.0) if out_u > out_v else (0.0, math.copysign(1.0, v))
+        return max(out_u, out_v), (c * du - s * dv, s * du + c * dv)
+    du, dv = math.copysign(max(out_u, 0.0), u), math.copysign(max(out_v, 0.0), v)
+    distance = math.hypot(du, dv)
+    return distance, ((c * du - s * dv) / distance, (s * du + c * dv) / distance)
+
+
+TREE_FACADE_CLEARANCE_M = 0.15
+"""How near a tree's crown may come to a building's wall (below the building's top)."""
+TREE_CROWN_MIN_WIDTH = 0.45
+"""The narrowest a crown is made beside a building: this share of its drawn width."""
+TREE_CROWN_MAX_LEAN_M = 1.0
+"""How far a crown may lean away from a wall over its trunk (towards the light of the street)."""
+
+
+def _crown_lowest(part: Prop) -> float:
+    return part.pos[2] - (part.size[2] if part.shape == "ellipsoid" else part.size[0])
+
+
+def _crown_intrusion(trunk, parts, walls, scale: float, shift) -> tuple[float, tuple[float, float]]:
+    """How far (m) the crown ``parts`` (ellipsoids and spheres about a vertical axis, their
+    horizontal radius ``size[0]``), narrowed by ``scale`` about the ``trunk`` (x, y) and moved by
+    ``shift`` (dx, dy), reaches into the most intruded wall of ``walls`` ((footprint, top) pairs)
+    beyond :data:`TREE_FACADE_CLEARANCE_M` (<= 0: clear), and the direction out of that wall."""
+    worst, away = -math.inf, (0.0, 0.0)
+    for part in parts:
+        x = trunk[0] + scale * (part.pos[0] - trunk[0]) + shift[0]
+        y = trunk[1] + scale * (part.pos[1] - trunk[1]) + shift[1]
+        for footprint, top in walls:
+            if _crown_lowest(part) >= top:  # over the roof
+                continue
+            distance, direction = _rectangle_distance(x, y, footprint)
+            intrusion = scale * part.size[0] + TREE_FACADE_CLEARANCE_M - distance
+            if intrusion > worst:
+                worst, away = intrusion, direction
+    return worst, away
+
+
+def _crown_fit(trunk, parts, walls) -> tuple[float, tuple[float, float]]:
+    """How to keep the crown ``parts`` of the tree at ``trunk`` out of ``walls`` ((footprint,
+    top) pairs, see :func:`_crown_intrusion`): the widest narrowing ``scale`` in
+    [:data:`TREE_CROWN_MIN_WIDTH`, 1] (in steps of 0.05) for which leaning away from the walls
+    by at most :data:`TREE_CROWN_MAX_LEAN_M` clears them, and that lean (dx, dy); the narrowest
+    with the longest lean where none does. (1.0, (0, 0)) when the crown is clear."""
+    steps = round((1.0 - TREE_CROWN_MIN_WIDTH) / 0.05)
+    for step in range(steps + 1):
+        scale, shift = 1.0 - 0.05 * step, (0.0, 0.0)
+        for _ in range(4):  # lean out of the deepest wall; a corner can take a second push
+            intrusion, (dx, dy) = _crown_intrusion(trunk, parts, walls, scale, shift)
+            if intrusion <= 0.0:
+                return scale, shift
+            shift = (shift[0] + dx * (intrusion + 1e-3), shift[1] + dy * (intrusion + 1e-3))
+            length = math.hypot(*shift)
+            if length > TREE_CROWN_MAX_LEAN_M:
+                shift = (shift[0] * TREE_CROWN_MAX_LEAN_M / length,
+                         shift[1] * TREE_CROWN_MAX_LEAN_M / length)
+                if step < steps:
+                    break  # narrower, then
+    return scale, shift
+
+
+def _fitted_crown_part(part: Prop, trunk, scale: float, shift) -> Prop:
+    """``part`` narrowed by ``scale`` about the vertical through ``trunk`` and moved by
+    ``shift``: an ellipsoid keeps its height, a sphere (a lobe) shrinks whole."""
+    x = trunk[0] + scale * (part.pos[0] - trunk[0]) + shift[0]
+    y = trunk[1] + scale * (part.pos[1] - trunk[1]) + shift[1]
+    if part.shape == "ellipsoid":
+        size = (part.size[0] * scale, part.size[1] * scale, part.size[2])
+    else:
+        size = (part.size[0] * scale, part.size[1], part.size[2])
+    return replace(part, pos=(float(x), float(y), part.pos[2]), size=tuple(float(v) for v in size))
 
 
 # -- the layouts ---------------------------------------------------------------------------------

@@ -462,6 +462,70 @@ def test_no_roadside_tree_grows_through_the_highway_overpass(seed):
     assert min(_clearance(model, data, deck, tree) for tree in trees) > 0.0
 
 
+def _crown(x=0.0, y=0.0, radius=2.0, lowest=3.0):
+    return L.Prop("tree_crown0", "ellipsoid", (radius, radius, 2.0), (x, y, lowest + 2.0))
+
+
+def _wall(near_x, top=10.0):
+    """A building whose facade faces -x at ``near_x`` (10 m deep, 20 m wide)."""
+    return (((near_x + 5.0, 0.0), (5.0, 10.0), 0.0), top)
+
+
+def test_a_crown_by_a_wall_leans_away_or_narrows_only_as_far_as_it_must():
+    clearance, lean = L.TREE_FACADE_CLEARANCE_M, L.TREE_CROWN_MAX_LEAN_M
+    crown = _crown()  # radius 2 about the trunk at the origin
+    assert L._crown_fit((0.0, 0.0), [crown], [_wall(3.0)]) == (1.0, (0.0, 0.0))  # clear
+    assert L._crown_fit((0.0, 0.0), [crown], [_wall(1.5, top=2.9)]) == (1.0, (0.0, 0.0))  # over the roof
+    scale, (dx, dy) = L._crown_fit((0.0, 0.0), [crown], [_wall(1.5)])
+    assert scale == 1.0 and dy == 0.0  # leans out through the facade, towards -x
+    assert dx == pytest.approx(-(2.0 + clearance - 1.5), abs=2e-3)
+    # 0.5 m from the wall a 1 m lean is not enough: the widest narrowing (steps of 0.05) that is
+    scale, (dx, dy) = L._crown_fit((0.0, 0.0), [crown], [_wall(0.5)])
+    assert scale == pytest.approx(math.floor((0.5 + lean - clearance) / 2.0 / 0.05) * 0.05)
+    assert -lean - 1e-9 <= dx < -(2.0 * scale + clearance - 0.5) + 1e-9
+    fitted = L._fitted_crown_part(crown, (0.0, 0.0), scale, (dx, dy))
+    assert fitted.size == pytest.approx((2.0 * scale, 2.0 * scale, 2.0)) and fitted.pos[2] == crown.pos[2]
+    assert 0.5 - (fitted.pos[0] + fitted.size[0]) >= clearance - 1e-9
+    # a wall on each side at 1.1 m: no lean helps, the crown narrows until it fits
+    walls = [_wall(1.1), (((-6.1, 0.0), (5.0, 10.0), 0.0), 10.0)]
+    scale, shift = L._crown_fit((0.0, 0.0), [crown], walls)
+    assert scale == pytest.approx(math.floor((1.1 - clearance) / 2.0 / 0.05) * 0.05)
+    assert shift == (0.0, 0.0)
+    # closer still, as narrow as a crown is made (TREE_CROWN_MIN_WIDTH), leaning at most 1 m
+    walls = [_wall(0.6), (((-5.6, 0.0), (5.0, 10.0), 0.0), 10.0)]
+    scale, shift = L._crown_fit((0.0, 0.0), [crown], walls)
+    assert scale == pytest.approx(L.TREE_CROWN_MIN_WIDTH) and math.hypot(*shift) <= lean + 1e-9
+
+
+@pytest.mark.parametrize("name, seed", [("street", 3), ("intersection", 18), ("residential", 0)])
+def test_no_tree_crown_grows_into_a_building(name, seed):
+    """A scene audit saw street and junction crowns cut by facades (up to 2 m; 40 % of crown
+    parts): trees stand 1 m from the buildings. Crowns now lean towards the street, or narrow,
+    to keep clear of walls; the layout's other draws are unchanged."""
+    model = build_scene(GenerateConfig(seed=seed, layout=name, frames=200, width=64, height=48)).model
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    names = [model.geom(i).name for i in range(model.ngeom)]
+    buildings = [i for i, n in enumerate(names) if n.startswith("scenery/building")]
+    crowns = [i for i, n in enumerate(names) if n.startswith(("scenery/tree_crown", "scenery/tree_lobe"))]
+    assert buildings and crowns
+    touching = [(names[b], names[c]) for b in buildings for c in crowns
+                if np.linalg.norm(data.geom_xpos[b] - data.geom_xpos[c])
+                < model.geom_rbound[b] + model.geom_rbound[c]
+                and _clearance(model, data, b, c) < L.TREE_FACADE_CLEARANCE_M - 1e-3]
+    assert not touching
+
+
+def test_fitting_crowns_changes_only_the_crowns(monkeypatch):
+    fitted = _layout("intersection", seed=18)
+    monkeypatch.setattr(L._Builder, "_fit_tree_crowns", lambda self: None)
+    drawn = _layout("intersection", seed=18)
+    assert (drawn.units, drawn.actors, drawn.puddles, drawn.sky, drawn.time_of_day) == (
+        fitted.units, fitted.actors, fitted.puddles, fitted.sky, fitted.time_of_day)
+    changed = {a.name for a, b in zip(drawn.props, fitted.props, strict=True) if a != b}
+    assert changed and all(name.startswith(("tree_crown", "tree_lobe")) for name in changed)
+
+
 def _layout_of(name, seed):
     config = GenerateConfig(seed=seed, layout=name, width=64, height=48)
     return L.sample_layout(seed, config.scenario_config(), np.random.default_rng(seed))
