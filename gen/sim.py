@@ -3,7 +3,8 @@
 Every moving unit is a mocap body following its planned path of straights and arcs (see
 :func:`rainbench.mjcf.layout.unit_pose`), turning with it; people's limbs are hinge joints driven by each walker's
 gait, a standing sway for people who stand (before they start or after they arrive), the riding
-pose of the rider's bicycle or motorcycle style, and the raised arm of umbrella carriers. Between frames the simulation advances with ``mj_step`` at the model
+pose of the rider's bicycle or motorcycle style (a cyclist's legs follow the pedals, which turn
+with the distance ridden), and the raised arm of umbrella carriers. Between frames the simulation advances with ``mj_step`` at the model
 timestep, with the kinematic targets written before every step; before a frame is rendered the
 exact state at the frame time is written and ``mj_forward`` recomputes every pose.
 
@@ -40,6 +41,11 @@ class ActorDriver:
         # Per person actor: (unit index, qpos addresses of PERSON_JOINTS, the riding pose's
         # angles or None for a pedestrian, the standing sway's phase)
         self._people: list[tuple[int, np.ndarray, np.ndarray | None, float]] = []
+        # Per bicycle: (unit index, qpos address of its crank, its rider's PERSON_JOINTS
+        # addresses, the bicycle's style, the rider's build); the rider's legs follow the pedals
+        self._cyclists: list[tuple[int, int, np.ndarray, str, object]] = []
+        cranks = {actor.unit: int(model.joint(ACTOR_PREFIX.format(actor.instance_id) + "crank").qposadr[0])
+                  for actor in layout.actors if actor.role == "bicycle"}
         for actor in layout.actors:
             if actor.class_id != L.PERSON:
                 continue
@@ -49,6 +55,10 @@ class ActorDriver:
             )
             unit = layout.units[actor.unit]
             riding = None
+            if actor.role == "rider" and actor.unit in cranks:
+                self._cyclists.append((actor.unit, cranks[actor.unit], addresses, ride_style(unit),
+                                       unit.build))
+                continue
             if actor.role == "rider":
                 pose = parts.riding_pose(ride_style(unit), unit.build)
                 riding = np.array([pose[j] for j in parts.PERSON_JOINTS])
@@ -100,6 +110,11 @@ class ActorDriver:
                 pose = parts.standing_pose(t, sway_phase)
             if "umbrella" in unit.colours:
                 pose = {**pose, **parts.UMBRELLA_ARM}
+            data.qpos[addresses] = [pose[j] for j in parts.PERSON_JOINTS]
+        for unit_index, crank_address, addresses, style, build in self._cyclists:
+            crank = parts.crank_angle(L.unit_distance(layout.units[unit_index], t))
+            data.qpos[crank_address] = crank
+            pose = parts.riding_pose(style, build, crank)
             data.qpos[addresses] = [pose[j] for j in parts.PERSON_JOINTS]
         data.qvel[:] = 0.0
 

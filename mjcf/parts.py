@@ -427,7 +427,8 @@ class RiderFit:
     """Where a rider meets a vehicle style, in the vehicle body's frame (metres, radians).
 
     ``saddle_x``: x of the rider's hips (the pelvis centre); ``saddle_top``: height of the saddle
-    surface the pelvis rests on; ``grip``: (x, z) of the hands on the handlebar; ``foot_l`` /
+    surface the pelvis rests on (a bicycle's saddle is set for its rider's legs instead,
+    :func:`saddle_height`: this is its lowest setting); ``grip``: (x, z) of the hands on the handlebar; ``foot_l`` /
     ``foot_r``: (x, z) of the ankles with the feet on the pedals, pegs or floorboard;
     ``lean``: the torso's forward lean (waist angle); ``splay``: the thighs' outward yaw.
     """
@@ -451,10 +452,32 @@ _PEDAL_BACK = (BOTTOM_BRACKET[0] - CRANK_LENGTH * math.cos(CRANK_ANGLE),
 _ANKLE_ABOVE_PEDAL = (-0.06, 0.085)  # the ball of the foot on the pedal
 _ANKLE_FRONT = (_PEDAL_FRONT[0] + _ANKLE_ABOVE_PEDAL[0], _PEDAL_FRONT[1] + _ANKLE_ABOVE_PEDAL[1])
 _ANKLE_BACK = (_PEDAL_BACK[0] + _ANKLE_ABOVE_PEDAL[0], _PEDAL_BACK[1] + _ANKLE_ABOVE_PEDAL[1])
+PEDAL_DEVELOPMENT_M = 5.0
+"""How far a bicycle goes for one turn of its cranks (a 2.1 m tyre and a gear of 2.4): at 3.5-6.5
+m/s, 42-78 turns a minute."""
+
+
+def crank_angle(distance: float) -> float:
+    """The bicycle's crank joint angle (radians in [0, 2 pi), about the bicycle's +y axis: the
+    front pedal goes down) after ``distance`` metres ridden, 0 in the modelled pose
+    (:data:`CRANK_ANGLE`)."""
+    return (2.0 * math.pi * distance / PEDAL_DEVELOPMENT_M) % (2.0 * math.pi)
+
+
+def pedal_ankles(crank: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(x, z) of the left and right ankles (feet on the pedals) in the bicycle's frame with the
+    cranks turned by ``crank`` (radians, :func:`crank_angle`) from the modelled pose."""
+    c, s = math.cos(crank), math.sin(crank)
+    ankles = []
+    for pedal in (_PEDAL_FRONT, _PEDAL_BACK):  # the left pedal starts in front
+        dx, dz = pedal[0] - BOTTOM_BRACKET[0], pedal[1] - BOTTOM_BRACKET[1]
+        ankles.append((BOTTOM_BRACKET[0] + c * dx + s * dz + _ANKLE_ABOVE_PEDAL[0],
+                       BOTTOM_BRACKET[1] - s * dx + c * dz + _ANKLE_ABOVE_PEDAL[1]))
+    return ankles[0], ankles[1]
 
 RIDER_FITS: dict[str, RiderFit] = {
-    "city": RiderFit(-0.20, 0.92, (0.24, 1.05), _ANKLE_FRONT, _ANKLE_BACK, 0.25, 0.06),
-    "road": RiderFit(-0.24, 0.94, (0.54, 0.91), _ANKLE_FRONT, _ANKLE_BACK, 1.0, 0.06),
+    "city": RiderFit(-0.20, 0.82, (0.24, 1.05), _ANKLE_FRONT, _ANKLE_BACK, 0.25, 0.06),
+    "road": RiderFit(-0.24, 0.82, (0.54, 0.91), _ANKLE_FRONT, _ANKLE_BACK, 1.0, 0.06),
     "standard": RiderFit(-0.30, 0.86, (0.36, 1.05), (-0.07, 0.43), (-0.07, 0.43), 0.4, 0.35),
     "sport": RiderFit(-0.26, 0.86, (0.36, 0.95), (-0.21, 0.51), (-0.21, 0.51), 0.9, 0.38),
     "scooter": RiderFit(-0.30, 0.82, (0.27, 1.0), (0.10, 0.41), (0.04, 0.41), 0.25, 0.12),
@@ -468,25 +491,54 @@ def _fit(vehicle_style: str) -> RiderFit:
     return RIDER_FITS[vehicle_style]
 
 
+SADDLE_LEG_REACH = 0.96
+"""A bicycle's saddle is set so that, over the whole pedal stroke, the rider's hip comes at most
+this share of the leg (hip to ankle) from the ankle: the knee still bent by about 30 degrees at
+the bottom, as a bicycle fitter sets it."""
+
+
+def saddle_height(vehicle_style: str, build: PersonBuild | None = None) -> float:
+    """Height (m) of the saddle (seat) surface of ``vehicle_style`` for a rider of ``build``
+    (default adult): a motorcycle's is its style's (:data:`RIDER_FITS`); a bicycle's is set for
+    the rider's legs (:data:`SADDLE_LEG_REACH`), no lower than its style's ``saddle_top`` (the
+    seat post all the way down, where the shortest riders stretch)."""
+    fit = _fit(vehicle_style)
+    if vehicle_style not in BICYCLE_STYLES:
+        return fit.saddle_top
+    p = body_proportions(build)
+    reach = SADDLE_LEG_REACH * (p.thigh + p.shin)
+    hip = math.inf
+    for crank in np.linspace(0.0, 2.0 * math.pi, 72, endpoint=False):
+        for x, z in pedal_ankles(float(crank)):
+            dx = (x - fit.saddle_x) / math.cos(fit.splay)
+            hip = min(hip, z + math.sqrt(max(reach ** 2 - dx ** 2, 0.0)))
+    return max(fit.saddle_top, round(hip - 0.005 - p.pelvis_drop, 4))
+
+
 def rider_position(vehicle_style: str,
                    build: PersonBuild | None = None) -> tuple[float, float, float]:
     """``pos`` for :func:`add_person` that seats a rider of ``build`` on ``vehicle_style``: the
-    pelvis rests on the saddle (5 mm above its surface), hips over ``saddle_x``."""
+    pelvis rests on the saddle (:func:`saddle_height`, 5 mm above its surface), hips over
+    ``saddle_x``."""
     fit = _fit(vehicle_style)
     p = body_proportions(build)
-    return (fit.saddle_x, 0.0, fit.saddle_top + 0.005 + p.pelvis_drop - p.hip_z)
+    return (fit.saddle_x, 0.0, saddle_height(vehicle_style, build) + 0.005 + p.pelvis_drop - p.hip_z)
 
 
-def riding_pose(vehicle_style: str, build: PersonBuild | None = None) -> dict[str, float]:
+def riding_pose(vehicle_style: str, build: PersonBuild | None = None,
+                crank: float = 0.0) -> dict[str, float]:
     """Joint angles (radians) of a rider of ``build`` (default adult) placed at
     :func:`rider_position` on ``vehicle_style``: torso leaned by the style (more when the arms
     are short), legs reaching the pedals / pegs / floorboard and hands on the grips (two-segment
-    inverse kinematics)."""
+    inverse kinematics). On a bicycle the feet follow the pedals with the cranks turned by
+    ``crank`` (radians, :func:`crank_angle`; a leg too short for the bottom of the stroke is
+    stretched towards it); a motorcycle's rider does not depend on it."""
     fit = _fit(vehicle_style)
     p = body_proportions(build)
     x0, _, z0 = rider_position(vehicle_style, build)
     pose = {"waist": fit.lean}
-    for tag, foot in (("l", fit.foot_l), ("r", fit.foot_r)):
+    feet = pedal_ankles(crank) if vehicle_style in BICYCLE_STYLES else (fit.foot_l, fit.foot_r)
+    for tag, foot in zip(("l", "r"), feet):
         dx = (foot[0] - x0) / math.cos(fit.splay)
         pose[f"hip_{tag}"], pose[f"knee_{tag}"] = limb_ik(dx, foot[1] - z0 - p.hip_z, p.thigh,
                                                           p.shin, bend=1)
@@ -557,13 +609,15 @@ def _fender(meshes: dict, mesh_geoms: list, name: str, x: float, axle_z: float, 
 
 
 def add_bicycle(body, prefix: str, frame_colour: tuple[float, float, float],
-                style: str = "city") -> float:
+                style: str = "city", rider: PersonBuild | None = None) -> float:
     """A bicycle of ``style`` (:data:`BICYCLE_STYLES`) with see-through ring wheels and spokes.
 
     "city": step-through frame, fenders, front basket, rear rack, chain guard, upright swept-back
     bars, wide saddle. "road": diamond frame, drop bars, thin tyres, narrow saddle set high.
+    The saddle is set for a ``rider`` of that build (default adult; :func:`saddle_height`), and
+    the cranks turn on a hinge joint ``{prefix}crank``.
     Returns the height (m) of the saddle's top surface, where the rider's pelvis rests
-    (:func:`add_rider` seats a rider there).
+    (:func:`add_rider` with the same build seats a rider there).
     """
     if style not in BICYCLE_STYLES:
         raise ValueError(f"bicycle style: expected one of {', '.join(BICYCLE_STYLES)}, "
@@ -594,18 +648,23 @@ def add_bicycle(body, prefix: str, frame_colour: tuple[float, float, float],
         _tube(body, f"{prefix}{name}", _xz(a), _xz(b), 0.018 if road else 0.022, frame)
     # Seat post along the seat tube up to the saddle.
     direction = np.subtract(seat_cluster, bb) / np.linalg.norm(np.subtract(seat_cluster, bb))
-    post_top = np.array(seat_cluster) + direction * (fit.saddle_top - 0.03 - seat_cluster[1]) \
+    saddle_top = saddle_height(style, rider)
+    post_top = np.array(seat_cluster) + direction * (saddle_top - 0.03 - seat_cluster[1]) \
         / direction[1]
     _tube(body, f"{prefix}seat_post", _xz(seat_cluster), _xz(post_top), 0.014, METAL)
     saddle_half = (0.13, 0.06, 0.025) if road else (0.12, 0.095, 0.04)
     _geom(body, f"{prefix}saddle", GEOM.mjGEOM_ELLIPSOID, saddle_half, TRIM,
-          pos=[fit.saddle_x + 0.02, 0, fit.saddle_top - saddle_half[2]])
-    # Cranks and pedals at the pose the riders use.
-    _tube(body, f"{prefix}crank", _xz(_PEDAL_BACK), _xz(_PEDAL_FRONT), 0.012, METAL)
+          pos=[fit.saddle_x + 0.02, 0, saddle_top - saddle_half[2]])
+    # Cranks and pedals, modelled at the pose of CRANK_ANGLE, turn on the ``crank`` hinge about
+    # the bottom bracket (the motion code turns them with the distance ridden: crank_angle).
     _geom(body, f"{prefix}chainring", GEOM.mjGEOM_CYLINDER, [0.1, 0.004], METAL,
           pos=[bb[0], -0.05, bb[1]], quat=Y_AXIS_QUAT)
-    for (px, pz), side, tag in ((_PEDAL_FRONT, 1, "l"), (_PEDAL_BACK, -1, "r")):
-        _geom(body, f"{prefix}pedal_{tag}", GEOM.mjGEOM_BOX, [0.045, 0.045, 0.012], TRIM,
+    crankset = body.add_body(name=f"{prefix}crankset", pos=[bb[0], 0.0, bb[1]])
+    crankset.add_joint(name=f"{prefix}crank", type=HINGE, axis=[0, 1, 0])
+    local = [(x - bb[0], z - bb[1]) for x, z in (_PEDAL_BACK, _PEDAL_FRONT)]
+    _tube(crankset, f"{prefix}crank", _xz(local[0]), _xz(local[1]), 0.012, METAL)
+    for (px, pz), side, tag in ((local[1], 1, "l"), (local[0], -1, "r")):
+        _geom(crankset, f"{prefix}pedal_{tag}", GEOM.mjGEOM_BOX, [0.045, 0.045, 0.012], TRIM,
               pos=[px, side * 0.1, pz])
     if road:
         stem_end = (0.50, 0.88)
@@ -638,7 +697,7 @@ def add_bicycle(body, prefix: str, frame_colour: tuple[float, float, float],
         _fender(meshes, mesh_geoms, "fender_rear", -half_base, radius, radius + 0.03, (35, 165),
                 (0.006, 0.032), frame)
     _attach_meshes(body, prefix, "bicycle", meshes, mesh_geoms)
-    return fit.saddle_top
+    return saddle_top
 
 
 def add_motorcycle(body, prefix: str, colour: tuple[float, float, float],

@@ -212,7 +212,7 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
                 parts.add_person(body, prefix, unit.colours, build=unit.build,
                                  umbrella=unit.colours.get("umbrella"))
             elif actor.role == "bicycle":
-                parts.add_bicycle(body, prefix, unit.colours["frame"], ride_style(unit))
+                parts.add_bicycle(body, prefix, unit.colours["frame"], ride_style(unit), rider=unit.build)
             elif actor.role == "motorcycle":
                 parts.add_motorcycle(body, prefix, unit.colours["frame"], ride_style(unit))
             elif actor.role == "rider":

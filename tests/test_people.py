@@ -157,8 +157,10 @@ def test_every_vehicle_style_seats_its_rider_on_the_saddle(style, rider_height):
     build = parts.PersonBuild(rider_height)
     spec = _spec((-6.0, 0.0, 1.5), 40.0)
     body = spec.worldbody.add_body(name="ride", pos=[0.0, 0.0, 0.0])
-    add = parts.add_bicycle if bicycle else parts.add_motorcycle
-    seat = add(body, "actor000/", (0.8, 0.1, 0.1), style)
+    if bicycle:  # the saddle set for the rider
+        seat = parts.add_bicycle(body, "actor000/", (0.8, 0.1, 0.1), style, rider=build)
+    else:
+        seat = parts.add_motorcycle(body, "actor000/", (0.8, 0.1, 0.1), style)
     parts.add_rider(body, "actor001/", COLOURS, style, build=build, helmet=(0.9, 0.9, 0.9))
     model = spec.compile()
     data = mujoco.MjData(model)
@@ -185,6 +187,53 @@ def test_every_vehicle_style_seats_its_rider_on_the_saddle(style, rider_height):
     assert (np.abs([lo[0], hi[0]]) < length / 2).all()
     assert (np.abs([lo[1], hi[1]]) < width / 2).all()
     assert lo[2] > -1e-3
+
+
+def _ankle(model, data, prefix, tag, build):
+    shin = model.body(f"{prefix}shin_{tag}").id  # the ankle ends the shin
+    return data.xpos[shin] + data.xmat[shin].reshape(3, 3) @ [0, 0, -parts.body_proportions(build).shin]
+
+
+@pytest.mark.parametrize("rider_height", [1.5, 1.72, 1.95])
+@pytest.mark.parametrize("style", parts.BICYCLE_STYLES)
+def test_a_cyclist_s_feet_stay_on_the_pedals_all_the_way_round(style, rider_height):
+    """Riders sat still with the cranks at 25 degrees; now the cranks turn and the legs follow.
+    Over a whole turn each ankle stays where the foot on its pedal puts it (the pedal geom as
+    MuJoCo poses it on the crank hinge), the knee never locks straight (the saddle is set for
+    the rider's legs), and the left and right pedals stay opposite. The shortest riders (1 in
+    25, below about 1.56 m) have the saddle at its lowest; below 1.53 m (1 in 60) they stretch at
+    the bottom of the stroke, a foot up to 2.5 cm short of its pedal."""
+    build = parts.PersonBuild(rider_height)
+    lowest = parts.saddle_height(style, build) == parts.RIDER_FITS[style].saddle_top
+    assert lowest == (rider_height == 1.5)
+    spec = _spec((-6.0, 0.0, 1.5), 40.0)
+    body = spec.worldbody.add_body(name="ride", pos=[0.0, 0.0, 0.0])
+    parts.add_bicycle(body, "actor000/", (0.8, 0.1, 0.1), style, rider=build)
+    parts.add_rider(body, "actor001/", COLOURS, style, build=build, helmet=(0.9, 0.9, 0.9))
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    crank = model.joint("actor000/crank").qposadr[0]
+    pedal_ids = {tag: model.geom(f"actor000/pedal_{tag}").id for tag in "lr"}
+    offset = np.array([parts._ANKLE_ABOVE_PEDAL[0], 0.0, parts._ANKLE_ABOVE_PEDAL[1]])
+    heights, knees = [], []
+    for distance in np.linspace(0.0, parts.PEDAL_DEVELOPMENT_M, 25):
+        angle = parts.crank_angle(distance)
+        data.qpos[crank] = angle
+        pose = parts.riding_pose(style, build, angle)
+        _pose(model, data, "actor001/", pose)
+        mujoco.mj_forward(model, data)
+        pedals = {tag: data.geom_xpos[pedal_ids[tag]] for tag in "lr"}
+        np.testing.assert_allclose(pedals["l"][[0, 2]] + pedals["r"][[0, 2]],
+                                   2 * np.array(parts.BOTTOM_BRACKET), atol=1e-9)
+        for tag in "lr":
+            ankle = _ankle(model, data, "actor001/", tag, build)
+            assert np.linalg.norm((ankle - pedals[tag] - offset)[[0, 2]]) < (0.025 if lowest else 0.005)
+            knees.append(pose[f"knee_{tag}"])
+        heights.append(pedals["l"][2])
+    assert max(heights) - min(heights) == pytest.approx(2 * parts.CRANK_LENGTH, abs=0.01)
+    assert parts.crank_angle(parts.PEDAL_DEVELOPMENT_M / 4) == pytest.approx(math.pi / 2)
+    if not lowest:
+        assert min(knees) > 0.3  # about 30 degrees at the bottom of the stroke, never straight
 
 
 @pytest.mark.parametrize("style", parts.BICYCLE_STYLES)
@@ -302,7 +351,7 @@ def test_old_signatures_still_build_the_old_adult_and_vehicles():
     saddle = parts.add_bicycle(bike, "actor001/", (0.2, 0.2, 0.8))
     moto = spec.worldbody.add_body(name="moto", pos=[6.0, -3.0, 0.0])
     seat = parts.add_motorcycle(moto, "actor002/", (0.2, 0.8, 0.2))
-    assert saddle == parts.RIDER_FITS["city"].saddle_top and seat == parts.RIDER_FITS[
+    assert saddle == parts.saddle_height("city") and seat == parts.RIDER_FITS[
         "standard"].saddle_top
     model = spec.compile()
     data = mujoco.MjData(model)

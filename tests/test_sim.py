@@ -16,12 +16,13 @@ SMALL = dict(width=96, height=72, rates=(0.0,), rain_model="jeon2022")
 
 @pytest.mark.parametrize("name", list(L.LAYOUTS))
 def test_stepping_to_a_time_poses_the_scene_as_posing_it_there(name):
-    """Every joint is a person's driven limb, and 6 s stepped at 50 Hz from 0 s leave every
-    body and geom exactly (bit for bit) where ``advance(t, t)`` puts them."""
+    """Every joint is a person's driven limb or a bicycle's cranks, and 6 s stepped at 50 Hz from
+    0 s leave every body and geom exactly (bit for bit) where ``advance(t, t)`` puts them."""
     setup = build_scene(GenerateConfig(frames=60, seed=4, layout=name, **SMALL))
     model, driver = setup.model, sim.ActorDriver(setup.model, setup.layout)
     people = sum(actor.class_id == L.PERSON for actor in setup.layout.actors)
-    assert model.njnt == people * len(parts.PERSON_JOINTS) > 0
+    bicycles = sum(actor.role == "bicycle" for actor in setup.layout.actors)
+    assert model.njnt == people * len(parts.PERSON_JOINTS) + bicycles > 0
     stepped, posed = mujoco.MjData(model), mujoco.MjData(model)
     previous = 0.0
     for frame in range(1, 61):
@@ -41,3 +42,33 @@ def test_a_piece_steps_only_between_its_own_frames(monkeypatch):
     config = GenerateConfig(frames=3, frame_offset=150, seed=4, layout="street", **SMALL)
     frames = [frame.rgb.copy() for _, frame, _ in render_clip(config)]
     assert len(frames) == 3 and len(steps) == 2 * 5
+
+
+def test_cyclists_pedal_with_the_distance_ridden_and_motorcyclists_sit_still():
+    """The cranks turn once per PEDAL_DEVELOPMENT_M ridden and the rider's legs follow them;
+    a motorcyclist's legs stay on the pegs."""
+    setup = build_scene(GenerateConfig(frames=200, seed=0, layout="street", **SMALL))
+    model, layout = setup.model, setup.layout
+    driver, data = sim.ActorDriver(model, layout), mujoco.MjData(model)
+    bicycle = next(actor for actor in layout.actors if actor.role == "bicycle")
+    rider = next(actor for actor in layout.actors if actor.role == "rider" and actor.unit == bicycle.unit)
+    moto_rider = next(actor for actor in layout.actors if actor.role == "rider"
+                      and layout.units[actor.unit].kind == "motorcycle")
+    unit = layout.units[bicycle.unit]
+    crank = model.joint(f"actor{bicycle.instance_id:03d}/crank").qposadr[0]
+
+    def knees(actor):
+        return [data.qpos[model.joint(f"actor{actor.instance_id:03d}/knee_{tag}").qposadr[0]] for tag in "lr"]
+
+    seen, moto_seen = set(), set()
+    for t in (2.0, 2.1, 2.2, 2.3):
+        sim.advance(model, data, driver, t, t)
+        distance = L.unit_distance(unit, t)
+        assert 0.0 < distance < unit.max_distance
+        expected = (2 * np.pi * distance / parts.PEDAL_DEVELOPMENT_M) % (2 * np.pi)
+        assert data.qpos[crank] == pytest.approx(expected, abs=1e-9)
+        pose = parts.riding_pose(unit.style, unit.build, expected)
+        assert knees(rider) == pytest.approx([pose["knee_l"], pose["knee_r"]], abs=1e-12)
+        seen.add(tuple(np.round(knees(rider), 6)))
+        moto_seen.add(tuple(np.round(knees(moto_rider), 6)))
+    assert len(seen) == 4 and len(moto_seen) == 1
