@@ -199,6 +199,9 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
     if args.ray_address is not None and args.executor != "ray":
         raise CliError("--ray-address: only used with --executor ray")
+    if args.workers is not None and args.executor == "ray":  # run_dataset never reads it for Ray
+        raise CliError("--workers: has no effect with --executor ray (each Ray task renders one "
+                       "shard on one CPU; the cluster decides how many run); leave it out")
     # the whole config is checked before anything is written or rendered
     config = DatasetConfig(**_scene_fields(args), scenes=args.scenes,
                            frames_per_shard=args.frames_per_shard, first_frame=args.first_frame,

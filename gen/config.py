@@ -147,6 +147,11 @@ class ClipConfig:
             check_layout(self.layout)
         if self.time_of_day is not None:
             check_time_of_day(self.time_of_day)
+        for name in ("sky", "layout", "time_of_day"):  # one value each, not a silent override
+            mine, scenario = getattr(self, name), getattr(self.scenario, name, None)
+            if mine is not None and scenario is not None and mine != scenario:
+                raise DatasetError(f"{name}: {mine!r} disagrees with scenario.{name} {scenario!r}; "
+                                   "give it once")
         if self.weather_follows_rate is not None and not isinstance(self.weather_follows_rate, bool):
             # 1 == True: an int passed the old "in (None, True, False)" and was stored as an int
             raise DatasetError(f"weather_follows_rate: expected True, False or None, got "

@@ -415,9 +415,9 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     finished since the last call. The bytes do not depend on ``threads`` or
     ``frames_in_flight``.
     """
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise ValueError(f"threads: expected an integer >= 1 or None, got {threads!r}")  # 0 was cpu_count
     threads = threads or os.cpu_count() or 1
-    if not (isinstance(threads, int) and threads >= 1):
-        raise ValueError(f"threads: expected an integer >= 1, got {threads!r}")
     if frames_in_flight is None:
         frames_in_flight = default_frames_in_flight(threads)
     if not (isinstance(frames_in_flight, int) and not isinstance(frames_in_flight, bool)

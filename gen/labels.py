@@ -7,6 +7,7 @@ actor instance id per pixel and -1 where no actor is.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,14 +30,20 @@ class LabelFilter:
     min_visible_pixels: int = 20
 
     def __post_init__(self) -> None:
-        if self.min_box_height < 0:
-            raise ValueError(f"min_box_height: expected >= 0 px, got {self.min_box_height}")
-        if not 0.0 <= self.min_visible_fraction <= 1.0:
+        def number(value) -> bool:
+            return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_)) \
+                and math.isfinite(value)
+
+        # NaN passed "< 0" and then dropped every label (each actor became an ignore region)
+        if not (number(self.min_box_height) and self.min_box_height >= 0):
+            raise ValueError(f"min_box_height: expected a finite number >= 0 px, got {self.min_box_height!r}")
+        if not (number(self.min_visible_fraction) and 0.0 <= self.min_visible_fraction <= 1.0):
             raise ValueError(
-                f"min_visible_fraction: expected 0..1, got {self.min_visible_fraction}"
+                f"min_visible_fraction: expected a number in 0..1, got {self.min_visible_fraction!r}"
             )
-        if self.min_visible_pixels < 1:
-            raise ValueError(f"min_visible_pixels: expected >= 1, got {self.min_visible_pixels}")
+        if isinstance(self.min_visible_pixels, (bool, np.bool_)) or not isinstance(
+                self.min_visible_pixels, (int, np.integer)) or self.min_visible_pixels < 1:
+            raise ValueError(f"min_visible_pixels: expected an integer >= 1, got {self.min_visible_pixels!r}")
 
 
 def _check_instance_map(instance_map: np.ndarray, name: str) -> None:

@@ -50,12 +50,21 @@ MIN_BLUR_SIGMA_PX = 0.35
 """Drops whose defocus sigma is below this are not blurred (the bilinear splat is ~0.5 px wide)."""
 
 
+def _rates(rate_mm_h: float | np.ndarray) -> np.ndarray:
+    """``rate_mm_h`` as float64 if every rate is finite and >= 0 mm/h; else a one-line ValueError
+    (a negative rate gave NaN, silently)."""
+    rate = np.asarray(rate_mm_h, dtype=np.float64)
+    if not (np.all(np.isfinite(rate)) and np.all(rate >= 0)):
+        raise ValueError(f"rate_mm_h: expected finite rates >= 0 mm/h, got {rate_mm_h!r}")
+    return rate
+
+
 def marshall_palmer_slope(rate_mm_h: float | np.ndarray) -> float | np.ndarray:
     """Lambda(R) = 4.1 R^-0.21 in mm^-1 for a rate R in mm/h (inf at R = 0).
 
     Scalar in, float out; array in, float64 array of the same shape out.
     """
-    rate = np.asarray(rate_mm_h, dtype=np.float64)
+    rate = _rates(rate_mm_h)
     with np.errstate(divide="ignore"):
         slope = MP_LAMBDA_COEF * np.power(rate, -MP_LAMBDA_EXP)
     return float(slope) if slope.ndim == 0 else slope
@@ -132,14 +141,18 @@ def extinction_coefficient(rate_mm_h: float | np.ndarray) -> float | np.ndarray:
 
     Scalar in, float out; array in, float64 array of the same shape out.
     """
-    beta = EXTINCTION_COEF_PER_KM * np.power(np.asarray(rate_mm_h, dtype=np.float64), EXTINCTION_EXP)
+    beta = EXTINCTION_COEF_PER_KM * np.power(_rates(rate_mm_h), EXTINCTION_EXP)
     return float(beta) if beta.ndim == 0 else beta
 
 
-def visibility_km(rate_mm_h: float) -> float:
-    """Meteorological visibility V = 3.912 / beta in km (inf at rate 0)."""
-    beta = extinction_coefficient(rate_mm_h)
-    return math.inf if beta == 0 else VISIBILITY_CONTRAST_LN / beta
+def visibility_km(rate_mm_h: float | np.ndarray) -> float | np.ndarray:
+    """Meteorological visibility V = 3.912 / beta in km (inf at rate 0).
+
+    Scalar in, float out; array in, float64 array of the same shape out."""
+    beta = np.asarray(extinction_coefficient(rate_mm_h), dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        visibility = np.where(beta == 0, np.inf, VISIBILITY_CONTRAST_LN / beta)
+    return float(visibility) if visibility.ndim == 0 else visibility
 
 
 def frustum_volume_m3(K: np.ndarray, height: int, width: int, z_near_m: float, z_far_m: float) -> float:

@@ -2,7 +2,7 @@
 
 Pure numpy/OpenCV, no MuJoCo: :func:`weather_at` maps (base sky, rain rate) to a
 :class:`Weather`, every number of which is a documented law (docs/rain.md, "Weather that follows
-the rate"; sources in shared/rain-physics.md section 5). The generator applies the scene part of a
+the rate"; sources in docs/rain-physics.md section 5). The generator applies the scene part of a
 Weather to the MuJoCo model between renders (``rainbench.gen.weather``); the image part is
 applied here:
 
@@ -42,7 +42,7 @@ TIMES_OF_DAY = ("day", "dusk", "night")
 """Times of day a scene may have; every law below is the daytime one unless it says otherwise."""
 
 # -- base weathers --------------------------------------------------------------------------
-# Illuminance on the road (lux), typical values (rain-physics.md section 5): direct sun plus sky
+# Illuminance on the road (lux), typical values (docs/rain-physics.md section 5): direct sun plus sky
 # 32 000-100 000 lux; a bright cloudy day ~10 000; an overcast day ~1 000-3 000.
 BASE_ILLUMINANCE_LUX = {"clear": 50_000.0, "cloudy": 10_000.0, "overcast": 2_000.0}
 BASE_CLOUD_COVER = {"clear": 0.0, "cloudy": 0.8, "overcast": 1.0}
@@ -324,9 +324,10 @@ def weather_at(sky: str, rate_mm_h: float, follows_rate: bool = True,
     """
     sky = check_sky(sky)
     time_of_day = check_time_of_day(time_of_day)
-    rate = float(rate_mm_h) if follows_rate else 0.0
+    rate = float(rate_mm_h)  # checked whether or not the weather follows it
     if not (math.isfinite(rate) and rate >= 0):
         raise ValueError(f"rate_mm_h: expected a finite rate >= 0 mm/h, got {rate_mm_h!r}")
+    rate = rate if follows_rate else 0.0
     clearing = math.exp(-rate / CLOUD_RATE_MM_H)
     day_base_lux = BASE_ILLUMINANCE_LUX[sky]
     daylight, street = _metered_lux(sky, time_of_day, rate)

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .classes import parse_classes
 from .manifest import DatasetError, entry_problem, read_listing, unfinished_count
 from .rates import MissingRate, rate_decimal, rate_rows
 from .shard import open_checked, open_shard, read_frame_ignore, read_frame_labels, read_rgb, rgb_checksum
@@ -239,10 +240,20 @@ class Dataset:
                 raw.close()
         return digest.hexdigest()
 
-    def frames(self, classes: Sequence[int] | None = None) -> Iterator[Frame]:
+    def frames(self, classes: Sequence[int | str] | None = None) -> Iterator[Frame]:
         """Every frame at the selected rates (:class:`Frame`), in image-id order; with
-        ``classes``, only the labels and ignore regions of those class ids."""
-        keep_classes = None if classes is None else np.asarray(classes, np.int64)
+        ``classes`` (names or ids of labelled classes,
+        :func:`rainbench.store.classes.parse_classes`), only the labels and ignore regions of
+        those classes. An unknown class or an empty list is a one-line :class:`DatasetError`,
+        not frames without labels."""
+        keep_classes = None
+        if classes is not None:
+            if isinstance(classes, (str, bytes)) or not isinstance(classes, (Sequence, np.ndarray, set, frozenset)):
+                raise DatasetError(f"classes: expected a list of class names or ids, got {classes!r}")
+            try:
+                keep_classes = np.asarray(parse_classes(list(classes)), np.int64)
+            except ValueError as error:
+                raise DatasetError(str(error).replace("--classes: ", "classes: ", 1)) from None
         for image, handle in self.walk():
             rows = self._rows[image.shard_index]
             labels = read_frame_labels(handle, image.frame)

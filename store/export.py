@@ -285,7 +285,7 @@ def export_coco(data, out_dir, *, rates: Sequence[float] | None = None, images: 
     paths ``out_dir/rate_<token>.json`` (in rate order).
 
     - ``images``: ``id`` = rainbench image id (1-based, :class:`Dataset` numbering), ``file_name``
-      ``rate_<token>/images/<id:06d>.png`` relative to ``out_dir``, ``width``, ``height``,
+      ``rate_<token>/images/<id:06d>.<image_format>`` relative to ``out_dir``, ``width``, ``height``,
       ``shard`` (shard file path relative to the dataset directory), ``frame`` (index in it);
     - ``annotations``: ``id`` 1-based, ``image_id``, ``category_id`` = rainbench class id
       (COCO-80 index, 0 = person), ``bbox`` ``[x, y, w, h]`` from the shard's xyxy pixel-edge

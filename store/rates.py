@@ -83,8 +83,9 @@ def parse_rates(spec: str) -> tuple[float, ...]:
     Accepted forms:
 
     * ``"start:stop:step"`` -- inclusive range, e.g. ``"0:100:10"`` -> ``(0.0, 10.0, ..., 100.0)``.
-      The count is ``floor((stop - start) / step + 1e-9) + 1``, so ``"0:1:0.1"`` gives 11 values;
-      values are rounded to 10 decimals.
+      The count is ``floor(s + 1e-9 max(1, s)) + 1`` with ``s = (stop - start) / step`` (a
+      relative slack), so ``"0:1:0.1"`` gives 11 values; values are rounded to 10 decimals and
+      the last is at most ``stop``.
     * ``"a,b,c"`` -- explicit list, returned sorted ascending; duplicates are refused.
     * ``"r"`` -- a single rate.
 

@@ -171,6 +171,8 @@ class ShardWriter:
             self._tmp.unlink(missing_ok=True)
             raise
         # igzip drops the GIL: images of one frame are compressed on ``threads`` threads.
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+            raise ValueError(f"threads: expected an integer >= 1 or None, got {threads!r}")
         threads = threads or os.cpu_count() or 1
         self._pool = (ThreadPoolExecutor(max_workers=threads, thread_name_prefix="rainbench-deflate")
                       if threads > 1 else None)
@@ -230,9 +232,13 @@ class ShardWriter:
                     instance: np.ndarray | None = None, drop_count=None, ssim=None, psnr=None,
                     rain_coverage: np.ndarray | None = None,
                     contrast_loss: np.ndarray | None = None) -> None:
-        """Store frame ``index``: rgb_by_rate, its images in the order of ``rates``, an
-        (R, H, W, 3) uint8 array or a sequence of R (H, W, 3) uint8 arrays; per-rate statistics
-        (R,); per-box rain labels (R, M) for the M labels of the frame."""
+        """Store frame ``index`` (0..N-1): ``rgb_by_rate``, its images in the order of ``rates``,
+        an (R, H, W, 3) uint8 array or a sequence of R (H, W, 3) uint8 arrays; ``labels`` its M
+        labels; ``T_world_cam`` (4, 4) float camera pose (OpenCV axes); ``depth`` (H, W) float32
+        metres and ``instance`` (H, W) int32 where the shard stores them; per-rate statistics
+        ``drop_count``, ``ssim``, ``psnr`` (R,); per-box rain labels ``rain_coverage`` and
+        ``contrast_loss`` (R, M) float32 (None: zeros). A wrong shape is a one-line ValueError
+        here, not a shard its readers refuse."""
         f = self._file
         rgb = f["rgb"]
         num_rates, image_shape = self._rates.shape[0], rgb.shape[2:]
@@ -257,6 +263,8 @@ class ShardWriter:
                 f["depth"][index] = depth
             if "instance" in f:
                 f["instance"][index] = instance
+        if np.shape(T_world_cam) != (4, 4):
+            raise ValueError(f"T_world_cam: expected a (4, 4) pose, got {np.shape(T_world_cam)}")
         self._poses[index] = T_world_cam
         self._labels[index] = labels
         if drop_count is not None:
@@ -264,6 +272,10 @@ class ShardWriter:
             self._ssim[:, index] = ssim
             self._psnr[:, index] = psnr
         num_rates, num_boxes = self._rates.shape[0], len(labels)
+        for name, value in (("rain_coverage", rain_coverage), ("contrast_loss", contrast_loss)):
+            if value is not None and np.shape(value) != (num_rates, num_boxes):
+                raise ValueError(f"{name}: expected ({num_rates}, {num_boxes}) (rates, labels of frame "
+                                 f"{index}), got {np.shape(value)}")
         zeros = np.zeros((num_rates, num_boxes), dtype=np.float32)
         self._rain_box[index] = (
             zeros if rain_coverage is None else np.asarray(rain_coverage, np.float32),
@@ -532,10 +544,24 @@ def _check_frame_data(handle: h5py.File, path, num_rates: int, frames: int) -> N
                                    "(one per rate)")
 
 
+def _frame_rows(handle: h5py.File, group: str, frame: int) -> tuple[int, int]:
+    """(start, stop) rows of ``frame`` in ``/<group>``; an IndexError naming the file for a frame
+    outside 0..N-1 (a negative frame read ``offsets[-1]:offsets[0]``, an empty slice, before)."""
+    offsets = handle[f"{group}/offsets"]
+    frames = offsets.shape[0] - 1
+    if isinstance(frame, (bool, np.bool_)) or not isinstance(frame, (int, np.integer)) \
+            or not 0 <= frame < frames:
+        raise IndexError(f"{handle.filename}: frame {frame!r} is outside its {frames} frames "
+                         f"(expected an int in 0..{frames - 1})")
+    return int(offsets[frame]), int(offsets[frame + 1])
+
+
 def read_frame_labels(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
-    """Labels of ``frame`` as arrays (the keys of /labels, each sliced to that frame's rows)."""
-    offsets = handle["labels/offsets"]
-    start, stop = int(offsets[frame]), int(offsets[frame + 1])
+    """Labels of ``frame`` (an int in 0..N-1; else IndexError naming the file) as arrays: the
+    keys of /labels, each sliced to that frame's M rows (``bbox``, ``bbox_amodal`` (M, 4)
+    float32 xyxy pixel-edge; ``class_id``, ``instance_id`` (M,) int32; ``visible_fraction``,
+    ``truncation`` (M,) float32; ``rain_coverage``, ``contrast_loss`` (R, M) float32)."""
+    start, stop = _frame_rows(handle, "labels", frame)
     labels = {}
     for key in handle["labels"]:
         if key == "offsets":
@@ -558,10 +584,10 @@ def read_frame_ignore(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
     """Ignore regions of ``frame``: ``bbox`` (N, 4) float32 xyxy pixel-edge, ``class_id`` and
     ``instance_id`` (N,) int32 (:class:`~rainbench.store.labels.FrameLabels`). Shards written
     before ignore regions have none: every array is empty."""
+    _frame_rows(handle, "labels", frame)  # the same frame check with or without /ignore
     if "ignore" not in handle:
         return {key: np.zeros((0, width) if width else (0,), dtype) for key, dtype, width in _IGNORE_ARRAYS}
-    offsets = handle["ignore/offsets"]
-    start, stop = int(offsets[frame]), int(offsets[frame + 1])
+    start, stop = _frame_rows(handle, "ignore", frame)
     return {key: handle[f"ignore/{key}"][start:stop] for key, _, _ in _IGNORE_ARRAYS}
 
 

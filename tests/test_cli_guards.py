@@ -190,6 +190,13 @@ def test_ray_address_needs_the_ray_executor(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_workers_is_refused_with_the_ray_executor(tmp_path, capsys):
+    """``--executor ray --workers 8`` ran on Ray's own count, the flag silently ignored."""
+    code = _cli([*GENERATE, "--out", tmp_path / "out", "--executor", "ray", "--workers", "8"])
+    _one_line_error(capsys, code, re.escape("--workers: has no effect with --executor ray") + ".*leave it out")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("address", ["", ":6379", "http://head:6379", "head", "head:0", "head:99999", "ray://",
                                      "a b:1"])
 def test_a_ray_address_ray_cannot_take_is_refused_before_anything_is_written(tmp_path, capsys, address):

@@ -81,7 +81,7 @@ def test_visible_actors_the_filter_leaves_out_become_ignore_regions():
 
 
 def test_label_filter_rejects_bad_values():
-    with pytest.raises(ValueError, match="min_visible_fraction: expected 0..1"):
+    with pytest.raises(ValueError, match=r"min_visible_fraction: expected a number in 0\.\.1, got 1\.5"):
         lb.LabelFilter(min_visible_fraction=1.5)
 
 

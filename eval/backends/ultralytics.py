@@ -194,7 +194,8 @@ def _load_ultralytics(path: Path, class_map: str | None, device: str | None, tru
                     "Python's full unpickler runs code from the file; if you trust this file, "
                     f"pass --trust-pickle (or set {TRUST_PICKLE_ENV}=1)") from None
             print(f"rainbench: warning: loading {path} with Python's full unpickler (it pickles "
-                  f"{refused.name}; trusted by --trust-pickle): this runs code from the file",
+                  f"{refused.name}; trusted by --trust-pickle or {TRUST_PICKLE_ENV}=1): this runs code "
+                  "from the file",
                   file=sys.stderr)
             model = ultralytics.YOLO(str(path))
     except BackendError:

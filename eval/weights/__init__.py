@@ -238,6 +238,10 @@ def interpolate_checkpoints(base: str | Path, fine_tuned: str | Path, alpha: flo
     training arguments) is ``fine_tuned``'s, and ``interpolated`` records the two files' names
     and ``alpha``.
 
+    Both files are read with Python's full unpickler (``torch.load(weights_only=False)``), which
+    runs code from the file: unlike ``rainbench eval``'s safe loading (:mod:`rainbench.eval.backends`),
+    nothing is refused here, so pass only files you would run as code.
+
     Args:
         base, fine_tuned: shipped model names or ``.pt`` checkpoints of one architecture
             (``fine_tuned`` trained from ``base``: the interpolation is meaningless otherwise).
