@@ -17,6 +17,7 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from labelled_shards import write_labelled_shard
 from rainbench import ShardDataset, cli, store
 from rainbench.gen import dataset as ds
 from rainbench.gen.config import DatasetConfig
@@ -510,3 +511,26 @@ def test_other_tools_folders_in_out_neither_block_generate_nor_warn_in_verify(da
     stray.parent.mkdir()
     stray.write_bytes(b"x")
     assert store.unlisted_shards(out) == [stray]
+
+
+LABELLED = [[(2, 0, (10, 12, 40, 50), 1.0, 0.0), (0, 1, (60, 5, 70, 30), 0.3, 0.1)],
+            [(2, 0, (12, 12, 42, 50), 0.4, 0.0), (3, 2, (70, 40, 98, 79), 0.9, 0.2)]]
+
+
+def test_reader_serves_the_written_labels_and_filters_them(tmp_path):
+    """The rendered fixtures above hold no label at 96x72 (every actor is an ignore region
+    there), so the readers' boxes and filters are checked here on known labels: xyxy as written,
+    the class and visibility filters removing what they should."""
+    write_labelled_shard(tmp_path, LABELLED, rates=(0.0, 50.0))
+    reader = ShardReader(tmp_path, rates=[50])
+    cars = ShardReader(tmp_path, rates=[50], classes=[2], min_visible_fraction=0.5)
+    for frame, labels in enumerate(LABELLED):
+        _, target = reader.sample(frame)
+        np.testing.assert_array_equal(target["boxes"], [box for _, _, box, _, _ in labels])
+        assert target["labels"].tolist() == [c for c, *_ in labels]
+        np.testing.assert_allclose(target["visible_fraction"], [v for *_, v, _ in labels])
+        kept = [box for c, _, box, v, _ in labels if c == 2 and v >= 0.5]
+        np.testing.assert_array_equal(cars.sample(frame)[1]["boxes"].reshape(-1, 4), np.reshape(kept, (-1, 4)))
+    assert [len(cars.sample(f)[1]["boxes"]) for f in (0, 1)] == [1, 0]
+    _, target = ShardDataset(tmp_path, rates=[50])[1]
+    assert torch.equal(target["boxes"], torch.tensor([[12, 12, 42, 50], [70, 40, 98, 79]], dtype=torch.float32))

@@ -14,15 +14,35 @@ from rainbench.gen.dataset import run_dataset
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
 
+@pytest.fixture(scope="module")
+def reading_data(tmp_path_factory):
+    """2 frames at 96x72, 0 and 50 mm/h, of the residential street by day: its parked cars are
+    near enough to be labels at that size (the paper's street has none there)."""
+    root = tmp_path_factory.mktemp("reading")
+    run_dataset(DatasetConfig(frames=2, width=96, height=72, rates=(0.0, 50.0), layout="residential",
+                              time_of_day="day"), root / "data")
+    return root
+
+
 @pytest.mark.parametrize("index", [0, 1, 2, 3])
-def test_reading_examples_run(tmp_path, index, monkeypatch, capsys):
+def test_reading_examples_run(reading_data, index, monkeypatch, capsys):
     blocks = re.findall(r"```python\n(.*?)```", (DOCS / "reading.md").read_text(), re.S)
     assert len(blocks) == 4
-    run_dataset(DatasetConfig(frames=2, width=96, height=72, rates=(0.0, 50.0)), tmp_path / "data")
-    monkeypatch.chdir(tmp_path)
-    exec(compile(blocks[index], f"docs/reading.md block {index}", "exec"), {})
-    if index < 3:
-        assert capsys.readouterr().out.strip()
+    monkeypatch.chdir(reading_data)
+    names = {}
+    exec(compile(blocks[index], f"docs/reading.md block {index}", "exec"), names)
+    lines = capsys.readouterr().out.strip().splitlines()
+    if index == 0:  # the 4 images (2 frames x 2 rates) in one batch, labelled boxes
+        assert lines[0].startswith("torch.Size([4, 3, 72, 96]) torch.Size([") and len(lines) == 1
+    elif index == 1:  # cars at 50 mm/h
+        assert lines[0].startswith("2 (72, 96, 3) [[") and names["target"]["boxes"].shape[0] > 0
+        assert set(names["target"]["labels"].tolist()) == {2}
+    elif index == 2:
+        assert len(lines) == 2 and all("(72, 96, 3)" in line for line in lines)
+        assert sum(int(re.search(r"\((\d+), 4\)", line).group(1)) for line in lines) > 0
+    else:
+        assert names["image"].shape == (72, 96, 3) and names["boxes"].shape[1:] == (4,)
+        assert len(names["boxes"]) == len(names["classes"]) > 0
 
 
 def _docs_script(name):

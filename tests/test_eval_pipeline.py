@@ -83,7 +83,7 @@ def test_rate_token_is_the_shortest_decimal(rate, token):
 
 @pytest.mark.parametrize("rate", [-1.0, math.nan, math.inf])
 def test_rate_token_rejects_bad_rates(rate):
-    with pytest.raises(ValueError, match="rate"):
+    with pytest.raises(ValueError, match=rf"^rate: expected a finite rate >= 0 mm/h, got {rate!r}$"):
         pipeline.rate_token(rate)
 
 

@@ -98,9 +98,15 @@ def files_under(root):
 
 @pytest.fixture(scope="module")
 def shard_bytes(tmp_path_factory):
-    """A small rendered shard (3 frames, 96 x 72, 0 and 50 mm/h; frames 1 and 2 hold a label)."""
+    """A small rendered shard (3 frames, 96 x 72, 0 and 50 mm/h) of the residential street by
+    day, whose parked cars are near enough to be labels at that size (the paper's street had
+    none: every label-value example was thrown away)."""
     root = tmp_path_factory.mktemp("fuzz-source")
-    path = generate_shard(GenerateConfig(frames=3, width=96, height=72, rates=(0.0, 50.0)), root)
+    # the residential street: its parked cars are near enough to label at 96x72
+    path = generate_shard(GenerateConfig(frames=3, width=96, height=72, rates=(0.0, 50.0),
+                                         layout="residential", time_of_day="day"), root)
+    with h5py.File(path) as handle:
+        assert handle["labels/offsets"][-1] > 0  # the label-value examples need labels to change
     return _Blob(path.read_bytes())
 
 
@@ -317,11 +323,16 @@ PREDICTION_FILES = st.one_of(
 )
 
 
+VALID_PREDICTIONS = (b'[{"image_id": 1, "category_id": 0, "bbox": [0, 0, 1, 1], "score": 0.5}, '
+                     b'{"image_id": 2, "category_id": 2, "bbox": [5, 5, 10, 10], "score": 0.25}]')
+
+
 @FUZZ
 @given(PREDICTION_FILES)
 @example(b'[{"image_id": 1, "category_id": 0, "bbox": [0, 0, 1, 1], "score": 1' + b"0" * 400 + b"}]")
 @example(b'[{"image_id": 1, "category_id": 0, "bbox": "1234", "score": 1}]')
 @example(b"[" * 200_000)
+@example(VALID_PREDICTIONS)
 def test_predictions_loader(content):
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "rate_0.json"
@@ -332,6 +343,9 @@ def test_predictions_loader(content):
             message = str(error)
             assert "\n" not in message and str(path) in message, message
             return
+    if content == VALID_PREDICTIONS:  # the success branch runs at least once, on a known answer
+        assert [(r["image_id"], r["category_id"], list(r["bbox"]), r["score"]) for r in records] == \
+            [(1, 0, [0, 0, 1, 1], 0.5), (2, 2, [5, 5, 10, 10], 0.25)]
     for record in records:
         assert record["image_id"] in {1, 2, 3} and record["category_id"] in (0, 1, 2, 3)
         assert len(record["bbox"]) == 4 and all(math.isfinite(v) for v in record["bbox"])
@@ -376,6 +390,9 @@ def manifests(draw, valid):
             else:
                 manifest["shards"].append(dict(entry))
     text = json.dumps(manifest)
+    if draw(st.booleans()):  # half the examples: a well-formed manifest (path edits only)
+        return json.dumps(valid | {"shards": [dict(entry, path=draw(_PATHS)) if draw(st.booleans()) else entry
+                                              for entry in valid["shards"]]})
     cut = draw(st.one_of(st.none(), st.integers(0, len(text))))
     return text if cut is None else text[:cut]
 

@@ -316,6 +316,7 @@ def test_same_seed_same_bytes_across_layouts():
                                                                  duration=2.0))]
         again = [f.rgb.copy() for _, f, _ in render_clip(_config(name, seed=3, frames=2,
                                                                  duration=2.0))]
+        assert len(first) == len(again) == 2
         assert all(np.array_equal(a, b) for a, b in zip(first, again))
 
 

@@ -75,7 +75,7 @@ def test_sky_has_infinite_depth(make_tiny_scene):
     model, table = make_tiny_scene([((10.0, 0.0, 1.0), (0.5, 0.5, 0.5))], W, H)
     _, _, _, depth, _, geometry, _ = _render_labels(model, table)
     assert not geometry[0].any() and geometry[-1].all()  # top row sky, bottom row ground
-    assert np.isfinite(depth[-1]).all()
+    assert np.isposinf(depth[~geometry]).all() and np.isfinite(depth[geometry]).all()
 
 
 def test_missing_gl_backend_names_the_packages():

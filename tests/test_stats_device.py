@@ -148,7 +148,9 @@ def test_device_flag_values(monkeypatch):
     monkeypatch.setattr(gc, "Path", NoGpuPath)
     assert stats_device_for(None) == "cpu" and stats_device_for("auto") == "cpu"
     monkeypatch.setattr(gc, "Path", lambda text: Path("/"))  # "/" exists: torch is asked
-    assert stats_device_for("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    for seen, expected in ((True, "cuda"), (False, "cpu")):
+        monkeypatch.setattr(torch.cuda, "is_available", lambda seen=seen: seen)
+        assert stats_device_for("auto") == stats_device_for(None) == expected
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error of a machine without CUDA")

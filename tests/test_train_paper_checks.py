@@ -225,11 +225,16 @@ def test_train_refuses_bad_recipe_values_before_generating(tmp_path, capsys, old
 
 
 def test_recipes_keep_what_ultralytics_accepts(tmp_path):
-    for old, new in (("batch: 4", "batch: -1"), ("batch: 4", "batch: 0.7"),
-                     ("cpu: {epochs: 1, imgsz: 64}", "cpu: {epochs: 1, imgsz: 64, restarts: [{lr0: 0.0}]}")):
-        train.load_recipe(_recipe(tmp_path, old, new))
+    """ultralytics' automatic batch (-1), a batch as a share of GPU memory (0.7) and a restart at
+    a zero learning rate reach the stages' train() arguments as written."""
+    for old, new, stages in (
+            ("batch: 4", "batch: -1", [(-1, None)]), ("batch: 4", "batch: 0.7", [(0.7, None)]),
+            ("cpu: {epochs: 1, imgsz: 64}", "cpu: {epochs: 1, imgsz: 64, restarts: [{lr0: 0.0}]}",
+             [(4, None), (4, 0.0)])):
+        recipe = train.load_recipe(_recipe(tmp_path, old, new))
+        assert [(stage["batch"], stage.get("lr0")) for stage in recipe.stages(cuda=False)] == stages
     for name in ("rainbench-yolo11n", "rainbench-yolo11s", "rainbench-yolo11n-weak"):
-        train.load_recipe(name)
+        assert train.load_recipe(name).stages(cuda=False)
 
 
 # ---- rainbench paper ----------------------------------------------------------------------------
