@@ -1084,6 +1084,13 @@ def test_pt_files_load_safely_and_an_unsafe_one_needs_trust(tmp_path, monkeypatc
     assert marker.exists()  # the trusted, unsafe path is the full unpickler
     assert (f"rainbench: warning: loading {evil} with Python's full unpickler (it pickles posix.mkdir; "
             "trusted by --trust-pickle): this runs code from the file") in capsys.readouterr().err.splitlines()
+    marker.rmdir()
+    monkeypatch.setenv("RAINBENCH_TRUST_PICKLE", "1")  # trusted by the environment: the warning says so
+    with pytest.raises(backends.BackendError, match="is not a loadable ultralytics checkpoint"):
+        backends.load_detector(evil, device="cpu")
+    assert marker.exists()
+    assert (f"rainbench: warning: loading {evil} with Python's full unpickler (it pickles posix.mkdir; "
+            "trusted by RAINBENCH_TRUST_PICKLE=1): this runs code from the file") in capsys.readouterr().err.splitlines()
 
 
 def test_render_threads_reach_the_one_worker_run_and_ray_tasks(tmp_path, monkeypatch):

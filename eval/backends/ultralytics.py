@@ -173,8 +173,9 @@ def _load_ultralytics(path: Path, class_map: str | None, device: str | None, tru
     """An :class:`UltralyticsDetector` for the checkpoint ``path``, read safely (full unpickler
     only when ``trust_pickle``; None: the :data:`TRUST_PICKLE_ENV` environment variable).
     ``trained``: the classes its card names (None: unknown), the only ones it is taken to predict."""
+    trusted_by = "--trust-pickle"
     if trust_pickle is None:
-        trust_pickle = os.environ.get(TRUST_PICKLE_ENV, "") == "1"
+        trust_pickle, trusted_by = os.environ.get(TRUST_PICKLE_ENV, "") == "1", f"{TRUST_PICKLE_ENV}=1"
     try:
         other = _not_a_checkpoint(path)
     except OSError as error:
@@ -194,8 +195,7 @@ def _load_ultralytics(path: Path, class_map: str | None, device: str | None, tru
                     "Python's full unpickler runs code from the file; if you trust this file, "
                     f"pass --trust-pickle (or set {TRUST_PICKLE_ENV}=1)") from None
             print(f"rainbench: warning: loading {path} with Python's full unpickler (it pickles "
-                  f"{refused.name}; trusted by --trust-pickle or {TRUST_PICKLE_ENV}=1): this runs code "
-                  "from the file",
+                  f"{refused.name}; trusted by {trusted_by}): this runs code from the file",
                   file=sys.stderr)
             model = ultralytics.YOLO(str(path))
     except BackendError:
