@@ -16,6 +16,7 @@ Every user-facing failure is an :class:`EvalError` (a ValueError) with a one-lin
 from __future__ import annotations
 
 import contextlib
+import inspect
 import json
 import math
 import os
@@ -430,6 +431,15 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     class_ids = _check_settings(predictions_dir, weights, imgsz=imgsz, batch=batch, max_det=max_det,
                                 n_boot=n_boot, conf=conf, iou=iou, report_conf=report_conf, classes=classes,
                                 metrics=metrics, pt_backend=pt_backend, workers=workers)
+    if predictions_dir is not None:  # as the CLI refuses their flags: not silently ignored
+        settings = dict(imgsz=imgsz, batch=batch, conf=conf, iou=iou, max_det=max_det, class_map=class_map,
+                        device=device, force=force, trust_pickle=trust_pickle, pt_backend=pt_backend,
+                        workers=workers)
+        defaults = inspect.signature(run_eval).parameters
+        for name, value in settings.items():
+            if value != defaults[name].default:
+                raise EvalError(f"{name}: has no effect with predictions_dir (detections are read from "
+                                f"its files, not inferred); leave it at {defaults[name].default!r}")
     dataset = open_dataset(data_dir)
     if not isinstance(targets, TargetFilter):
         raise EvalError(f"targets: expected a TargetFilter, got {type(targets).__name__}")
@@ -506,11 +516,16 @@ def _check_settings(predictions_dir, weights, *, imgsz, batch, max_det, n_boot, 
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
         raise EvalError(f"--workers: expected an integer >= 0, got {workers!r}")
     for name, value in (("--imgsz", imgsz), ("--batch", batch), ("--max-det", max_det), ("n_boot", n_boot)):
-        if value is not None and int(value) < 1:
+        if value is None:
+            continue
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise EvalError(f"{name}: expected an integer >= 1, got {value!r}")
+        if value < 1:
             raise EvalError(f"{name}: expected >= 1, got {value}")
     for name, value in (("--conf", conf), ("--iou", iou), ("--report-conf", report_conf)):
-        if not 0.0 <= float(value) <= 1.0:
-            raise EvalError(f"{name}: expected a value in [0, 1], got {value}")
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                or not 0.0 <= float(value) <= 1.0:
+            raise EvalError(f"{name}: expected a value in [0, 1], got {value!r}")
     try:
         return PAPER_CLASSES if classes is None else parse_classes(classes)
     except ValueError as error:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import importlib.util
 import json
 import multiprocessing
 import os
@@ -229,6 +230,8 @@ def run_dataset(config: DatasetConfig, out: str | Path, *, workers: int = 1,
         raise DatasetError(f"executor: expected one of {', '.join(EXECUTORS)}, got {executor!r}")
     if executor == "ray":
         check_ray_address(ray_address)
+        if "ray" not in sys.modules and importlib.util.find_spec("ray") is None:  # before OUT is made
+            raise DatasetError("executor ray: Ray is not installed; pip install 'rainbench[ray]'")
     if not (is_int(workers) and workers >= 1):
         raise DatasetError(f"WORKERS: expected an integer >= 1, got {workers!r}")
     if threads is not None and not (is_int(threads) and threads >= 1):

@@ -236,6 +236,9 @@ def verify_dataset(root: str | Path, images: bool = False) -> list[str]:
     the other checks is decoded as well (:func:`undecodable_problem`): a chunk damaged in a file
     whose manifest was rewritten to match passes the sha256, not this."""
     root = Path(root)
+    if not root.is_dir():  # not "root/manifest.json: missing" for a folder that is not there
+        return [f"{root}: " + ("not a dataset folder (a file; a dataset is a folder with "
+                               f"{MANIFEST})" if root.exists() else "no such dataset folder")]
     manifest = read_manifest(root)
     if manifest is None:
         return [f"{root / MANIFEST}: missing"]

@@ -35,6 +35,14 @@ def montage(images: np.ndarray, rates: np.ndarray, columns: int | None = None,
     if isinstance(tile_width, bool) or not isinstance(tile_width, (int, np.integer)) or tile_width < 1:
         raise ValueError(f"tile_width: expected a positive integer of pixels, got {tile_width!r}")
     count, height, width = images.shape[:3]
+    if count == 0:
+        raise ValueError("images: expected at least one image, got none (R = 0)")
+    if columns is not None and (isinstance(columns, bool) or not isinstance(columns, (int, np.integer))
+                                or columns < 1):
+        raise ValueError(f"columns: expected a positive integer or None (up to 4), got {columns!r}")
+    if boxes is not None and (class_ids is None or len(class_ids) != len(boxes)):
+        got = "none" if class_ids is None else f"{len(class_ids)} for {len(boxes)} boxes"
+        raise ValueError(f"class_ids: expected one class id per box with boxes, got {got}")
     columns = columns or min(4, count)
     rows = math.ceil(count / columns)
     scale = tile_width / width

@@ -36,7 +36,8 @@ def write_videos(data, out_dir, *, rates: Sequence[float] | None = None, boxes: 
     if len(sizes) != 1:
         raise ExportError(f"{data}: shards have different image sizes {sorted(sizes)}; one "
                           "video needs one size")
-    if not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):
+    if isinstance(fps, (bool, np.bool_)) or not (isinstance(fps, (int, float, np.integer, np.floating))
+                                                 and np.isfinite(fps) and fps > 0):
         raise ExportError(f"fps: expected a number > 0, got {fps!r}")
     (width, height), = sizes
     out_dir = Path(out_dir)

@@ -108,3 +108,67 @@ def test_the_documented_range_count_is_the_code_s():
     """The docstring's ``floor((stop - start) / step + 1e-9) + 1`` gave 1000 here, the code 1001."""
     span = 1000 / 1.0000000005
     assert len(parse_rates("0:1000:1.0000000005")) == int(np.floor(span + 1e-9 * max(1.0, span))) + 1 == 1001
+
+
+def test_previews_and_videos_check_what_they_are_given(tmp_path):
+    """R = 0 divided by zero, ``columns=0`` became 4, boxes without class ids raised a TypeError,
+    and a numpy fps (what a shard's attribute reads as) was refused."""
+    from rainbench.store.preview import montage  # noqa: PLC0415
+    from rainbench.store.video import write_videos  # noqa: PLC0415
+
+    images, rates = np.zeros((2, 24, 32, 3), np.uint8), np.array([0.0, 50.0])
+    with pytest.raises(ValueError, match=r"images: expected at least one image, got none \(R = 0\)"):
+        montage(images[:0], rates[:0])
+    with pytest.raises(ValueError, match=r"columns: expected a positive integer or None \(up to 4\), got 0"):
+        montage(images, rates, columns=0)
+    with pytest.raises(ValueError, match=r"class_ids: expected one class id per box with boxes, got none"):
+        montage(images, rates, boxes=np.array([[1, 1, 5, 5]]))
+    assert montage(images, rates, columns=1, tile_width=32).shape == (48, 32, 3)
+    path = write_labelled_shard(tmp_path / "data", FRAMES)
+    videos = write_videos(path, tmp_path / "videos", fps=np.float32(10))
+    assert [video.name for video in videos] == ["rate_0.mp4"] and videos[0].stat().st_size > 0
+
+
+def test_detections_must_be_finite_and_verify_names_a_missing_folder(tmp_path):
+    from rainbench.eval.metrics.coco import coco_detections  # noqa: PLC0415
+
+    with pytest.raises(ValueError, match=r"boxes/scores of image 3: expected finite values, got NaN or inf"):
+        coco_detections(3, np.array([[0, 0, np.nan, 5]]), np.array([0.5]), np.array([2]))
+    assert coco_detections(3, np.array([[0, 0, 4, 5]]), np.array([0.5]), np.array([2]))[0]["bbox"] == [0, 0, 4, 5]
+    assert store.verify_dataset(tmp_path / "nothing") == [f"{tmp_path / 'nothing'}: no such dataset folder"]
+    shard = write_labelled_shard(tmp_path / "data", FRAMES)
+    assert store.verify_dataset(shard) == [f"{shard}: not a dataset folder (a file; a dataset is a folder "
+                                           "with manifest.json)"]
+
+
+def test_run_eval_refuses_inference_settings_it_would_ignore(tmp_path):
+    """With predictions_dir, the detector settings did nothing, silently (the CLI refused their
+    flags, the function did not); a batch of "32x" raised int()'s own message."""
+    from rainbench.eval.pipeline import EvalError, run_eval  # noqa: PLC0415
+
+    for settings, message in (({"batch": 16}, r"batch: has no effect with predictions_dir .* leave it at 32"),
+                              ({"device": "cpu"}, r"device: has no effect with predictions_dir"),
+                              ({"force": True}, r"force: has no effect with predictions_dir")):
+        with pytest.raises(EvalError, match=message):
+            run_eval(tmp_path / "data", tmp_path / "out", predictions_dir=tmp_path / "preds", **settings)
+    with pytest.raises(EvalError, match=r"^--batch: expected an integer >= 1, got '32x'$"):
+        run_eval(tmp_path / "data", tmp_path / "out", weights=["m.pt"], batch="32x")
+    with pytest.raises(EvalError, match=r"^--conf: expected a value in \[0, 1\], got 'high'$"):
+        run_eval(tmp_path / "data", tmp_path / "out", weights=["m.pt"], conf="high")
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_ray_executor_without_ray_writes_nothing(tmp_path, monkeypatch):
+    """The missing Ray was found after OUT was made: an empty dataset folder was left behind."""
+    import importlib.util  # noqa: PLC0415
+
+    from rainbench.gen import dataset as ds  # noqa: PLC0415
+
+    import sys  # noqa: PLC0415
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.delitem(sys.modules, "ray", raising=False)  # as in a process that never imported it
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *args: None if name == "ray" else find_spec(name, *args))
+    with pytest.raises(ds.DatasetError, match=r"^executor ray: Ray is not installed; pip install 'rainbench\[ray\]'$"):
+        ds.run_dataset(DatasetConfig(frames=1, width=32, height=24), tmp_path / "out", executor="ray")
+    assert not (tmp_path / "out").exists()

@@ -113,6 +113,28 @@ def test_onnx_boxes_back_in_the_original_frame(tmp_path, layout, dynamic):
             detector.predict([_image()], imgsz=320, conf=0.25, iou=0.7, max_det=300)
 
 
+def test_an_onnx_model_on_a_cuda_device_is_refused_without_the_cuda_provider(tmp_path, monkeypatch):
+    """``--device cuda`` ran an explicit .onnx on the CPU without a word (the CPU wheel has no CUDA
+    provider), and ``cuda:1`` would have run on GPU 0."""
+    import onnxruntime  # noqa: PLC0415
+    path = _export(ConstantHead(_head_rows(1.0, (0.0, 0.0), 80, objectness=False).T), tmp_path / "m.onnx",
+                   (640, 640), True)
+    assert "CUDAExecutionProvider" not in onnxruntime.get_available_providers()  # the CPU wheel here
+    for device in ("cuda", "cuda:1", "0"):
+        with pytest.raises(backends.BackendError, match=rf"^--device {device}: .*m\.onnx is an ONNX model and "
+                                                        r"this onnxruntime has no CUDA provider"):
+            backends.load_detector(path, device=device)
+    assert backends.load_detector(path, device="cpu").name == "m"
+    # where the provider exists, the device's index reaches it
+    seen = []
+    monkeypatch.setattr(onnxruntime, "get_available_providers", lambda: ["CUDAExecutionProvider", "CPUExecutionProvider"])
+    real = onnxruntime.InferenceSession
+    monkeypatch.setattr(onnxruntime, "InferenceSession", lambda model, options, providers: (
+        seen.append(providers), real(model, options, providers=["CPUExecutionProvider"]))[1])
+    backends.load_detector(path, device="cuda:1")
+    assert seen == [[("CUDAExecutionProvider", {"device_id": 1}), "CPUExecutionProvider"]]
+
+
 def test_onnx_names_metadata_and_class_map(tmp_path):
     names = ["pedestrian", "auto", "bike", "truck"]
     rows = _head_rows(1.0, (0.0, 0.0), 4, objectness=False)

@@ -185,9 +185,14 @@ def _load_onnx(path: Path, class_map: str | None, device: str | None,
         import onnxruntime
     except ImportError:
         raise BackendError(f"--weights: {path}: ONNX models need onnxruntime (pip install onnxruntime)") from None
-    providers = ["CPUExecutionProvider"]
-    if device not in (None, "cpu") and "CUDAExecutionProvider" in onnxruntime.get_available_providers():
-        providers.insert(0, "CUDAExecutionProvider")
+    providers: list = ["CPUExecutionProvider"]
+    if device not in (None, "cpu"):  # a CUDA device, as --device names it: "0", "cuda", "cuda:1"
+        if "CUDAExecutionProvider" not in onnxruntime.get_available_providers():
+            raise BackendError(f"--device {device}: {path} is an ONNX model and this onnxruntime has no "
+                               "CUDA provider (the CPU wheel rainbench installs); use --device cpu, or "
+                               "install onnxruntime-gpu")
+        index = str(device).rsplit(":", 1)[-1]
+        providers.insert(0, ("CUDAExecutionProvider", {"device_id": int(index) if index.isdigit() else 0}))
     options = onnxruntime.SessionOptions()
     options.log_severity_level = 3
     # No busy-waiting between operators: beside the run's decoding threads (or another process)

@@ -220,6 +220,9 @@ def coco_detections(
         )
     if not np.issubdtype(class_ids.dtype, np.integer):
         raise ValueError(f"class_ids: expected an integer array, got dtype {class_ids.dtype}")
+    if not (np.isfinite(boxes).all() and np.isfinite(scores).all()):
+        raise ValueError(f"boxes/scores of image {image_id}: expected finite values, got NaN or inf "
+                         "(a detector's broken output)")
     if np.any((boxes[:, 2] < boxes[:, 0]) | (boxes[:, 3] < boxes[:, 1])):
         raise ValueError("boxes: expected x1 <= x2 and y1 <= y2 (xyxy), got a box with x2 < x1 or y2 < y1")
     xywh = np.concatenate([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], axis=1)
