@@ -265,6 +265,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     With ``progress``, progress bars and, as each phase ends, its wall time
     (``paper: generate jeon2022: 14.2 s``) go to stderr."""
     from rainbench.eval.backends import check_model_classes, load_detector
+    from rainbench.eval.backends.onnx import onnx_cuda_device
     from rainbench.eval.backends.ultralytics import preload_torch
     from rainbench.eval.weights import resolve_weights
 
@@ -274,6 +275,11 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     # every model and the device are checked before anything is generated
     check_device(config.device)
     check_models([("--weights", spec) for spec in config.weights])
+    if str(config.device or "cpu").strip().lower() != "cpu":  # an ONNX model on a GPU needs
+        for spec in config.weights:                            # onnxruntime's CUDA provider
+            path = resolve_weights(spec, config.device)[0]
+            if path.suffix.lower() == ".onnx":
+                onnx_cuda_device(path, config.device)
     out_dir, data_root = Path(out_dir), Path(data_root)
     class_ids = PAPER_CLASSES if config.classes is None else parse_classes(config.classes)
     if config.classes is not None:  # a model that cannot predict a requested class fails before generating

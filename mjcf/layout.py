@@ -752,29 +752,33 @@ class _Builder:
                     if test(footprint, self.building_footprints[index]):
                         yield index
 
-    def add_tree(self, trunk: tuple[float, float], first_crown_prop: int) -> None:
-        """Record a tree whose crown is ``self.props[first_crown_prop:]`` (for
+    def add_tree(self, first_crown_prop: int) -> None:
+        """Record a tree whose trunk (a cylinder) is ``self.props[first_crown_prop - 1]`` and whose
+        crown, its main ellipsoid first, is ``self.props[first_crown_prop:]`` (for
         :meth:`_fit_tree_crowns`)."""
-        self._trees.append(((float(trunk[0]), float(trunk[1])),
-                            list(range(first_crown_prop, len(self.props)))))
+        self._trees.append((first_crown_prop - 1, list(range(first_crown_prop, len(self.props)))))
 
     def _fit_tree_crowns(self) -> None:
         """Keep every tree's crown out of the buildings (they are placed in any order: the
-        junction's cross streets plant their trees first). A crown that would reach into a wall
-        below the building's top is narrowed about its trunk (its parts' horizontal sizes and
-        offsets scaled alike, down to :data:`TREE_CROWN_MIN_WIDTH`), as street trees are pruned
-        along facades, and where that is not enough leans away from the nearest wall, by at most
-        :data:`TREE_CROWN_MAX_LEAN_M`. No draws: the rest of the layout is unchanged."""
-        for trunk, indices in self._trees:
+        junction's cross streets plant their trees first). A crown that would reach within
+        :data:`TREE_FACADE_CLEARANCE_M` of a wall below the building's top leans away from it
+        (towards the street's light), by at most :data:`TREE_CROWN_MAX_LEAN_M` and never so far
+        that the trunk's top leaves the crown, and where that is not enough is narrowed about
+        its trunk (its parts' horizontal sizes and offsets scaled alike, down to
+        :data:`TREE_CROWN_MIN_WIDTH`), as street trees are pruned along facades
+        (:func:`_crown_fit`). No draws: the rest of the layout is unchanged."""
+        for trunk_index, indices in self._trees:
+            trunk_prop = self.props[trunk_index]
+            trunk = (trunk_prop.pos[0], trunk_prop.pos[1])
             parts = [self.props[index] for index in indices]
             reach = max(math.hypot(part.pos[0] - trunk[0], part.pos[1] - trunk[1]) + part.size[0]
-                        for part in parts) + TREE_FACADE_CLEARANCE_M
+                        for part in parts) + TREE_FACADE_CLEARANCE_M + TREE_CROWN_MAX_LEAN_M
             area = ((trunk[0], trunk[1]), (reach, reach), 0.0)
             near = list(self._rectangles_near(area, lambda a, b: _rectangles_overlap(a, b, 0.0)))
             if not near:
                 continue
             walls = [(self.building_footprints[index], self.building_tops[index]) for index in near]
-            scale, shift = _crown_fit(trunk, parts, walls)
+            scale, shift = _crown_fit(trunk, parts, walls, _trunk_top(trunk_prop))
             if scale == 1.0 and shift == (0.0, 0.0):
                 continue
             for index, part in zip(indices, parts):
@@ -956,7 +960,7 @@ def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
         crown("tree_crown", "ellipsoid", (radius, radius, half_height), (0.0, 0.0, top))
         crown("tree_lobe", "sphere", (0.75 * radius,),
               (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), top + 0.6 * half_height))
-        builder.add_tree((x, y), first_crown_prop)
+        builder.add_tree(first_crown_prop)
         return
     trunk = rng.uniform(1.45, 1.9)
     radius, half_height = rng.uniform(1.6, 2.1), rng.uniform(1.9, 2.4)
@@ -970,7 +974,7 @@ def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
         crown("tree_lobe", "sphere", (rng.uniform(0.55, 0.75) * radius,),
               (reach * math.cos(angle), reach * math.sin(angle),
                centre + rng.uniform(-0.35, 0.3) * half_height))
-    builder.add_tree((x, y), first_crown_prop)
+    builder.add_tree(first_crown_prop)
 
 
 POLE_SPACING_M = 0.5
@@ -1122,24 +1126,46 @@ def _crown_intrusion(trunk, parts, walls, scale: float, shift) -> tuple[float, t
     return worst, away
 
 
-def _crown_fit(trunk, parts, walls) -> tuple[float, tuple[float, float]]:
-    """How to keep the crown ``parts`` of the tree at ``trunk`` out of ``walls`` ((footprint,
-    top) pairs, see :func:`_crown_intrusion`): the widest narrowing ``scale`` in
-    [:data:`TREE_CROWN_MIN_WIDTH`, 1] (in steps of 0.05) for which leaning away from the walls
-    by at most :data:`TREE_CROWN_MAX_LEAN_M` clears them, and that lean (dx, dy); the narrowest
+def _trunk_top(trunk: Prop) -> tuple[float, float]:
+    """(height, radius) of the top of a tree's trunk, a vertical cylinder."""
+    return trunk.pos[2] + trunk.size[1], trunk.size[0]
+
+
+def _lean_limit(parts, trunk_top: tuple[float, float] | None, scale: float) -> float:
+    """How far the crown ``parts`` narrowed by ``scale`` may lean off its trunk: at most
+    :data:`TREE_CROWN_MAX_LEAN_M`, and no further than keeps the trunk's top (``trunk_top``:
+    height, radius) inside the main crown (``parts[0]``, an ellipsoid) at that height, 5 cm
+    clear."""
+    if trunk_top is None:
+        return TREE_CROWN_MAX_LEAN_M
+    height, radius = trunk_top
+    crown = parts[0]
+    half_height = crown.size[2] if crown.shape == "ellipsoid" else crown.size[0]
+    below = (crown.pos[2] - height) / half_height
+    half_width = scale * crown.size[1 if crown.shape == "ellipsoid" else 0] * math.sqrt(max(0.0, 1.0 - below ** 2))
+    return max(0.0, min(TREE_CROWN_MAX_LEAN_M, half_width - radius - 0.05))
+
+
+def _crown_fit(trunk, parts, walls, trunk_top: tuple[float, float] | None = None
+               ) -> tuple[float, tuple[float, float]]:
+    """How to keep the crown ``parts`` (the main ellipsoid first) of the tree at ``trunk`` out of
+    ``walls`` ((footprint, top) pairs, see :func:`_crown_intrusion`): the widest narrowing
+    ``scale`` in [:data:`TREE_CROWN_MIN_WIDTH`, 1] (in steps of 0.05) for which leaning away from
+    the walls, by at most :func:`_lean_limit` (1 m, and the trunk's top, ``trunk_top``
+    (height, radius), kept inside the crown), clears them, and that lean (dx, dy); the narrowest
     with the longest lean where none does. (1.0, (0, 0)) when the crown is clear."""
     steps = round((1.0 - TREE_CROWN_MIN_WIDTH) / 0.05)
     for step in range(steps + 1):
         scale, shift = 1.0 - 0.05 * step, (0.0, 0.0)
+        limit = _lean_limit(parts, trunk_top, scale)
         for _ in range(4):  # lean out of the deepest wall; a corner can take a second push
             intrusion, (dx, dy) = _crown_intrusion(trunk, parts, walls, scale, shift)
             if intrusion <= 0.0:
                 return scale, shift
             shift = (shift[0] + dx * (intrusion + 1e-3), shift[1] + dy * (intrusion + 1e-3))
             length = math.hypot(*shift)
-            if length > TREE_CROWN_MAX_LEAN_M:
-                shift = (shift[0] * TREE_CROWN_MAX_LEAN_M / length,
-                         shift[1] * TREE_CROWN_MAX_LEAN_M / length)
+            if length > limit:
+                shift = (0.0, 0.0) if length == 0.0 else (shift[0] * limit / length, shift[1] * limit / length)
                 if step < steps:
                     break  # narrower, then
     return scale, shift

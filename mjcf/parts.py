@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
@@ -497,6 +498,7 @@ this share of the leg (hip to ankle) from the ankle: the knee still bent by abou
 the bottom, as a bicycle fitter sets it."""
 
 
+@lru_cache(maxsize=1024)  # a rider's is asked at every physics step (riding_pose): 90 us a time
 def saddle_height(vehicle_style: str, build: PersonBuild | None = None) -> float:
     """Height (m) of the saddle (seat) surface of ``vehicle_style`` for a rider of ``build``
     (default adult): a motorcycle's is its style's (:data:`RIDER_FITS`); a bicycle's is set for
@@ -664,8 +666,10 @@ def add_bicycle(body, prefix: str, frame_colour: tuple[float, float, float],
     local = [(x - bb[0], z - bb[1]) for x, z in (_PEDAL_BACK, _PEDAL_FRONT)]
     _tube(crankset, f"{prefix}crank", _xz(local[0]), _xz(local[1]), 0.012, METAL)
     for (px, pz), side, tag in ((local[1], 1, "l"), (local[0], -1, "r")):
-        _geom(crankset, f"{prefix}pedal_{tag}", GEOM.mjGEOM_BOX, [0.045, 0.045, 0.012], TRIM,
-              pos=[px, side * 0.1, pz])
+        # round about the pedal axle (y): it looks the same at every crank angle, as a pedal that
+        # stays level under the foot does, with no joint of its own
+        _geom(crankset, f"{prefix}pedal_{tag}", GEOM.mjGEOM_CYLINDER, [0.02, 0.045], TRIM,
+              pos=[px, side * 0.1, pz], quat=Y_AXIS_QUAT)
     if road:
         stem_end = (0.50, 0.88)
         _tube(body, f"{prefix}stem", _xz(head_top), _xz(stem_end), 0.016, METAL)

@@ -54,8 +54,10 @@ def _rates(rate_mm_h: float | np.ndarray) -> np.ndarray:
     """``rate_mm_h`` as float64 if every rate is finite and >= 0 mm/h; else a one-line ValueError
     (a negative rate gave NaN, silently)."""
     rate = np.asarray(rate_mm_h, dtype=np.float64)
-    if not (np.all(np.isfinite(rate)) and np.all(rate >= 0)):
-        raise ValueError(f"rate_mm_h: expected finite rates >= 0 mm/h, got {rate_mm_h!r}")
+    bad = ~(np.isfinite(rate) & (rate >= 0))
+    if bad.any():
+        got = f"{rate_mm_h!r}" if rate.ndim == 0 else f"{rate[bad].ravel()[0]!r} among {rate.size} rates"
+        raise ValueError(f"rate_mm_h: expected finite rates >= 0 mm/h, got {got}")
     return rate
 
 

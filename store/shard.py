@@ -155,6 +155,8 @@ class ShardWriter:
         unknown = sorted(set(store) - set(STORABLE))
         if unknown:
             raise ValueError(f"store: expected a subset of {STORABLE}, got {unknown}")
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+            raise ValueError(f"threads: expected an integer >= 1 or None, got {threads!r}")
         self.path = Path(path)
         self._tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
         self._num_frames = num_frames
@@ -171,8 +173,6 @@ class ShardWriter:
             self._tmp.unlink(missing_ok=True)
             raise
         # igzip drops the GIL: images of one frame are compressed on ``threads`` threads.
-        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
-            raise ValueError(f"threads: expected an integer >= 1 or None, got {threads!r}")
         threads = threads or os.cpu_count() or 1
         self._pool = (ThreadPoolExecutor(max_workers=threads, thread_name_prefix="rainbench-deflate")
                       if threads > 1 else None)
@@ -238,10 +238,16 @@ class ShardWriter:
         metres and ``instance`` (H, W) int32 where the shard stores them; per-rate statistics
         ``drop_count``, ``ssim``, ``psnr`` (R,); per-box rain labels ``rain_coverage`` and
         ``contrast_loss`` (R, M) float32 (None: zeros). A wrong shape is a one-line ValueError
-        here, not a shard its readers refuse."""
+        here, before anything of the frame is stored, not a shard its readers refuse."""
         f = self._file
         rgb = f["rgb"]
         num_rates, image_shape = self._rates.shape[0], rgb.shape[2:]
+        if np.shape(T_world_cam) != (4, 4):
+            raise ValueError(f"T_world_cam: expected a (4, 4) pose, got {np.shape(T_world_cam)}")
+        for name, value in (("rain_coverage", rain_coverage), ("contrast_loss", contrast_loss)):
+            if value is not None and np.shape(value) != (num_rates, len(labels)):
+                raise ValueError(f"{name}: expected ({num_rates}, {len(labels)}) (rates, labels of frame "
+                                 f"{index}), got {np.shape(value)}")
         if isinstance(rgb_by_rate, np.ndarray):
             if rgb_by_rate.shape != (num_rates,) + image_shape or rgb_by_rate.dtype != np.uint8:
                 raise ValueError(f"rgb_by_rate: expected {(num_rates,) + image_shape} uint8, got "
@@ -263,19 +269,13 @@ class ShardWriter:
                 f["depth"][index] = depth
             if "instance" in f:
                 f["instance"][index] = instance
-        if np.shape(T_world_cam) != (4, 4):
-            raise ValueError(f"T_world_cam: expected a (4, 4) pose, got {np.shape(T_world_cam)}")
         self._poses[index] = T_world_cam
         self._labels[index] = labels
         if drop_count is not None:
             self._drop_count[:, index] = drop_count
             self._ssim[:, index] = ssim
             self._psnr[:, index] = psnr
-        num_rates, num_boxes = self._rates.shape[0], len(labels)
-        for name, value in (("rain_coverage", rain_coverage), ("contrast_loss", contrast_loss)):
-            if value is not None and np.shape(value) != (num_rates, num_boxes):
-                raise ValueError(f"{name}: expected ({num_rates}, {num_boxes}) (rates, labels of frame "
-                                 f"{index}), got {np.shape(value)}")
+        num_boxes = len(labels)
         zeros = np.zeros((num_rates, num_boxes), dtype=np.float32)
         self._rain_box[index] = (
             zeros if rain_coverage is None else np.asarray(rain_coverage, np.float32),

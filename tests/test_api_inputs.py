@@ -64,9 +64,14 @@ def test_the_writer_refuses_wrong_shapes_when_written_not_when_read(tmp_path):
             writer.write_frame(0, rgb, labels, np.eye(4), rain_coverage=np.zeros((2, 3)))
         with pytest.raises(ValueError, match=r"T_world_cam: expected a \(4, 4\) pose, got \(3, 4\)"):
             writer.write_frame(0, rgb, labels, np.eye(4)[:3])
+        # nothing of the refused frame was stored: the frame is still missing
+        with pytest.raises(RuntimeError, match=r"shard x\.h5: frames \[0\] were never written"):
+            writer.commit()
+    assert list(tmp_path.iterdir()) == []  # the aborted writer's temporary file is gone
     for threads in (0, -1, 1.5, True):
         with pytest.raises(ValueError, match=r"threads: expected an integer >= 1 or None"):
             _writer(tmp_path, threads=threads)
+        assert list(tmp_path.iterdir()) == []  # refused before any file was made
 
 
 def test_a_sky_layout_or_time_given_twice_must_agree():
@@ -98,6 +103,9 @@ def test_rain_laws_refuse_negative_rates_and_take_arrays():
     for law in (physical.extinction_coefficient, physical.visibility_km, physical.marshall_palmer_slope):
         with pytest.raises(ValueError, match=r"rate_mm_h: expected finite rates >= 0 mm/h, got -1"):
             law(-1)
+    with pytest.raises(ValueError, match=r"^rate_mm_h: expected finite rates >= 0 mm/h, got np\.float64\(-2\.0\) "
+                                         r"among 30 rates$"):
+        physical.extinction_coefficient(np.r_[np.zeros(20), -2.0, np.ones(9)])
     visibility = physical.visibility_km(np.array([0.0, 10.0]))
     assert visibility[0] == np.inf and visibility[1] == pytest.approx(physical.visibility_km(10.0))
     with pytest.raises(ValueError, match=r"rate_mm_h: expected a finite rate >= 0 mm/h, got -5"):

@@ -125,6 +125,7 @@ def test_an_onnx_model_on_a_cuda_device_is_refused_without_the_cuda_provider(tmp
                                                         r"this onnxruntime has no CUDA provider"):
             backends.load_detector(path, device=device)
     assert backends.load_detector(path, device="cpu").name == "m"
+    assert backends.load_detector(path, device=" CPU ").name == "m"  # any case, as --device is read
     # where the provider exists, the device's index reaches it
     seen = []
     monkeypatch.setattr(onnxruntime, "get_available_providers", lambda: ["CUDAExecutionProvider", "CPUExecutionProvider"])

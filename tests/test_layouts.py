@@ -492,6 +492,14 @@ def test_a_crown_by_a_wall_leans_away_or_narrows_only_as_far_as_it_must():
     scale, shift = L._crown_fit((0.0, 0.0), [crown], walls)
     assert scale == pytest.approx(math.floor((1.1 - clearance) / 2.0 / 0.05) * 0.05)
     assert shift == (0.0, 0.0)
+    # a low crown over a tall trunk may lean only as far as keeps the trunk's top inside it: with
+    # the top (radius 0.15) 0.2 m under the crown's underside, the crown 1.8 m above it is
+    # 0.87 m wide there, so 0.65 m of lean is allowed at full width, not the 0.75 m needed at 1.4 m
+    top = (3.2, 0.15)
+    assert L._crown_fit((0.0, 0.0), [crown], [_wall(1.5)], top)[0] == 1.0
+    scale, (dx, _) = L._crown_fit((0.0, 0.0), [crown], [_wall(1.4)], top)
+    assert scale == pytest.approx(0.9) and dx == pytest.approx(-(1.8 + clearance - 1.4), abs=2e-3)
+    assert -dx <= L._lean_limit([crown], top, scale) == pytest.approx(0.9 * 2 * math.sqrt(1 - 0.9 ** 2) - 0.2)
     # closer still, as narrow as a crown is made (TREE_CROWN_MIN_WIDTH), leaning at most 1 m
     walls = [_wall(0.6), (((-5.6, 0.0), (5.0, 10.0), 0.0), 10.0)]
     scale, shift = L._crown_fit((0.0, 0.0), [crown], walls)
@@ -515,6 +523,14 @@ def test_no_tree_crown_grows_into_a_building(name, seed):
                 < model.geom_rbound[b] + model.geom_rbound[c]
                 and _clearance(model, data, b, c) < L.TREE_FACADE_CLEARANCE_M - 1e-3]
     assert not touching
+    # and every trunk's top is still inside its (leant) crown
+    props = _layout_of(name, seed).props
+    for index, trunk in enumerate(props):
+        if trunk.name.startswith("tree") and trunk.shape == "cylinder":
+            main = props[index + 1]
+            height, radius = trunk.pos[2] + trunk.size[1], trunk.size[0]
+            half_width = main.size[1] * math.sqrt(max(0.0, 1 - ((main.pos[2] - height) / main.size[2]) ** 2))
+            assert math.dist(main.pos[:2], trunk.pos[:2]) + radius <= half_width, trunk.name
 
 
 def test_fitting_crowns_changes_only_the_crowns(monkeypatch):

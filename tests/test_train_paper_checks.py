@@ -273,7 +273,7 @@ def test_paper_refuses_models_devices_and_rain_models_before_generating(tmp_path
     _nothing_written(tmp_path / "pp", tmp_path / "pd")
 
 
-def test_run_paper_checks_models_and_device_before_generating(tmp_path):
+def test_run_paper_checks_models_and_device_before_generating(tmp_path, monkeypatch):
     dataset = DatasetConfig(frames=2, width=160, height=120, rates=(0.0, 50.0))
     out, data = tmp_path / "pp", tmp_path / "pd"
     with pytest.raises(EvalError, match=r"^--weights: .*missing\.pt does not exist"):
@@ -281,6 +281,18 @@ def test_run_paper_checks_models_and_device_before_generating(tmp_path):
                   out, data, progress=False)
     with pytest.raises(BackendError, match="got 'banana'"):
         run_paper(PaperConfig(dataset=dataset, rain_models=("jeon2022",), device="banana"), out, data, progress=False)
+    _nothing_written(out, data)
+    # an ONNX model on a GPU without onnxruntime's CUDA provider: refused before generating, not
+    # after (as if this machine had the GPU: check_device passes it)
+    out, data = tmp_path / "runs" / "pp", tmp_path / "runs" / "pd"  # beside the model, not above it
+    onnx_model = tmp_path / "m.onnx"
+    onnx_model.write_bytes(b"not read by the check")
+    with monkeypatch.context() as patch:
+        patch.setattr(train, "check_device", lambda device: device)
+        with pytest.raises(BackendError, match=r"^--device cuda:0: .*m\.onnx is an ONNX model and this "
+                                               r"onnxruntime has no CUDA provider"):
+            run_paper(PaperConfig(dataset=dataset, rain_models=("jeon2022",), weights=(str(onnx_model),),
+                                  device="cuda:0"), out, data, progress=False)
     _nothing_written(out, data)
     with pytest.raises(EvalError, match="^--rain-models: physical is named twice$"):
         PaperConfig(dataset=dataset, rain_models=("physical", "jeon2022", "physical"))

@@ -178,6 +178,24 @@ def output_layout(dims: list, nc: int | None, path: Path) -> tuple[str, int]:
     return layout, nc
 
 
+def onnx_cuda_device(path: Path, device: str | None, onnxruntime=None) -> int | None:
+    """The CUDA device index an ONNX model at ``path`` runs on for ``--device`` ``device`` ("0",
+    "cuda", "cuda:1", any case; None or "cpu": None, the CPU). A CUDA device where onnxruntime
+    has no CUDA provider (the CPU wheel rainbench installs) is a one-line :class:`BackendError`,
+    not a silent run on the CPU."""
+    text = "" if device is None else str(device).strip().lower()
+    if text in ("", "cpu"):
+        return None
+    if onnxruntime is None:
+        import onnxruntime  # noqa: PLC0415
+    if "CUDAExecutionProvider" not in onnxruntime.get_available_providers():
+        raise BackendError(f"--device {device}: {path} is an ONNX model and this onnxruntime has no "
+                           "CUDA provider (the CPU wheel rainbench installs); use --device cpu, or "
+                           "install onnxruntime-gpu")
+    index = text.rsplit(":", 1)[-1]
+    return int(index) if index.isdigit() else 0
+
+
 def _load_onnx(path: Path, class_map: str | None, device: str | None,
                classes: Sequence[int] = PAPER_CLASSES, name: str | None = None,
                trained: Sequence[int] | None = None) -> OnnxDetector:
@@ -186,13 +204,9 @@ def _load_onnx(path: Path, class_map: str | None, device: str | None,
     except ImportError:
         raise BackendError(f"--weights: {path}: ONNX models need onnxruntime (pip install onnxruntime)") from None
     providers: list = ["CPUExecutionProvider"]
-    if device not in (None, "cpu"):  # a CUDA device, as --device names it: "0", "cuda", "cuda:1"
-        if "CUDAExecutionProvider" not in onnxruntime.get_available_providers():
-            raise BackendError(f"--device {device}: {path} is an ONNX model and this onnxruntime has no "
-                               "CUDA provider (the CPU wheel rainbench installs); use --device cpu, or "
-                               "install onnxruntime-gpu")
-        index = str(device).rsplit(":", 1)[-1]
-        providers.insert(0, ("CUDAExecutionProvider", {"device_id": int(index) if index.isdigit() else 0}))
+    cuda_index = onnx_cuda_device(path, device, onnxruntime)
+    if cuda_index is not None:
+        providers.insert(0, ("CUDAExecutionProvider", {"device_id": cuda_index}))
     options = onnxruntime.SessionOptions()
     options.log_severity_level = 3
     # No busy-waiting between operators: beside the run's decoding threads (or another process)
