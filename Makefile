@@ -131,6 +131,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/rain.py --json results/bench/rain.json
 	$(BIN)/python bench/rain_memory.py --json results/bench/rain_memory.json
 	$(BIN)/python bench/eval_metrics.py --json results/bench/eval_metrics.json
+	$(BIN)/python bench/stats_device.py --json results/bench/stats_device.json
 	$(BIN)/python bench/dataset.py --json results/bench/dataset.json
 	$(BIN)/python bench/train_reader.py --json results/bench/train_reader.json
 	$(BIN)/python bench/inference.py --json results/bench/inference.json

@@ -45,6 +45,11 @@
 # Locally (no install, the project's venv): GPU_CHECK_PYTHON=.venv/bin/python GPU_CHECK_INSTALL=0
 set -uo pipefail
 cd "$(dirname "$0")/.."
+# It installs wheels and GL packages into this machine (bench/gpu_env.sh): only where a GPU is
+if [[ ${GPU_CHECK_INSTALL:-1} != 0 ]] && ! nvidia-smi -L > /dev/null 2>&1; then
+    echo "gpu_check: skipped: no NVIDIA GPU here (nvidia-smi -L failed) to install for; run it through the device tool, or locally with GPU_CHECK_INSTALL=0"
+    exit 0
+fi
 
 OUT=${OUT:-results/gpu-check}
 mkdir -p "$OUT"

@@ -11,7 +11,7 @@ Timed (best of ``--repeats``):
   model through rainbench: BGR conversion, class filtering, clipping);
 - batched backend: ``load_detector(weights).predict`` (the default for a ``.pt``: torch in
   batches, letterbox and NMS on the device, fp16 on CUDA, channels-last), and how its detections
-  agree with the baseline's (share of the baseline's detections scoring >= 0.25 that have a twin:
+  agree with the ultralytics backend's (share of its detections scoring >= 0.25 that have a twin:
   the same class, every edge within 1 px, the score within 0.02);
 - forward pass alone: the batched backend's network on a ready (B, 3, h, w) batch, for scale;
 - stages: the batched backend from letterboxed uint8 canvases (what the shard reader hands
@@ -291,6 +291,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             from ultralytics.nn.tasks import DetectionModel
 
+            print(f"inference: {args.weights} is not a shipped model here ({', '.join(registry.shipped_models())}): "
+                  "timing a yolo11n of random weights instead", flush=True)
             weights, label = str(folder / "yolo11n.pt"), "yolo11n, 4 classes (random weights)"
             model = YOLO("yolo11n.yaml")
             model.model = DetectionModel("yolo11n.yaml", nc=4, verbose=False)
@@ -299,10 +301,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{len(images)} frames rendered, {time.perf_counter() - started:.0f} s since the start", flush=True)
         direct = YOLO(weights)
         bgr = [np.ascontiguousarray(image[..., ::-1]) for image in images]
+        def baseline_predict(chunk):
+            # ultralytics' first predict sets torch's threads to cores - 1 on the CPU (select_device):
+            # put them back so that the baseline runs on the threads every other row runs on
+            try:
+                return direct.predict(chunk, verbose=False, device=device, **settings)
+            finally:
+                torch.set_num_threads(threads)
+
         measure("baseline", "baseline ultralytics predict", lambda: best_rate(
-            lambda chunk: direct.predict(chunk, verbose=False, device=device, **settings), bgr, args.batch,
-            args.repeats))
-        torch.set_num_threads(threads)  # ultralytics' predict set it to cores - 1 on the CPU
+            baseline_predict, bgr, args.batch, args.repeats))
         detector = backends.load_detector(weights, device=device, pt_backend="ultralytics")
         measure("ultralytics", "ultralytics backend", lambda: best_rate(
             lambda chunk: detector.predict(chunk, **settings), images, args.batch, args.repeats))
@@ -344,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
         "imgsz": args.imgsz, "machine": platform.machine(), "cpus": os.cpu_count(),
         "torch_threads": threads, "cuda": torch.cuda.is_available(), "device": device,
         "batched_precision": "fp16" if batched.half else "fp32",
-        "batched_agreement_with_baseline": None if agreed is None else round(agreed, 4),
+        "batched_agreement_with_ultralytics_backend": None if agreed is None else round(agreed, 4),
         "batched_stages_ms_per_image": stages,
         "images_per_s": {k: round(v, 2) for k, v in rates.items()},
         "ratio_vs_baseline": {k: round(v / baseline, 3) for k, v in rates.items()} if baseline else {},
