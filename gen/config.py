@@ -186,7 +186,8 @@ class ClipConfig:
 
 def _check_clip_seconds(clip_frames: int, fps: float, what: str) -> None:
     """Refuse a clip longer than :data:`MAX_CLIP_SECONDS` (one line naming ``what`` gave its
-    length)."""
+    length in frames, and FPS: either may be the one to change)."""
+    what = f"({what}) / FPS" if "+" in what else f"{what} / FPS"
     seconds = clip_frames / fps
     if seconds > MAX_CLIP_SECONDS:
         most = int(MAX_CLIP_SECONDS * fps)

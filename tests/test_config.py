@@ -163,18 +163,18 @@ def test_a_clip_is_at_most_an_hour_whatever_gives_its_length():
     assert DatasetConfig(frames=36000).duration_s == 3600.0  # the longest at 10 frames/s
     assert GenerateConfig(frames=360, fps=0.1).duration_s == 3600.0
     for kind in (DatasetConfig, GenerateConfig):
-        with pytest.raises(ValueError, match=r"^FRAMES: a clip of 36001 frames at 10 frames/s is 3600\.1 s; "
+        with pytest.raises(ValueError, match=r"^FRAMES / FPS: a clip of 36001 frames at 10 frames/s is 3600\.1 s; "
                                              r"expected at most 3600 s \(36000 frames at 10 frames/s\): "):
             kind(frames=36001)
-        with pytest.raises(ValueError, match=r"^FRAMES: a clip of 2 frames at 1e-05 frames/s is 200000 s; "
+        with pytest.raises(ValueError, match=r"^FRAMES / FPS: a clip of 2 frames at 1e-05 frames/s is 200000 s; "
                                              r"expected at most 3600 s \(not one frame at 1e-05 frames/s: "
                                              r"raise the frame rate\)"):
             kind(frames=2, fps=1e-5)
-        with pytest.raises(ValueError, match=r"^CLIP_FRAMES: a clip of 100000 frames at 10 frames/s"):
+        with pytest.raises(ValueError, match=r"^CLIP_FRAMES / FPS: a clip of 100000 frames at 10 frames/s"):
             kind(frames=1, clip_frames=100_000)
-    with pytest.raises(ValueError, match=r"^FIRST_FRAME \+ FRAMES: a clip of 9999999 frames "):
+    with pytest.raises(ValueError, match=r"^\(FIRST_FRAME \+ FRAMES\) / FPS: a clip of 9999999 frames "):
         DatasetConfig(frames=1, first_frame=9_999_998)
-    with pytest.raises(ValueError, match=r"^FIRST_FRAME \+ FRAMES: a clip of 36010 frames "):
+    with pytest.raises(ValueError, match=r"^\(FIRST_FRAME \+ FRAMES\) / FPS: a clip of 36010 frames "):
         GenerateConfig(frames=10, frame_offset=36000)
 
 

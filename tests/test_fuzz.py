@@ -211,6 +211,7 @@ def _check_config(config):
 @example([("--frames", "100000"), ("--frames-per-shard", "1"), ("--scenes", "2")])
 @example([("--threads", "10000000000000000000000")])  # once an OverflowError in OpenCV
 @example([("--width", "8192"), ("--height", "4096")])  # beyond what the framebuffer takes
+@example([("--fps", "0.03125")])  # a clip too long at this rate: once blamed FRAMES alone
 def test_generate_numeric_flags(no_render, pairs):
     argv = ["generate", "--quiet"]
     for flag, value in pairs:
