@@ -21,7 +21,10 @@ run in the same process and the same run:
    ``--device`` to its runs.
 3. reader: images/s through ``ShardDataset`` + ``DataLoader(num_workers=2)`` (second epoch of
    persistent workers, as in training) against reading the same images from PNG files with
-   ``cv2.imread`` (warm cache too). Target >= 2x.
+   ``cv2.imread`` in one process (warm cache too; target >= 2x, the figure recorded since), and
+   against the same PNGs through the same DataLoader (2 workers, RGB tensors: like for like,
+   ``ratio_same_dataloader``, no target; bench/train_reader.py compares with ultralytics' own
+   loader of the exported PNGs).
 
     python bench/dataset.py [--frames 200] [--e2e-repeats 3] [--workers N] [--device auto] [--scaling-frames 40]
         [--scaling-workers 2] [--scaling-rates 0,50,100] [--scaling-device auto] [--json OUT]
@@ -151,6 +154,27 @@ READER_REPEATS = 7
 """Timed passes of each reader; the medians are reported."""
 
 
+class _PngImages:
+    """The PNG files as a torch dataset: (3, H, W) uint8 RGB tensors (what ShardDataset yields,
+    without its targets), for the like-for-like baseline through the same DataLoader."""
+
+    def __init__(self, paths: list[Path]) -> None:
+        self.paths = paths
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, index: int):
+        import torch
+
+        image = cv2.imread(str(self.paths[index]), cv2.IMREAD_COLOR)[:, :, ::-1]
+        return torch.from_numpy(image.copy()).permute(2, 0, 1)
+
+
+def _images_only(batch):
+    return tuple(batch)
+
+
 def reader(tmp: Path, frames: int) -> dict:
     from torch.utils.data import DataLoader
 
@@ -170,9 +194,15 @@ def reader(tmp: Path, frames: int) -> dict:
     paths = sorted(pngs.iterdir())
     for path in paths:  # the same warm page cache for the PNG files
         cv2.imread(str(path))
+    # The like-for-like baseline: the same PNGs through the same DataLoader (2 worker processes,
+    # batches of 16, second epoch), as RGB tensors; the one-process imread loop is kept for the
+    # figures recorded before it (its ratio credits the workers to the shards).
+    png_loader = DataLoader(_PngImages(paths), batch_size=16, num_workers=2, persistent_workers=True,
+                            collate_fn=_images_only)
+    sum(len(images) for images in png_loader)
     # One pass is about half a second on this machine: the medians of REPEATS interleaved passes
     # of each reader (a single pass swung the ratio between 1.6 and 2.9 on a quiet machine).
-    shard_runs, png_runs = [], []
+    shard_runs, png_runs, png_loader_runs = [], [], []
     for _ in range(READER_REPEATS):
         start = time.perf_counter()
         count = sum(len(images) for images, _ in loader)
@@ -181,11 +211,17 @@ def reader(tmp: Path, frames: int) -> dict:
         for path in paths:
             cv2.imread(str(path))
         png_runs.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        png_count = sum(len(images) for images in png_loader)
+        png_loader_runs.append(time.perf_counter() - start)
     shard_s, png_s = statistics.median(shard_runs), statistics.median(png_runs)
+    png_loader_s = statistics.median(png_loader_runs)
     return {"images": count, "repeats": READER_REPEATS,
             "shard_dataset_images_per_s": count / shard_s,
             "png_imread_images_per_s": len(paths) / png_s,
-            "ratio": (count / shard_s) / (len(paths) / png_s), "target_ratio": 2.0}
+            "png_dataloader_images_per_s": png_count / png_loader_s,
+            "ratio": (count / shard_s) / (len(paths) / png_s), "target_ratio": 2.0,
+            "ratio_same_dataloader": (count / shard_s) / (png_count / png_loader_s)}
 
 
 def main() -> None:
@@ -246,8 +282,9 @@ def main() -> None:
         if "reader" not in skip:
             results["reader"] = read = reader(tmp, args.reader_frames)
             print(f"reader: ShardDataset {read['shard_dataset_images_per_s']:.0f} images/s, "
-                  f"PNG imread {read['png_imread_images_per_s']:.0f} images/s, ratio "
-                  f"{read['ratio']:.2f} (target >= 2)")
+                  f"PNG imread in one process {read['png_imread_images_per_s']:.0f} images/s, ratio "
+                  f"{read['ratio']:.2f} (target >= 2); the PNGs through the same DataLoader "
+                  f"{read['png_dataloader_images_per_s']:.0f} images/s, ratio {read['ratio_same_dataloader']:.2f}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     if args.json:
