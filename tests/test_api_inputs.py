@@ -180,3 +180,16 @@ def test_the_ray_executor_without_ray_writes_nothing(tmp_path, monkeypatch):
     with pytest.raises(ds.DatasetError, match=r"^executor ray: Ray is not installed; pip install 'rainbench\[ray\]'$"):
         ds.run_dataset(DatasetConfig(frames=1, width=32, height=24), tmp_path / "out", executor="ray")
     assert not (tmp_path / "out").exists()
+
+
+def test_the_version_is_one_number_everywhere():
+    """``rainbench.__version__`` (stored in every shard as ``generator_version``) is written by hand
+    beside pyproject.toml's: the two, and the installed metadata, must not drift apart."""
+    import importlib.metadata  # noqa: PLC0415
+    import tomllib  # noqa: PLC0415
+    from pathlib import Path  # noqa: PLC0415
+
+    import rainbench  # noqa: PLC0415
+
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    assert rainbench.__version__ == pyproject["project"]["version"] == importlib.metadata.version("rainbench")
