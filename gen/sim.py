@@ -77,7 +77,7 @@ class ActorDriver:
         heights = np.zeros(units.shape[:2])
         for index, unit in enumerate(layout.units):
             if unit.kind == "pedestrian":
-                heights[index] = L.ground_heights(layout, units[index, :, :2])
+                heights[index] = walker_height(layout, unit, times)
         return _Targets(times, ego, units, heights)
 
     def write(self, data: mujoco.MjData, targets: "_Targets", step: int) -> None:
@@ -121,6 +121,24 @@ class ActorDriver:
     def apply(self, data: mujoco.MjData, t: float) -> None:
         """Pose every mocap body (ego, sun rig, units) and every person's joints at time ``t``."""
         self.write(data, self.plan([t]), 0)
+
+
+CURB_STEP_S = 0.3
+"""How long a walker takes to step up or down a curb (about a step): the body rises with the
+ground averaged over this much of the walker's own walk, not by the curb's 0.15 m in one frame."""
+
+
+def walker_height(layout: L.Layout, unit: L.Unit, times: np.ndarray) -> np.ndarray:
+    """(T,) height (m) of a pedestrian ``unit``'s body at ``times`` (T,) seconds: the ground
+    under it (:func:`rainbench.mjcf.layout.ground_heights`) averaged over five points of its
+    walk within :data:`CURB_STEP_S` around each time, so that it steps onto a curb over a step,
+    not in one frame; where the ground is level over that stretch (and for anyone standing) the
+    ground's own height. A pure function of the time, as every target is."""
+    offsets = np.linspace(-CURB_STEP_S / 2, CURB_STEP_S / 2, 5)
+    samples = np.stack([L.ground_heights(layout, L.unit_position(unit, times + offset))
+                        for offset in offsets])
+    level = (samples == samples[2]).all(axis=0)  # exactly the ground there, not a rounded mean
+    return np.where(level, samples[2], samples.mean(axis=0))
 
 
 @dataclass(frozen=True)
