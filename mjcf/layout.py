@@ -619,7 +619,7 @@ class _Builder:
         self.building_footprints: list[tuple] = []  # ((x, y), (half_x, half_y), yaw) of each building
         self.building_tops: list[float] = []  # the height of each building's highest point (m)
         self._building_grid: dict[tuple[int, int], list[int]] = {}
-        self._trees: list[tuple[tuple[float, float], list[int]]] = []  # trunk (x, y), crown props' indices
+        self._trees: list[tuple[int, list[int]]] = []  # the trunk's and the crown parts' prop indices
 
     def label(self, base: str) -> str:
         """A fresh prop name ``base{n}``."""
