@@ -275,11 +275,9 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     # every model and the device are checked before anything is generated
     check_device(config.device)
     check_models([("--weights", spec) for spec in config.weights])
-    if str(config.device or "cpu").strip().lower() != "cpu":  # an ONNX model on a GPU needs
-        for spec in config.weights:                            # onnxruntime's CUDA provider
-            path = resolve_weights(spec, config.device)[0]
-            if path.suffix.lower() == ".onnx":
-                onnx_cuda_device(path, config.device)
+    for spec in config.weights:  # an ONNX file on a GPU needs onnxruntime's CUDA provider (a
+        if Path(str(spec)).suffix.lower() == ".onnx":  # shipped name on a GPU runs its .pt)
+            onnx_cuda_device(Path(str(spec)), config.device)
     out_dir, data_root = Path(out_dir), Path(data_root)
     class_ids = PAPER_CLASSES if config.classes is None else parse_classes(config.classes)
     if config.classes is not None:  # a model that cannot predict a requested class fails before generating

@@ -180,7 +180,7 @@ def output_layout(dims: list, nc: int | None, path: Path) -> tuple[str, int]:
 
 def onnx_cuda_device(path: Path, device: str | None, onnxruntime=None) -> int | None:
     """The CUDA device index an ONNX model at ``path`` runs on for ``--device`` ``device`` ("0",
-    "cuda", "cuda:1", any case; None or "cpu": None, the CPU). A CUDA device where onnxruntime
+    "0,1", "cuda", "cuda:1", any case; None or "cpu": None, the CPU). A CUDA device where onnxruntime
     has no CUDA provider (the CPU wheel rainbench installs) is a one-line :class:`BackendError`,
     not a silent run on the CPU."""
     text = "" if device is None else str(device).strip().lower()
@@ -192,7 +192,7 @@ def onnx_cuda_device(path: Path, device: str | None, onnxruntime=None) -> int | 
         raise BackendError(f"--device {device}: {path} is an ONNX model and this onnxruntime has no "
                            "CUDA provider (the CPU wheel rainbench installs); use --device cpu, or "
                            "install onnxruntime-gpu")
-    index = text.rsplit(":", 1)[-1]
+    index = text.split(",")[0].rsplit(":", 1)[-1]  # torch_device's rule: "1,2" is CUDA 1
     return int(index) if index.isdigit() else 0
 
 
