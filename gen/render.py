@@ -19,7 +19,7 @@ import cv2
 from rainbench.gl import mujoco  # imported once the GL backend is chosen
 import numpy as np
 
-from rainbench.mjcf.scene import CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
+from rainbench.mjcf.scene import CLOUD_DECK_GEOM, CLOUD_DECK_GROUP, EGO_CAMERA, PUDDLE_GROUP, padded_size  # noqa: F401 -- padded_size re-exported
 from rainbench.rain.weather import (CLIPPED_GAIN, PUDDLE_MIRROR_REFLECTANCE, Weather, add_glow,
                                      film_streak_sigma_px, light_glow, mirrored_light_pixels,
                                      plane_pixels,
@@ -39,6 +39,13 @@ a quarter of the pixels."""
 COVERED_DROP_M = 1.0
 """How far the road's other slabs are lowered in the mirror render, under the one stretched
 mirror geom (level with it they would draw over its reflection)."""
+MIRROR_SKY_REACH_M = 60_000.0
+"""How far the wet road's mirror pass sees: its far clip plane and the half size of the cloud deck,
+centred under the camera in that pass. The main pass draws the road out to zfar (1 000 m); a
+camera 1 m above it sees that point's mirror ray rise 1 / 1 000 rad, which meets the deck (60 m
+up) 60 km away. With the model's own zfar and deck, rays under 3.4 degrees (the road beyond
+about 25 m) met nothing and mirrored black: the far wet road went dark where it should mirror
+the sky (bench/RESULTS.md)."""
 CULL_MARGIN_M = 0.5
 """Slack beyond a geom's bounding sphere before :meth:`FrameRenderer.hidden_geoms` leaves it out
 of a pass (rounding in the GL pipeline never reaches it)."""
@@ -202,6 +209,7 @@ class FrameRenderer:
         mirrors = np.append(np.flatnonzero(model.mat_reflectance > 0),
                             mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, "asphalt"))
         self._far_cullable = self._cullable & ~np.isin(model.geom_matid, mirrors[mirrors >= 0])
+        self._cloud_deck_geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, CLOUD_DECK_GEOM)
         self._label_scene_ready = False
         self._geom_records: dict[int, np.ndarray | None] = {}  # per scene, see _scene_geoms
         self._option = mujoco.MjvOption()
@@ -522,9 +530,16 @@ class FrameRenderer:
         self._update_scene(data, option, self._scene, mirror, aspect=width / height)
         if mirror_geom >= 0:
             geom_type = mujoco.mjtObj.mjOBJ_GEOM
+            camera = data.cam_xpos[self.camera_id]
+            for gl_camera in self._scene.camera:  # the mirror sees the deck to the horizon
+                gl_camera.frustum_far = MIRROR_SKY_REACH_M
             for index in range(self._scene.ngeom):
                 geom = self._scene.geoms[index]
                 if geom.objtype != geom_type:
+                    continue
+                if geom.objid == self._cloud_deck_geom:
+                    geom.size[:2] = MIRROR_SKY_REACH_M
+                    geom.pos[:2] = camera[:2]
                     continue
                 if geom.objid == mirror_geom and mirror_cover is not None:
                     x, y, top, half_length, half_width, _ = mirror_cover

@@ -28,7 +28,8 @@ ACTOR_PREFIX = "actor{:03d}/"
 TRUNCATION_MARGIN = 0.25
 PUDDLE_GROUP = 3  # puddle outlines: never drawn; the renderer lays the water over the image
 CLOUD_DECK_GROUP = 4  # the rain-cloud deck: drawn only in the road mirror's pass in sunless rain
-CLOUD_DECK_HEIGHT_M = 60.0  # low enough that the deck is inside zfar (1000 m) down to 3.4 deg
+CLOUD_DECK_HEIGHT_M = 60.0  # the mirror pass reaches it to the horizon (gen.render.MIRROR_SKY_REACH_M)
+CLOUD_DECK_GEOM = "scenery/cloud_deck"
 SKY_TEXTURE_SIZE = 128  # skybox face size: re-uploaded whenever the weather changes the sky
 CLOUD_TEXTURE = "clouds"  # the cloud field the sky is drawn from (rainbench.gen.weather)
 CLOUD_STREAM = 13  # the cloud field draws from default_rng([seed, CLOUD_STREAM])
@@ -164,7 +165,7 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     # The rain-cloud deck: an emissive ceiling that stands for the sky in the wet road's mirror
     # (MuJoCo's mirror pass does not draw the skybox).
     spec.add_material(name="cloud_deck", rgba=[0.5, 0.5, 0.5, 1.0], emission=1.0, specular=0.0)
-    world.add_geom(name="scenery/cloud_deck", type=GEOM.mjGEOM_BOX,
+    world.add_geom(name=CLOUD_DECK_GEOM, type=GEOM.mjGEOM_BOX,
                    size=[x_half + 2000.0, y_half + 2000.0, 1.0],
                    pos=[x_mid, y_mid, CLOUD_DECK_HEIGHT_M],
                    material="cloud_deck", group=CLOUD_DECK_GROUP, contype=0, conaffinity=0)

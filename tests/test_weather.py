@@ -15,7 +15,8 @@ from rainbench.cli import _seed_and_sky
 from rainbench.gen.config import GenerateConfig
 from rainbench.gen.generate import build_scene, generate_shard
 from rainbench.gen.render import FrameRenderer, camera_pose
-from rainbench.mjcf.scene import _camera_quat, horizontal_to_vertical_fov
+from rainbench.mjcf.scene import (CLOUD_DECK_GEOM, CLOUD_DECK_GROUP, CLOUD_DECK_HEIGHT_M, _camera_quat,
+                                  horizontal_to_vertical_fov)
 from rainbench.rain import weather as wx
 
 # the paper's street by day: these tests are about the daytime weather laws
@@ -273,6 +274,64 @@ def test_the_wet_road_mirror_changes_road_pixels_only():
     assert road.sum() > 2000 and not (road & (ids >= 0)).any() and not (road & ~geometry).any()
     assert changed[road].sum() > 400  # the road mirrors (weakly near the camera)
     assert not changed[~road].any()  # nothing else changes: the box and the sky stay sharp
+
+
+def test_the_far_wet_road_mirrors_the_cloud_deck_down_to_the_horizon():
+    """A camera 1 m above a 2 km road sees its mirror ray from the road d metres ahead rise at
+    1/d rad: under 3.4 degrees (beyond 17 m) it met nothing within the model's 1 000 m far plane
+    and mirrored black, so the far wet road went dark where it should mirror the sky (a visual
+    audit: a dark block over the car ahead at a street's vanishing point). The mirror pass now
+    reaches the deck (here only 100 m across in the model) to the horizon: the far road mirrors
+    it, out to a few hundred metres, far brighter than in the same weather without its mirror."""
+    spec = mujoco.MjSpec()
+    spec.stat.extent = 100.0
+    spec.visual.map.znear = 0.001
+    spec.visual.map.zfar = 10.0
+    spec.visual.global_.offwidth, spec.visual.global_.offheight = 640, 480
+    spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT, rgb1=[1, 1, 1], rgb2=[1, 1, 1],
+                     width=32, height=32)
+    spec.add_texture(name="road_grey", type=mujoco.mjtTexture.mjTEXTURE_2D,
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT, rgb1=[0.35, 0.35, 0.35],
+                     rgb2=[0.35, 0.35, 0.35], width=8, height=8)
+    road = spec.add_material(name="asphalt", rgba=[0.4, 0.4, 0.4, 1])
+    road.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "road_grey"
+    spec.add_material(name="cloud_deck", rgba=[0.5, 0.5, 0.5, 1.0], emission=1.0, specular=0.0)
+    world = spec.worldbody
+    world.add_geom(name="scenery/road", type=mujoco.mjtGeom.mjGEOM_BOX, size=[1000, 200, 0.05],
+                   pos=[990, 0, -0.05], material="asphalt")
+    world.add_geom(name=CLOUD_DECK_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[50, 50, 1.0],
+                   pos=[0, 0, CLOUD_DECK_HEIGHT_M], material="cloud_deck", group=CLOUD_DECK_GROUP,
+                   contype=0, conaffinity=0)
+    ego = world.add_body(name="ego", mocap=True)
+    ego.add_camera(name="ego", pos=[-10, 0, 1.0], quat=list(_camera_quat()),
+                   fovy=horizontal_to_vertical_fov(20, 320, 240))
+    ego.add_light(name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, pos=[0, 0, 20],
+                  dir=[0.5, 0, -0.87], castshadow=False)
+    ego.add_light(name="skylight", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, pos=[0, 0, 20],
+                  dir=[0, 0, -1], castshadow=False)
+    model = spec.compile()
+    table = np.full(model.ngeom, -1, np.int32)
+    wet = wx.weather_at("overcast", 50.0)
+    assert wet.sun <= 0.02 and wet.road_reflectance > 0  # sunless rain: the deck is drawn
+    plain_weather = dataclasses.replace(wet, road_reflectance=0.0, puddle_fraction=0.0)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    with FrameRenderer(model, 320, 240, table, base_weather=wx.weather_at("overcast", 0.0)) as renderer:
+        renderer.update(data)
+        _, _, depth = renderer.render_instances_depth()
+        mirrored = cv2.cvtColor(renderer.render_weather(data, wet, depth), cv2.COLOR_RGB2GRAY)
+        plain = cv2.cvtColor(renderer.render_weather(data, plain_weather), cv2.COLOR_RGB2GRAY)
+        focal = renderer.K[1, 1]
+        horizon = renderer.K[1, 2]
+    for near_m, far_m in ((25.0, 60.0), (60.0, 150.0), (150.0, 400.0)):
+        rows = slice(int(math.ceil(horizon + focal * 1.0 / far_m)),
+                     int(horizon + focal * 1.0 / near_m) + 1)
+        assert np.isfinite(depth[rows]).all()  # the road, out to 400 m
+        gained = mirrored[rows].astype(float).mean() - plain[rows].astype(float).mean()
+        # the deck's light at water's grazing reflectance (about 150 levels here); with the
+        # model's far plane 25-45, what the mirror pass draws where nothing is mirrored
+        assert gained > 100, (near_m, far_m, gained)
 
 
 def test_film_streaks_smear_along_the_vertical_over_the_road_only():
