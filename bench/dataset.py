@@ -19,7 +19,8 @@ run in the same process and the same run:
    (one Mesa render thread, ``LP_NUM_THREADS=1``, and ``--threads 1``: no rain or compression
    threads beside the render; target >= 1.6x) and once with the defaults (Mesa's threads on
    every core, rain and compression threads = cores / workers). ``--scaling-device`` passes
-   ``--device`` to its runs.
+   ``--device`` to its runs. Each setting runs ``--scaling-repeats`` pairs (default 3),
+   alternating which of the two goes first; the median pair's speed-up is reported.
 3. reader: images/s through ``ShardDataset`` + ``DataLoader(num_workers=2)`` (second epoch of
    persistent workers, as in training) against reading the same images from PNG files with
    ``cv2.imread`` in one process (warm cache too; target >= 2x, the figure recorded since), and
@@ -28,7 +29,7 @@ run in the same process and the same run:
    loader of the exported PNGs).
 
     python bench/dataset.py [--frames 200] [--e2e-repeats 3] [--workers N] [--device auto] [--scaling-frames 40]
-        [--scaling-workers 2] [--scaling-rates 0,50,100] [--scaling-device auto] [--json OUT]
+        [--scaling-workers 2] [--scaling-rates 0,50,100] [--scaling-device auto] [--scaling-repeats 3] [--json OUT]
         [--skip e2e,...]
 """
 
@@ -140,25 +141,38 @@ def weather_end_to_end(tmp: Path, frames: int, workers: int | None = None, devic
             **median_run, "runs": runs, "target_ratio": 1.6}
 
 
-def scaling(tmp: Path, frames: int, workers: int = 2, rates: str = "0,50,100", device: str | None = None) -> dict:
+def scaling(tmp: Path, frames: int, workers: int = 2, rates: str = "0,50,100", device: str | None = None,
+            repeats: int = 1) -> dict:
     """``workers`` workers on ``workers`` scenes against one worker on 2 scenes (the same scenes'
     first two), in images per second; with 2 workers both runs do the same work. ``device``:
-    ``rainbench generate --device`` (where the statistics run; None: its default, ``auto``)."""
+    ``rainbench generate --device`` (where the statistics run; None: its default, ``auto``).
+    Each setting runs ``repeats`` pairs, alternating which of the two goes first; its figures are
+    the median pair's by speed-up (the lower of the middle two for an even count), every pair
+    kept under ``pairs``."""
     num_rates = len(parse_rates(rates))
-    result = {"frames_per_scene": frames, "rates": rates, "workers": workers, "device": device or "auto"}
+    result = {"frames_per_scene": frames, "rates": rates, "workers": workers, "device": device or "auto",
+              "repeats": repeats}
     device_args = [] if device is None else ["--device", device]
     for label, env, threads in (("one_core_per_worker", {"LP_NUM_THREADS": "1"}, ["--threads", "1"]),
                                 ("default_threads", {}, [])):
-        runs = {}
-        for count, scenes in ((1, 2), (workers, workers)):
-            seconds = cli_seconds(["--out", str(tmp / f"s{count}{label}"), "--workers", str(count),
-                                   "--scenes", str(scenes), "--frames", str(frames),
-                                   "--rates", rates, *threads, *device_args], env)
-            runs[count] = (seconds, scenes * frames * num_rates / seconds)
-        result[label] = {"one_worker_s": runs[1][0], "n_workers_s": runs[workers][0],
-                         "one_worker_images_per_s": runs[1][1],
-                         "n_workers_images_per_s": runs[workers][1],
-                         "speedup": runs[workers][1] / runs[1][1]}
+        pairs = []
+        for repeat in range(repeats):
+            runs = {}
+            order = ((1, 2), (workers, workers))
+            for count, scenes in (order if repeat % 2 == 0 else order[::-1]):
+                out = tmp / f"s{count}{label}"
+                seconds = cli_seconds(["--out", str(out), "--workers", str(count),
+                                       "--scenes", str(scenes), "--frames", str(frames),
+                                       "--rates", rates, *threads, *device_args], env)
+                shutil.rmtree(out, ignore_errors=True)
+                runs[count] = (seconds, scenes * frames * num_rates / seconds)
+            pairs.append({"one_worker_s": runs[1][0], "n_workers_s": runs[workers][0],
+                          "one_worker_images_per_s": runs[1][1],
+                          "n_workers_images_per_s": runs[workers][1],
+                          "speedup": runs[workers][1] / runs[1][1],
+                          "first": "one_worker" if repeat % 2 == 0 else "n_workers"})
+        median_pair = sorted(pairs, key=lambda pair: pair["speedup"])[(len(pairs) - 1) // 2]
+        result[label] = {**median_pair, "pairs": pairs}
     return result
 
 
@@ -247,6 +261,8 @@ def main() -> None:
     parser.add_argument("--scaling-workers", type=int, default=2,
                         help="workers (and scenes) against one worker on 2 scenes (default 2)")
     parser.add_argument("--scaling-rates", default="0,50,100")
+    parser.add_argument("--scaling-repeats", type=int, default=3,
+                        help="pairs of scaling runs per setting, alternating their order; the median's reported (default 3)")
     parser.add_argument("--scaling-device", default=None,
                         help="rainbench generate --device of the scaling runs (default: its own, auto)")
     parser.add_argument("--weather-frames", type=int, default=200)
@@ -262,6 +278,8 @@ def main() -> None:
         parser.error(f"--workers: expected an integer >= 1, got {args.workers}")
     if args.e2e_repeats < 1:
         parser.error(f"--e2e-repeats: expected an integer >= 1, got {args.e2e_repeats}")
+    if args.scaling_repeats < 1:
+        parser.error(f"--scaling-repeats: expected an integer >= 1, got {args.scaling_repeats}")
     if args.scaling_workers < 2:
         parser.error(f"--scaling-workers: expected an integer >= 2, got {args.scaling_workers}")
     skip = set(filter(None, args.skip.split(",")))
@@ -290,13 +308,15 @@ def main() -> None:
                   f"{len(weather['runs'])} run(s) (target <= 1.6)")
         if "scaling" not in skip:
             results["scaling"] = scale = scaling(tmp, args.scaling_frames, args.scaling_workers,
-                                                 args.scaling_rates, args.scaling_device)
+                                                 args.scaling_rates, args.scaling_device,
+                                                 args.scaling_repeats)
             for label in ("one_core_per_worker", "default_threads"):
                 row = scale[label]
                 print(f"scaling ({label}, --device {scale['device']}): 1 worker {row['one_worker_images_per_s']:.0f} images/s"
                       f" ({row['one_worker_s']:.1f} s), {args.scaling_workers} workers "
                       f"{row['n_workers_images_per_s']:.0f} images/s ({row['n_workers_s']:.1f} s),"
-                      f" speed-up {row['speedup']:.2f}x")
+                      f" speed-up {row['speedup']:.2f}x (the median of {len(row['pairs'])} pair(s): "
+                      f"{', '.join(format(pair['speedup'], '.2f') for pair in row['pairs'])})")
         if "reader" not in skip:
             results["reader"] = read = reader(tmp, args.reader_frames)
             print(f"reader: ShardDataset {read['shard_dataset_images_per_s']:.0f} images/s, "
