@@ -387,7 +387,9 @@ class FrameRenderer:
         pose = camera_pose(self.model, data, self.model.camera(self.camera_id).name)
         gain = CLIPPED_GAIN if self._rig.vehicle_lamps else 1.0  # lights are on
         # what the array work needs of the state and the weather, taken now
-        spheres = self._rig.lamp_spheres(data) if slabs is not None and gain != 1.0 else None
+        spheres = boxes = None
+        if slabs is not None and gain != 1.0:
+            spheres, boxes = self._rig.lamp_spheres(data), self._rig.lamp_boxes(data)
         puddle_shapes = (self._rig.puddles, self._rig.puddle_phases)
         cache = self._frame_cache_of(depth)
         ripple_slope = puddle_ripple_slope(weather.rain_mm_h)
@@ -401,7 +403,7 @@ class FrameRenderer:
             if slabs is not None:
                 road, road_small = self._road_pixel_mask(cache, slabs, pose, depth, small.shape[:2])
                 if spheres is not None:  # the lamps' mirror images: only they streak brightly
-                    lights = self._mirrored_lights(cache, spheres, pose, float(slabs[0, 2]),
+                    lights = self._mirrored_lights(cache, spheres, boxes, pose, float(slabs[0, 2]),
                                                    small.shape[:2])
             if slabs is not None and reflectance > 0:
                 rows = np.flatnonzero(road.any(axis=1))
@@ -467,19 +469,20 @@ class FrameRenderer:
 
         return cache.get("road", pose.tobytes() + slabs.tobytes() + bytes(str(small), "ascii"), build)
 
-    def _mirrored_lights(self, cache: _FrameCache, spheres: np.ndarray, pose: np.ndarray,
-                         plane_z: float, small: tuple[int, int]) -> np.ndarray:
+    def _mirrored_lights(self, cache: _FrameCache, spheres: np.ndarray, boxes: np.ndarray,
+                         pose: np.ndarray, plane_z: float, small: tuple[int, int]) -> np.ndarray:
         """(h, w) bool :func:`~rainbench.rain.weather.mirrored_light_pixels` of the lamp geoms'
-        ``spheres`` ((L, 4), :meth:`WeatherRig.lamp_spheres`) in the road plane at ``plane_z``,
-        at the mirror render's ``small`` (h, w), kept in the frame's ``cache``."""
+        ``spheres`` ((L, 4), :meth:`WeatherRig.lamp_spheres`) and ``boxes`` ((L, 15),
+        :meth:`WeatherRig.lamp_boxes`) in the road plane at ``plane_z``, at the mirror render's
+        ``small`` (h, w), kept in the frame's ``cache``."""
         def build() -> np.ndarray:
-            # drawn on the full image, then any pixel a disc touches counts at half size
+            # drawn on the full image, then any pixel a lamp touches counts at half size
             lights = mirrored_light_pixels(self.K, pose, spheres, plane_z, self.height,
-                                           self.width)
+                                           self.width, boxes)
             return cv2.resize(lights.astype(np.uint8), (small[1], small[0]),
                               interpolation=cv2.INTER_AREA) > 0
 
-        return cache.get("lights", pose.tobytes() + spheres.tobytes()
+        return cache.get("lights", pose.tobytes() + spheres.tobytes() + boxes.tobytes()
                          + np.float64(plane_z).tobytes() + bytes(str(small), "ascii"), build)
 
     def _mirror_weight(self, rotation: np.ndarray, reflectance: float) -> np.ndarray:

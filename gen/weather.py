@@ -297,6 +297,16 @@ class WeatherRig:
         return np.column_stack([data.geom_xpos[self.lamp_geoms],
                                 self.model.geom_rbound[self.lamp_geoms]])
 
+    def lamp_boxes(self, data: mujoco.MjData) -> np.ndarray:
+        """(L, 15) float64: each of :attr:`lamp_geoms` as a box in the state ``data``: centre (3),
+        rotation (9, row-major, world from the geom's axes) and half sizes (3), metres; NaN rows
+        for lamps that are not boxes (:func:`rainbench.rain.weather.mirrored_light_pixels`)."""
+        geoms = self.lamp_geoms
+        boxes = np.column_stack([data.geom_xpos[geoms], data.geom_xmat[geoms],
+                                 self.model.geom_size[geoms]]).astype(np.float64).reshape(-1, 15)
+        boxes[self.model.geom_type[geoms] != mujoco.mjtGeom.mjGEOM_BOX] = np.nan
+        return boxes
+
     def lamp_lights(self, data: mujoco.MjData, viewer: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The scene's lights as seen from ``viewer`` ((3,) world metres) in the state ``data``:

@@ -400,6 +400,13 @@ def test_the_weather_rig_knows_the_lamps_whose_reflections_streak(night_scene):
     spheres = rig.lamp_spheres(data)
     np.testing.assert_array_equal(spheres[:, :3], data.geom_xpos[rig.lamp_geoms])
     assert spheres.shape == (len(names), 4) and (spheres[:, 3] > 0).all()
+    boxes = rig.lamp_boxes(data)  # the boxes' footprints are what streak (not their discs)
+    is_box = model.geom_type[rig.lamp_geoms] == mujoco.mjtGeom.mjGEOM_BOX
+    assert boxes.shape == (len(names), 15) and is_box.any()
+    np.testing.assert_array_equal(boxes[is_box, :3], data.geom_xpos[rig.lamp_geoms[is_box]])
+    np.testing.assert_array_equal(boxes[is_box, 3:12], data.geom_xmat[rig.lamp_geoms[is_box]])
+    np.testing.assert_array_equal(boxes[is_box, 12:], model.geom_size[rig.lamp_geoms[is_box]])
+    assert np.isnan(boxes[~is_box]).all()
 
 
 def test_wet_night_road_mirrors_the_strip_the_camera_sees(night_scene):

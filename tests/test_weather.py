@@ -405,6 +405,33 @@ def test_mirrored_light_pixels_project_the_lamps_reflection():
     assert wx.film_streak_sigma_px(400.0) == pytest.approx(16.0)
 
 
+def test_a_box_lamps_mirror_image_is_its_footprint_not_its_bounding_disc():
+    """A tail lamp is a flat box (0.2 x 0.02 x 0.06 m): its bounding sphere's disc covered
+    several times the lamp, and the clipped car body around it streaked 8x brighter than the car
+    (a visual audit: a pink car at night, seed 14 at the junction). As a box it covers the
+    projection of its 8 mirrored corners: the lamp 0.5 m up and 10 m ahead is mirrored 2.0 m
+    below the camera, row cy + f x 0.2 = 100, 0.2 m across (4 px about column 80) and 0.06 m tall
+    (1.2 px)."""
+    K = np.array([[200.0, 0.0, 80.0], [0.0, 200.0, 60.0], [0.0, 0.0, 1.0]])
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # looks along +y
+    pose[:3, 3] = (0.0, 0.0, 1.5)
+    half = np.array([0.1, 0.01, 0.03])  # across (x), along the view (y), up (z)
+    sphere = np.array([[0.0, 10.0, 0.5, float(np.linalg.norm(half))]])
+    box = np.concatenate([[0.0, 10.0, 0.5], np.eye(3).ravel(), half])[None]
+    disc = wx.mirrored_light_pixels(K, pose, sphere, 0.0, 120, 160)
+    footprint = wx.mirrored_light_pixels(K, pose, sphere, 0.0, 120, 160, boxes=box)
+    rows, cols = np.nonzero(footprint)
+    assert footprint.any() and footprint.sum() * 3 < disc.sum()
+    assert not (footprint & ~disc).any()  # inside the lamp's disc
+    assert cols.min() >= 77 and cols.max() <= 82  # 4 px across, not the disc's 2 x 4 + 1
+    assert rows.min() >= 98 and rows.max() <= 101  # about row 100, 1.2 px tall
+    np.testing.assert_array_equal(  # NaN rows (not boxes) fall back to the disc
+        wx.mirrored_light_pixels(K, pose, sphere, 0.0, 120, 160, boxes=np.full((1, 15), np.nan)), disc)
+    with pytest.raises(ValueError, match=r"boxes: expected one row per sphere \(1\), got 2"):
+        wx.mirrored_light_pixels(K, pose, sphere, 0.0, 120, 160, boxes=np.repeat(box, 2, axis=0))
+
+
 def test_ripple_impacts_integrate_marshall_palmer_and_the_slope_saturates():
     """The closed form against a numerical integral of N(D) v(D) over D >= 1 mm; the puddles'
     slope grows with the rate until the rings cover them (about 10 mm/h), then stays."""
