@@ -130,13 +130,9 @@ def test_streaks_are_brighter_than_a_dark_wall():
 
 
 # -- a tiny inline scene with the weather rig ------------------------------------------------
-def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=True,
-               road="asphalt", puddle=None, split_at=None, planes=False):
-    """A 40 m road plane (top at z = 0) with a 1 m box at the origin; ``puddle``: (x, y, half
-    length, half width) of a ``scenery/puddle0`` outline geom on the road; ``split_at``: the
-    road is two slabs meeting at this x (MuJoCo mirrors one geom a render); ``planes``: the slabs
-    are plane geoms (the night scenes' lit grid) instead of boxes, one unbounded plane when not
-    split."""
+def _rig_spec(width: int, height: int, road: str = "asphalt") -> mujoco.MjSpec:
+    """The weather rig's needs (a skybox ``sky``; lights are the caller's) and a grey road
+    material named ``road``, for an offscreen image of ``width`` x ``height``."""
     spec = mujoco.MjSpec()
     spec.stat.extent = 100.0
     spec.visual.map.znear = 0.001
@@ -154,6 +150,17 @@ def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=T
                      rgb2=[0.35, 0.35, 0.35], width=8, height=8)
     road_material = spec.add_material(name=road, rgba=[0.4, 0.4, 0.4, 1])
     road_material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "road_grey"
+    return spec
+
+
+def _rig_scene(*, camera_pos, camera_quat, fovy, width=120, height=90, red_box=True,
+               road="asphalt", puddle=None, split_at=None, planes=False):
+    """A 40 m road plane (top at z = 0) with a 1 m box at the origin; ``puddle``: (x, y, half
+    length, half width) of a ``scenery/puddle0`` outline geom on the road; ``split_at``: the
+    road is two slabs meeting at this x (MuJoCo mirrors one geom a render); ``planes``: the slabs
+    are plane geoms (the night scenes' lit grid) instead of boxes, one unbounded plane when not
+    split."""
+    spec = _rig_spec(width, height, road)
     world = spec.worldbody
     if split_at is None and planes:  # one unbounded plane (size 0)
         world.add_geom(name="scenery/road", type=mujoco.mjtGeom.mjGEOM_PLANE,
@@ -283,19 +290,7 @@ def test_the_far_wet_road_mirrors_the_cloud_deck_down_to_the_horizon():
     audit: a dark block over the car ahead at a street's vanishing point). The mirror pass now
     reaches the deck (here only 100 m across in the model) to the horizon: the far road mirrors
     it, out to a few hundred metres, far brighter than in the same weather without its mirror."""
-    spec = mujoco.MjSpec()
-    spec.stat.extent = 100.0
-    spec.visual.map.znear = 0.001
-    spec.visual.map.zfar = 10.0
-    spec.visual.global_.offwidth, spec.visual.global_.offheight = 640, 480
-    spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
-                     builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT, rgb1=[1, 1, 1], rgb2=[1, 1, 1],
-                     width=32, height=32)
-    spec.add_texture(name="road_grey", type=mujoco.mjtTexture.mjTEXTURE_2D,
-                     builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT, rgb1=[0.35, 0.35, 0.35],
-                     rgb2=[0.35, 0.35, 0.35], width=8, height=8)
-    road = spec.add_material(name="asphalt", rgba=[0.4, 0.4, 0.4, 1])
-    road.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "road_grey"
+    spec = _rig_spec(320, 240)
     spec.add_material(name="cloud_deck", rgba=[0.5, 0.5, 0.5, 1.0], emission=1.0, specular=0.0)
     world = spec.worldbody
     world.add_geom(name="scenery/road", type=mujoco.mjtGeom.mjGEOM_BOX, size=[1000, 200, 0.05],
