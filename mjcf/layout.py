@@ -989,7 +989,8 @@ def _tree(builder: _Builder, x: float, y: float, scale: float = 1.0) -> None:
 POLE_SHIFTS_M = (0.0, *(sign * 0.5 * k for k in range(1, 9) for sign in (1.0, -1.0)))
 """Where along the road a lamp or sign pole may move from its spot, nearest first (up to 4 m)."""
 POLE_SPACING_M = 0.5
-"""The least distance between two lamp or sign poles' axes (each moved clear of the walkers)."""
+"""The least distance between two poles' axes (lamps, signs, traffic lights: each moved clear of
+the walkers)."""
 WALKER_CHUNK_POINTS = 32
 """Planning-time positions per chunk of a walker's path in :meth:`_Builder.walker_distance`."""
 BUILDING_CELL_M = 20.0
