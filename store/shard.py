@@ -759,8 +759,27 @@ def open_checked(path: str | Path):
     """:func:`open_shard` then :func:`check_labels`: how every rainbench reader opens a shard.
     Every failure is one line naming the file: a :class:`ShardFormatError`, or an OSError for a
     file that cannot be opened for a reason outside it (:data:`_NOT_THE_FILES_FAULT`)."""
-    try:
+    with _damage_named(path):
         handle = open_shard(path)
+    try:
+        # the checks read every group: damaged metadata there surfaces from h5py too (a flipped
+        # byte in /weather's links: "Link iteration failed", found by the long fuzz profile)
+        with _damage_named(path):
+            check_labels(handle, path)
+    except BaseException:
+        handle.close()
+        raise
+    return handle
+
+
+@contextlib.contextmanager
+def _damage_named(path: str | Path):
+    """Re-raise what h5py raises on a damaged file (KeyError, OSError, RuntimeError, TypeError,
+    ValueError) as a one-line :class:`ShardFormatError` naming ``path``; a
+    :class:`ShardFormatError` and an OSError that says nothing of the file
+    (:data:`_NOT_THE_FILES_FAULT`) pass as they are."""
+    try:
+        yield
     except ShardFormatError:
         raise
     except OSError as error:
@@ -773,9 +792,3 @@ def open_checked(path: str | Path):
         reason = " ".join(str(error).split())
         raise ShardFormatError(f"{path}: not a readable shard ({type(error).__name__}: "
                                f"{reason})") from None
-    try:
-        check_labels(handle, path)
-    except BaseException:
-        handle.close()
-        raise
-    return handle
