@@ -112,3 +112,24 @@ def test_the_statistics_bench_compares_both_paths_on_the_same_frames(tmp_path):
     assert result["cpu_ms_per_frame"] > 0 and result["device_ms_per_frame"] > 0
     assert result["largest_difference"]["ssim"] < 1e-5 and result["largest_difference"]["psnr"] == 0
     assert "statistics of one frame" in run.stdout
+
+
+def test_the_rain_memory_bench_alternates_its_pairs_and_times_warm_draws(tmp_path):
+    """bench/rain_memory.py on the paper case, two pairs: the pairs alternate which mode runs
+    first, each run times warm draws (at least one, the median reported) beside its first one,
+    the reported ratio is the median pair's, and both modes draw the same bytes."""
+    out = tmp_path / "memory.json"
+    run = subprocess.run([sys.executable, str(ROOT / "bench" / "rain_memory.py"), "--cases", "paper",
+                          "--repeats", "2", "--json", str(out)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    row = json.loads(out.read_text())["paper"]
+    pairs = row["pairs"]
+    assert [pair["first"] for pair in pairs] == ["shipped", "baseline"]
+    for pair in pairs:
+        for mode in ("shipped", "baseline"):
+            assert pair[mode]["draws"] >= 1 and pair[mode]["seconds"] > 0 and pair[mode]["first_draw_s"] > 0
+        assert pair["time_ratio"] == pair["shipped"]["seconds"] / pair["baseline"]["seconds"]
+    assert row["time_ratio"] == min(pair["time_ratio"] for pair in pairs)  # the lower middle of 2
+    assert row["same_bytes"] and row["memory_ratio"] > 0
+    assert "the median of 2 pair(s)" in run.stdout
