@@ -134,9 +134,11 @@ def walker_height(layout: L.Layout, unit: L.Unit, times: np.ndarray) -> np.ndarr
     walk within :data:`CURB_STEP_S` around each time, so that it steps onto a curb over a step,
     not in one frame; where the ground is level over that stretch (and for anyone standing) the
     ground's own height. A pure function of the time, as every target is."""
+    times = np.asarray(times, np.float64)
     offsets = np.linspace(-CURB_STEP_S / 2, CURB_STEP_S / 2, 5)
-    samples = np.stack([L.ground_heights(layout, L.unit_position(unit, times + offset))
-                        for offset in offsets])
+    # the five offsets' positions and ground in one call each (a call costs as much as its points)
+    around = (times[None, :] + offsets[:, None]).ravel()
+    samples = L.ground_heights(layout, L.unit_position(unit, around)).reshape(len(offsets), -1)
     level = (samples == samples[2]).all(axis=0)  # exactly the ground there, not a rounded mean
     return np.where(level, samples[2], samples.mean(axis=0))
 

@@ -161,6 +161,7 @@ class WeatherRig:
         self.lamp_kinds = tuple(tod.LAMP_KINDS[material_names[int(m)]]
                                 for m in model.geom_matid[self.lamp_geoms])
         """(L,) each lamp geom's kind: ``"head"``, ``"tail"`` or ``"street"``."""
+        self._lamp_not_box = model.geom_type[self.lamp_geoms] != mujoco.mjtGeom.mjGEOM_BOX
         self._lamp_colours = np.array([tod.lamp_colour(kind) for kind in self.lamp_kinds],
                                       np.float64).reshape(-1, 3)
         # by day the vehicle lamps are built dark (tod.add_dark_vehicle_lamps), lit in dark rain
@@ -304,7 +305,7 @@ class WeatherRig:
         geoms = self.lamp_geoms
         boxes = np.column_stack([data.geom_xpos[geoms], data.geom_xmat[geoms],
                                  self.model.geom_size[geoms]]).astype(np.float64).reshape(-1, 15)
-        boxes[self.model.geom_type[geoms] != mujoco.mjtGeom.mjGEOM_BOX] = np.nan
+        boxes[self._lamp_not_box] = np.nan
         return boxes
 
     def lamp_lights(self, data: mujoco.MjData, viewer: np.ndarray

@@ -66,6 +66,17 @@ class Frame:
     ignore: dict[str, np.ndarray]
 
 
+def class_ids(classes) -> tuple[int, ...]:
+    """``classes`` (names or ids of the labelled classes) as ascending ids, else a one-line
+    DatasetError (an unknown or misspelt class dropped every label without a word)."""
+    if isinstance(classes, (str, bytes)) or not isinstance(classes, (Sequence, np.ndarray, set, frozenset)):
+        raise DatasetError(f"classes: expected a list of class names or ids, got {classes!r}")
+    try:
+        return parse_classes(list(classes))
+    except ValueError as error:
+        raise DatasetError(str(error).replace("--classes: ", "classes: ", 1)) from None
+
+
 class Dataset:
     """A dataset directory, one shard, or a list of shards, read through one index.
 
@@ -246,14 +257,7 @@ class Dataset:
         :func:`rainbench.store.classes.parse_classes`), only the labels and ignore regions of
         those classes. An unknown class or an empty list is a one-line :class:`DatasetError`,
         not frames without labels."""
-        keep_classes = None
-        if classes is not None:
-            if isinstance(classes, (str, bytes)) or not isinstance(classes, (Sequence, np.ndarray, set, frozenset)):
-                raise DatasetError(f"classes: expected a list of class names or ids, got {classes!r}")
-            try:
-                keep_classes = np.asarray(parse_classes(list(classes)), np.int64)
-            except ValueError as error:
-                raise DatasetError(str(error).replace("--classes: ", "classes: ", 1)) from None
+        keep_classes = None if classes is None else np.asarray(class_ids(classes), np.int64)
         for image, handle in self.walk():
             rows = self._rows[image.shard_index]
             labels = read_frame_labels(handle, image.frame)

@@ -28,8 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .classes import parse_classes
-from .dataset import Dataset
+from .dataset import Dataset, class_ids as _class_ids
 from .manifest import DatasetError
 from .shard import read_rgb
 
@@ -46,17 +45,6 @@ def _fraction(value) -> float:
     if isinstance(value, bool) or not 0.0 <= fraction <= 1.0:
         raise DatasetError(f"min_visible_fraction: expected a fraction in [0, 1], got {value!r}")
     return fraction
-
-
-def _class_ids(classes) -> tuple[int, ...]:
-    """``classes`` (names or ids of the labelled classes) as ascending ids, else a one-line
-    DatasetError (an unknown or misspelt class dropped every label without a word)."""
-    if isinstance(classes, (str, bytes)) or not isinstance(classes, (Sequence, np.ndarray, set, frozenset)):
-        raise DatasetError(f"classes: expected a list of class names or ids, got {classes!r}")
-    try:
-        return parse_classes(list(classes))
-    except ValueError as error:
-        raise DatasetError(str(error).replace("--classes: ", "classes: ", 1)) from None
 
 
 class ShardReader:

@@ -548,12 +548,15 @@ def _frame_rows(handle: h5py.File, group: str, frame: int) -> tuple[int, int]:
     """(start, stop) rows of ``frame`` in ``/<group>``; an IndexError naming the file for a frame
     outside 0..N-1 (a negative frame read ``offsets[-1]:offsets[0]``, an empty slice, before)."""
     offsets = handle[f"{group}/offsets"]
-    frames = offsets.shape[0] - 1
-    if isinstance(frame, (bool, np.bool_)) or not isinstance(frame, (int, np.integer)) \
-            or not 0 <= frame < frames:
+    _check_frame(handle, offsets.shape[0] - 1, frame)
+    return int(offsets[frame]), int(offsets[frame + 1])
+
+
+def _check_frame(handle: h5py.File, frames: int, frame) -> None:
+    """An IndexError naming the file unless ``frame`` is an int in 0..``frames`` - 1."""
+    if not _is_integer(frame) or not 0 <= frame < frames:
         raise IndexError(f"{handle.filename}: frame {frame!r} is outside its {frames} frames "
                          f"(expected an int in 0..{frames - 1})")
-    return int(offsets[frame]), int(offsets[frame + 1])
 
 
 def read_frame_labels(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
@@ -584,8 +587,8 @@ def read_frame_ignore(handle: h5py.File, frame: int) -> dict[str, np.ndarray]:
     """Ignore regions of ``frame``: ``bbox`` (N, 4) float32 xyxy pixel-edge, ``class_id`` and
     ``instance_id`` (N,) int32 (:class:`~rainbench.store.labels.FrameLabels`). Shards written
     before ignore regions have none: every array is empty."""
-    _frame_rows(handle, "labels", frame)  # the same frame check with or without /ignore
-    if "ignore" not in handle:
+    if "ignore" not in handle:  # the same frame check as with /ignore (its offsets' length)
+        _check_frame(handle, handle["labels/offsets"].shape[0] - 1, frame)
         return {key: np.zeros((0, width) if width else (0,), dtype) for key, dtype, width in _IGNORE_ARRAYS}
     start, stop = _frame_rows(handle, "ignore", frame)
     return {key: handle[f"ignore/{key}"][start:stop] for key, _, _ in _IGNORE_ARRAYS}
