@@ -23,10 +23,10 @@ import numpy as np
 
 from rainbench.mjcf import lights as tod
 from rainbench.mjcf.scene import CLOUD_TEXTURE
-from rainbench.mjcf.textures import level_ranks
 from rainbench.mjcf.weather import scene_lighting
-from rainbench.rain.weather import (CLOUD_BASE_M, CLOUD_TILE_M, Weather, puddle_outline_phases,
-                                     puddle_ripple_slope, sky_colours, sky_key)
+from rainbench.rain.weather import (CLOUD_BASE_M, CLOUD_EDGE_RANKS, CLOUD_TILE_M, Weather,
+                                     puddle_outline_phases, puddle_ripple_slope, sky_colours,
+                                     sky_key)
 
 MIRROR_AHEAD_M = 15.0
 """Where the wet road's mirror matters most: Fresnel's weight grows with distance, the road's
@@ -50,12 +50,58 @@ def skybox_directions(size: int) -> np.ndarray:
 
 
 _CLOUD_MIN_SIN_ELEVATION = 0.01  # texels below it read the field at 150 km (they fade anyway)
+CLOUD_SMOOTH_CELLS = 1.5
+"""Standard deviation, in the cloud field's cells, of the Gaussian the field is smoothed with
+before the sky reads it: bilinear between cells, a field rough from cell to cell draws its cloud
+edges as the cells' squares (blocky clouds in light rain)."""
+CLOUD_EDGE_TEXELS = 2.0
+"""A cloud edge spans at least this many sky texels (:func:`skybox_edge_ranks`)."""
+
+
+def cloud_field_ranks(levels: np.ndarray) -> np.ndarray:
+    """(H, W) float64 ranks in 0..1 of a tileable cloud field ``levels`` (H, W) (any numbers:
+    only their order counts), after a periodic Gaussian smoothing of ``CLOUD_SMOOTH_CELLS``
+    cells; uniform over the field (each cell's rank is its place in the sorted field, ``(i +
+    1/2) / (H W)``), so a cover c puts a share c of it under cloud."""
+    levels = np.asarray(levels, dtype=np.float64)
+    if levels.ndim != 2 or min(levels.shape) < 1:
+        raise ValueError(f"cloud field: expected (H, W) levels, got shape {levels.shape}")
+    height, width = levels.shape
+    frequency_y = np.fft.fftfreq(height)[:, None]
+    frequency_x = np.fft.fftfreq(width)[None, :]
+    smoothing = np.exp(-2.0 * np.pi ** 2 * CLOUD_SMOOTH_CELLS ** 2
+                       * (frequency_x ** 2 + frequency_y ** 2))
+    smooth = np.fft.ifft2(np.fft.fft2(levels) * smoothing).real
+    order = np.argsort(smooth, axis=None, kind="stable")
+    ranks = np.empty(levels.size, np.float64)
+    ranks[order] = (np.arange(levels.size) + 0.5) / levels.size
+    return ranks.reshape(height, width)
+
+
+def skybox_edge_ranks(ranks: np.ndarray) -> np.ndarray:
+    """(6 * S * S,) float64: the cloud edge width (ranks) for each skybox texel whose cloud rank
+    is ``ranks`` (6 * S * S,) (:func:`skybox_cloud_ranks` of :func:`skybox_directions` (S)):
+    ``CLOUD_EDGE_RANKS``, or wider where the ranks step so fast between neighbouring texels that
+    an edge would be sharper than ``CLOUD_EDGE_TEXELS`` texels (the far layer, seen at a slant).
+    The texture's bilinear filter then draws the edge as a ramp, not as steps of texels."""
+    ranks = np.asarray(ranks, dtype=np.float64)
+    size = int(round(math.sqrt(ranks.size / 6)))
+    if ranks.ndim != 1 or 6 * size * size != ranks.size or size < 2:
+        raise ValueError(f"skybox ranks: expected (6 * S * S,) with S >= 2, got {ranks.shape}")
+    faces = ranks.reshape(6, size, size)
+    steps = []
+    for axis in (1, 2):  # the larger step to either neighbour (a ridge's are both ways)
+        step = np.abs(np.diff(faces, axis=axis))
+        before = np.concatenate([np.take(step, [0], axis=axis), step], axis=axis)
+        after = np.concatenate([step, np.take(step, [-1], axis=axis)], axis=axis)
+        steps.append(np.maximum(before, after))
+    return np.maximum(CLOUD_EDGE_RANKS, CLOUD_EDGE_TEXELS * np.hypot(*steps)).reshape(-1)
 
 
 def skybox_cloud_ranks(model: mujoco.MjModel, directions: np.ndarray) -> np.ndarray | None:
     """(N,) float64 in 0..1: where each of ``directions`` (N, 3) (unit vectors, +z up; a skybox's
     texels: :func:`skybox_directions`) meets the scene's cloud layer, the rank of the cloud field
-    there, bilinear. The field is the scene's texture ``clouds``
+    there (:func:`cloud_field_ranks`), bilinear. The field is the scene's texture ``clouds``
     (:func:`rainbench.mjcf.scene.build_spec`), tiled over ``CLOUD_TILE_M`` on a layer
     ``CLOUD_BASE_M`` above the camera. Ranks are uniform over the field, so a cloud cover c
     covers a share c of it. None when the scene has no cloud field.
@@ -65,7 +111,7 @@ def skybox_cloud_ranks(model: mujoco.MjModel, directions: np.ndarray) -> np.ndar
         return None
     width, height = int(model.tex_width[index]), int(model.tex_height[index])
     channels, start = int(model.tex_nchannel[index]), int(model.tex_adr[index])
-    ranks = level_ranks(model.tex_data[start:start + width * height * channels].reshape(
+    ranks = cloud_field_ranks(model.tex_data[start:start + width * height * channels].reshape(
         height, width, channels)[:, :, 0])
     reach = CLOUD_BASE_M / np.maximum(directions[:, 2], _CLOUD_MIN_SIN_ELEVATION)
     x = directions[:, 0] * reach / CLOUD_TILE_M * width
@@ -138,6 +184,8 @@ class WeatherRig:
         directions = skybox_directions(size)
         self._sky_sin = directions[:, 2]
         self._sky_cloud_ranks = skybox_cloud_ranks(model, directions)
+        self._sky_edge_ranks = (None if self._sky_cloud_ranks is None
+                                else skybox_edge_ranks(self._sky_cloud_ranks))
         self._sky_key: tuple | None = None
         self._sky_texels: dict[tuple, np.ndarray] = {}
         self.cloud_deck = False
@@ -369,9 +417,9 @@ class WeatherRig:
         key = sky_key(weather)
         if key != self._sky_key:
             if key not in self._sky_texels:  # a clip's sweep has a handful of skies
-                self._sky_texels[key] = np.rint(sky_colours(weather, self._sky_sin,
-                                                            self._sky_cloud_ranks) * 255.0
-                                                ).astype(np.uint8).reshape(-1)
+                self._sky_texels[key] = np.rint(sky_colours(
+                    weather, self._sky_sin, self._sky_cloud_ranks, self._sky_edge_ranks) * 255.0
+                ).astype(np.uint8).reshape(-1)
             model.tex_data[self._sky_slice] = self._sky_texels[key]
             if context is not None:
                 mujoco.mjr_uploadTexture(model, context, self._sky_id)

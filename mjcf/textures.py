@@ -129,7 +129,7 @@ def clouds(rng: np.random.Generator, size: int = 256, spectral_exponent: float =
     with the spatial frequency ``k`` (cloud fields: roughly ``k^-5/3`` in one dimension, ``k^-8/3``
     in two), from 1 cycle a tile down to the pixel; mean 128, 1 % and 99 % percentiles near 20
     and 235. The sky reads it as ranks, so only its order matters
-    (:func:`rainbench.gen.weather.skybox_cloud_ranks`)."""
+    (:func:`rainbench.gen.weather.cloud_field_ranks`)."""
     white = np.fft.fft2(rng.standard_normal((size, size)))
     frequency = np.fft.fftfreq(size) * size  # cycles a tile
     k = np.hypot(frequency[:, None], frequency[None, :])
@@ -138,13 +138,6 @@ def clouds(rng: np.random.Generator, size: int = 256, spectral_exponent: float =
     field = (field - field.mean()) / field.std()
     level = 128.0 + 46.0 * field
     return _to_uint8(np.repeat(level[:, :, None], 3, axis=2))
-
-
-def level_ranks(levels: np.ndarray) -> np.ndarray:
-    """Float64 ranks in 0..1 of the uint8 ``levels`` (any shape), uniform over them: each level's
-    share of the values below it plus half its own (ties share their middle rank)."""
-    counts = np.bincount(levels.ravel(), minlength=256).astype(np.float64)
-    return ((np.cumsum(counts) - counts / 2.0) / levels.size)[levels]
 
 
 def encode_png(image: np.ndarray) -> bytes:

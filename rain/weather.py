@@ -400,17 +400,20 @@ def daylight_level(weather: Weather) -> float:
 
 
 def cloud_cover_and_shade(cover: float, cloud_ranks: np.ndarray | None,
-                          sin_elevation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                          sin_elevation: np.ndarray, edge_ranks: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, np.ndarray]:
     """Where the clouds are: (N, 1) float64 each ``(share under cloud 0..1, brightness factor of
     that cloud)`` for directions of elevation sine ``sin_elevation`` (N,) whose cloud field
     reads ``cloud_ranks`` (N,) in 0..1.
 
     About a fraction ``cover`` of the field is under cloud, the highest ranks, with edges
-    feathered over ``CLOUD_EDGE_RANKS`` (e): cover 0 leaves no cloud, cover 1 no gap; between,
-    the mean share is ``cover + e (cover - 1/2)`` where the ramp lies inside the ranks (0.824
-    for the cloudy sky's 0.8), fading to ``cover`` itself towards the horizon. Within the cloud the
-    thickest parts are darker, the thinnest lighter (``1 +- CLOUD_SHADE``: the grey bases of a
-    closed deck). Low down, where the layer's cells shrink below what the sky texture resolves,
+    feathered over ``edge_ranks`` (N,) (e; None: ``CLOUD_EDGE_RANKS`` everywhere; a skybox passes
+    wider ramps where its texels step further in rank, :func:`rainbench.gen.weather.
+    skybox_edge_ranks`, so that no edge is sharper than the texels can draw): cover 0 leaves no
+    cloud, cover 1 no gap; between, the mean share is ``cover + e (cover - 1/2)`` where the ramp
+    lies inside the ranks (0.824 for the cloudy sky's 0.8 and the default e), fading to
+    ``cover`` itself towards the horizon. Within the cloud the thickest parts are darker, the
+    thinnest lighter (``1 +- CLOUD_SHADE``: the grey bases of a closed deck). Low down, where the layer's cells shrink below what the sky texture resolves,
     both fade into their means (``cover`` and 1) with the haze, over ``CLOUD_FADE_SIN_ELEVATION``.
     ``cloud_ranks`` None: the mean sky, ``(cover, 1)`` everywhere.
     """
@@ -420,16 +423,24 @@ def cloud_cover_and_shade(cover: float, cloud_ranks: np.ndarray | None,
     ranks = np.asarray(cloud_ranks, dtype=np.float64)[..., None]
     if ranks.shape != s.shape:
         raise ValueError(f"cloud_ranks: expected shape {s.shape[:-1]}, got {ranks.shape[:-1]}")
+    if edge_ranks is None:
+        edge = CLOUD_EDGE_RANKS
+    else:
+        edge = np.asarray(edge_ranks, dtype=np.float64)[..., None]
+        if edge.shape != s.shape or not np.all(edge > 0.0):
+            raise ValueError(f"edge_ranks: expected shape {s.shape[:-1]} of positive widths, "
+                             f"got {edge.shape[:-1]}, least {edge.min(initial=np.inf):g}")
     fade = np.clip(s / CLOUD_FADE_SIN_ELEVATION, 0.0, 1.0)
-    lower = (1.0 - cover) * (1.0 + CLOUD_EDGE_RANKS) - CLOUD_EDGE_RANKS
-    under = np.clip((ranks - lower) / CLOUD_EDGE_RANKS, 0.0, 1.0)
+    lower = (1.0 - cover) * (1.0 + edge) - edge
+    under = np.clip((ranks - lower) / edge, 0.0, 1.0)
     share = cover + (under - cover) * fade
     shade = 1.0 + CLOUD_SHADE * (1.0 - 2.0 * ranks) * fade
     return share, shade
 
 
 def sky_colours(weather: Weather, sin_elevation: np.ndarray,
-                cloud_ranks: np.ndarray | None = None) -> np.ndarray:
+                cloud_ranks: np.ndarray | None = None,
+                edge_ranks: np.ndarray | None = None) -> np.ndarray:
     """Sky colour (N, 3) float64 in 0..1 for directions with elevation sine ``sin_elevation``.
 
     Day: clear, a blue gradient, zenith to horizon; cloud, the CIE standard overcast sky (sky type
@@ -441,11 +452,13 @@ def sky_colours(weather: Weather, sin_elevation: np.ndarray,
 
     ``cloud_ranks`` (N,) in 0..1: each direction's rank in the scene's cloud field; the clear and
     the cloud sky are then mixed texel by texel (:func:`cloud_cover_and_shade`: clouds and gaps)
-    rather than blended by ``cloud_cover`` everywhere. None: the mean sky of that blend.
+    rather than blended by ``cloud_cover`` everywhere, with cloud edges feathered over
+    ``edge_ranks`` (N,) (None: ``CLOUD_EDGE_RANKS``). ``cloud_ranks`` None: the mean sky of that
+    blend.
     """
     sky, cover, closing, time_of_day, dimming = sky_key(weather)
     s = np.clip(np.asarray(sin_elevation, dtype=np.float64), 0.0, 1.0)[..., None]
-    share, shade = cloud_cover_and_shade(cover, cloud_ranks, sin_elevation)
+    share, shade = cloud_cover_and_shade(cover, cloud_ranks, sin_elevation, edge_ranks)
     if time_of_day == "night":
         clear = (np.asarray(NIGHT_CLEAR_ZENITH)
                  + np.asarray(NIGHT_GLOW_HORIZON) * np.exp(-s / NIGHT_GLOW_SIN_ELEVATION))

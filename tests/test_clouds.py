@@ -8,7 +8,8 @@ import pytest
 from rainbench.gen.config import GenerateConfig
 from rainbench.gen.generate import build_scene
 from rainbench.gen.render import FrameRenderer
-from rainbench.gen.weather import skybox_cloud_ranks, skybox_directions
+from rainbench.gen.weather import (CLOUD_EDGE_TEXELS, cloud_field_ranks, skybox_cloud_ranks,
+                                   skybox_directions, skybox_edge_ranks)
 from rainbench.mjcf import layout as L
 from rainbench.mjcf import textures
 from rainbench.mjcf.layout import ScenarioConfig
@@ -85,9 +86,58 @@ def test_cloud_field_is_seeded_tileable_and_read_as_uniform_ranks():
     assert np.abs(grey[0] - grey[-1]).mean() < 1.5 * inside
     # fractal, not white: neighbours are alike, far texels are not
     assert inside < 0.25 * np.abs(grey - np.roll(grey, 128, axis=1)).mean()
-    ranks = textures.level_ranks(field[:, :, 0])
-    assert ranks.min() >= 0.0 and ranks.max() <= 1.0
-    np.testing.assert_allclose(np.quantile(ranks, [0.1, 0.5, 0.9]), [0.1, 0.5, 0.9], atol=0.02)
+    ranks = cloud_field_ranks(field[:, :, 0])
+    assert ranks.shape == (256, 256) and ranks.min() > 0.0 and ranks.max() < 1.0
+    # uniform: every rank once
+    np.testing.assert_allclose(np.sort(ranks, axis=None), (np.arange(256 * 256) + 0.5) / 256 ** 2)
+    # in the field's order where it is smooth, smoother than the field from cell to cell
+    raw = np.argsort(np.argsort(grey, axis=None, kind="stable")).reshape(grey.shape) / grey.size
+    assert np.corrcoef(raw.ravel(), ranks.ravel())[0, 1] > 0.95
+    step = np.abs(np.diff(ranks, axis=1)).mean()
+    assert step < 0.6 * np.abs(np.diff(raw, axis=1)).mean()
+    with pytest.raises(ValueError, match=r"cloud field: expected \(H, W\) levels, got shape \(4,\)"):
+        cloud_field_ranks(np.zeros(4))
+
+
+def test_cloud_edges_are_never_sharper_than_the_sky_texels_draw(street):
+    """Where the layer's ranks step fast between texels (far away, at a slant), the edge widens
+    so that no neighbouring texels jump from gap to cloud: the texture's bilinear filter then
+    draws ramps, not the blocky squares of the field's cells (seen in light rain)."""
+    size = 128
+    directions = skybox_directions(size)
+    ranks = skybox_cloud_ranks(street.model, directions)
+    edges = skybox_edge_ranks(ranks)
+    assert edges.shape == ranks.shape and edges.min() == pytest.approx(wx.CLOUD_EDGE_RANKS)
+    assert edges.max() > 2 * wx.CLOUD_EDGE_RANKS  # some texels do step fast
+    high = directions[:, 2] > wx.CLOUD_FADE_SIN_ELEVATION  # above the haze's fade
+    for cover in (0.3, 0.5, 0.8):
+        widened, _ = wx.cloud_cover_and_shade(cover, ranks, directions[:, 2], edges)
+        fixed, _ = wx.cloud_cover_and_shade(cover, ranks, directions[:, 2])
+        steps = []
+        for share in (widened, fixed):
+            grid = share.reshape(6, size, size)
+            mask = high.reshape(6, size, size)
+            step = np.maximum(np.abs(np.diff(grid, axis=1))[mask[:, 1:] & mask[:, :-1]].max(),
+                              np.abs(np.diff(grid, axis=2))[mask[:, :, 1:] & mask[:, :, :-1]].max())
+            steps.append(step)
+        # a ramp over two texels or more (a step of 1/2; a little over where the widths differ)
+        assert steps[0] < 0.8
+        assert steps[1] >= 0.99  # a fixed edge jumps from gap to cloud in one texel
+        # the widening keeps the cover
+        assert abs(widened[high].mean() - fixed[high].mean()) < 0.03
+    # the widths follow the texels' steps: a ramp of 0.1 a texel along the rows...
+    ramp = np.tile(np.arange(8.0) * 0.1, (6, 8, 1)).reshape(-1)
+    np.testing.assert_allclose(skybox_edge_ranks(ramp), CLOUD_EDGE_TEXELS * 0.1)
+    # ... and a ridge one texel wide, whose own centred difference is 0: its larger step counts
+    ridge = np.zeros((6, 8, 8))
+    ridge[:, :, 3] = 0.1
+    widths = skybox_edge_ranks(ridge.reshape(-1)).reshape(6, 8, 8)
+    np.testing.assert_allclose(widths[:, :, 2:5], CLOUD_EDGE_TEXELS * 0.1)
+    np.testing.assert_allclose(widths[:, :, [0, 1, 5, 6, 7]], wx.CLOUD_EDGE_RANKS)
+    np.testing.assert_allclose(skybox_edge_ranks(np.full(6 * 16, 0.3)), wx.CLOUD_EDGE_RANKS)
+    with pytest.raises(ValueError, match=r"skybox ranks: expected \(6 \* S \* S,\) with S >= 2, "
+                                         r"got \(7,\)"):
+        skybox_edge_ranks(np.zeros(7))
 
 
 def test_cover_is_the_share_of_the_sky_under_cloud():
@@ -104,6 +154,17 @@ def test_cover_is_the_share_of_the_sky_under_cloud():
     assert (share == 0).all()
     share, shade = wx.cloud_cover_and_shade(1.0, ranks, high)
     assert (share == 1).all()
+    # wider edges: softer, but cover 0 and 1 still leave no cloud and no gap
+    wide = np.full(ranks.shape, 0.3)
+    soft, _ = wx.cloud_cover_and_shade(0.5, ranks, high, wide)
+    sharp, _ = wx.cloud_cover_and_shade(0.5, ranks, high)
+    assert ((soft > 0) & (soft < 1)).mean() > 2 * ((sharp > 0) & (sharp < 1)).mean()
+    assert abs(soft.mean() - 0.5) < 1e-3
+    assert (wx.cloud_cover_and_shade(0.0, ranks, high, wide)[0] == 0).all()
+    assert (wx.cloud_cover_and_shade(1.0, ranks, high, wide)[0] == 1).all()
+    with pytest.raises(ValueError, match=r"edge_ranks: expected shape \(10000,\) of positive "
+                                         r"widths, got \(10000,\), least 0"):
+        wx.cloud_cover_and_shade(0.5, ranks, high, np.zeros(ranks.shape))
     assert abs(shade.mean() - 1.0) < 1e-9 and shade.max() - shade.min() > 0.2
     # at the horizon the structure has faded into the mean
     share, shade = wx.cloud_cover_and_shade(0.8, ranks, np.zeros(ranks.shape))
@@ -137,7 +198,7 @@ def test_skybox_cloud_ranks_follow_the_layer_and_need_the_field(street):
     # straight up reads the field under the camera: the texel at the tile's origin
     index = model.texture(CLOUD_TEXTURE).id
     field = model.tex_data[int(model.tex_adr[index]):int(model.tex_adr[index]) + 256 * 256 * 3]
-    origin_rank = textures.level_ranks(field.reshape(256, 256, 3)[:, :, 0])[0, 0]
+    origin_rank = cloud_field_ranks(field.reshape(256, 256, 3)[:, :, 0])[0, 0]
     zenith = skybox_cloud_ranks(model, np.array([[0.0, 0.0, 1.0]]))
     np.testing.assert_allclose(zenith, [origin_rank])
     # a scene without the texture has no clouds
