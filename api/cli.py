@@ -13,6 +13,7 @@ from pathlib import Path
 
 try:  # about a second of imports: Ctrl-C meanwhile is one line too, not a traceback
     from rainbench import gl
+    from rainbench.devices import runs_on_cuda
     from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
     from rainbench.gen.config import (HFOV_DEG, MAX_CLIP_SECONDS, MAX_FPS, MAX_FRAME_OFFSET, MAX_FRAMES,
                                       MAX_SCENES, MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig, stats_device_for)
@@ -495,11 +496,10 @@ def cmd_paper(args: argparse.Namespace) -> int:
                             stats_device=stats_device)
     out = _writable_dir(Path(args.out), "--out")
     _choose_gl(None)
-    import torch
-
     from rainbench.experiments.paper import PaperConfig, check_models, default_models, run_paper
 
-    models = tuple(args.model) if args.model else default_models(torch.cuda.is_available())
+    # the default models are the GPU's set where the evaluation runs on CUDA, not wherever one is
+    models = tuple(args.model) if args.model else default_models(runs_on_cuda(args.device, CliError))
     # before anything is generated, each model under the flag it came with
     specs = ([("--model" if args.model else "--model (default)", model) for model in models]
              + [("--weights", weights) for weights in args.weights or ()])
@@ -791,7 +791,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--classes", default=None,
                           help="classes to score, names or ids, e.g. person,car,bus,truck (default: the "
                                "paper's person,bicycle,car,motorcycle; also bus, truck)")
-    evaluate.add_argument("--device", default=None, help="torch device, e.g. cpu or 0")
+    evaluate.add_argument("--device", default=None,
+                          help="auto, cpu, cuda, cuda:N or CUDA indices, e.g. 0 (default: CUDA 0 if "
+                               "present, else cpu)")
     evaluate.add_argument("--pt-backend", choices=("batched", "ultralytics"), default=None,
                           help="how a .pt runs: batched (torch in batches, letterbox and NMS on the device, "
                                "fp16 on CUDA; default) or ultralytics (its own predict, the reference); "

@@ -313,10 +313,12 @@ def _cache_settings(weights: Path, *, imgsz, conf, iou, max_det, class_map, clas
     if trained is not None and set(LABELLED_CLASSES) - set(trained):  # its card leaves classes out
         settings["trained"] = list(trained)
     if weights.suffix.lower() == ".pt":  # how it runs changes its detections (fp16 on CUDA)
-        from .weights import _on_cuda
+        from rainbench.devices import runs_on_cuda
+
+        from .backends import BackendError
 
         settings["pt_backend"] = pt_backend
-        settings["cuda"] = _on_cuda(device)
+        settings["cuda"] = runs_on_cuda(device, BackendError)
         if settings["cuda"] and pt_backend == "batched":  # since 2026-11-27 OpenCV's, not the GPU's
             settings["letterbox"] = "opencv"
     return settings

@@ -79,6 +79,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rainbench.devices import parse_device
 from rainbench.gen.config import DatasetConfig
 from rainbench.gen.dataset import run_dataset
 from rainbench.store.export import yolo_names
@@ -421,29 +422,28 @@ def _load_or_refuse(recipe: Recipe, key: str, value: Any, load: Callable[[], Any
 
 
 def check_device(device: str | None) -> str | None:
-    """``device`` (``--device``) as ultralytics takes it: None (CUDA 0 when present, else the CPU),
-    ``"cpu"``, or CUDA indices (``"0"``, ``"0,1"``; ``cuda`` / ``cuda:N`` accepted). A device
-    that is neither, or a CUDA device this machine does not have, is a one-line error naming
-    ``--device``: :func:`rainbench.eval.backends.torch_batched.torch_device`'s, as
+    """``device`` (``--device``, :func:`rainbench.devices.parse_device`) as ultralytics takes it:
+    None (None, ``""`` or ``"auto"``: CUDA 0 when present, else the CPU), ``"cpu"``, or CUDA
+    indices (``"0"``, ``"0,1"``; ``cuda`` / ``cuda:N`` accepted). A device that is neither, or a
+    CUDA device this machine does not have, is a one-line error naming ``--device``, as
     ``rainbench eval`` refuses it."""
-    if device is None or not str(device).strip():
+    parsed = parse_device(device, TrainError)
+    if parsed is None:
         return None
     from rainbench.eval.backends.torch_batched import torch_device
 
-    text = str(device).strip().lower()
-    indices = [part.strip() for part in (text.removeprefix("cuda").removeprefix(":") or "0").split(",")]
-    if (text.startswith("cuda") or text[:1].isdigit()) and not all(index.isdigit() for index in indices):
-        raise TrainError(f"--device: expected cpu, a CUDA index (0) or cuda:N, got {device!r}")
-    target = torch_device(device)  # anything else, or CUDA without CUDA: eval's one-line error
-    if target.type == "cpu":
+    torch_device(device)  # CUDA asked for without CUDA: eval's one-line error
+    kind, indices = parsed
+    if kind == "cpu":
         return "cpu"
+    indices = indices or (0,)
     import torch
 
     count = torch.cuda.device_count()
-    missing = [i for i in indices if int(i) >= count]
+    missing = [i for i in indices if i >= count]
     if missing:
         raise TrainError(f"--device {device}: there is no CUDA device {missing[0]} ({count} visible)")
-    return ",".join(indices)
+    return ",".join(str(i) for i in indices)
 
 
 def _seed_range(config: DatasetConfig) -> set[int]:

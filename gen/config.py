@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rainbench.devices import parse_device
 from rainbench.mjcf.layout import ScenarioConfig, check_layout
 from rainbench.rain.config import RAIN_MODELS, RAIN_OPTIONS, RainConfig
 from rainbench.rain.weather import check_sky, check_time_of_day
@@ -350,27 +351,24 @@ class GenerateConfig(ClipConfig):
 
 
 def stats_device_for(device: str | None) -> str:
-    """The :attr:`ClipConfig.stats_device` of a ``--device`` value.
+    """The :attr:`ClipConfig.stats_device` of a ``--device`` value
+    (:func:`rainbench.devices.parse_device`).
 
     ``None`` or ``"auto"``: ``"cuda"`` when torch sees a CUDA GPU, else ``"cpu"`` (torch is
     imported only on a machine with an NVIDIA device node, ``/dev/nvidiactl``, so a CPU machine
-    does not pay its import); ``"cpu"``; a CUDA index as torch's ``--device`` takes it (``"0"``,
-    ``"0,1"``: the first) -> ``"cuda:0"``; ``"cuda"`` and ``"cuda:N"`` as given. Anything else
-    raises :class:`DatasetError` naming it.
+    does not pay its import); ``"cpu"``; ``"cuda"`` as given; ``"cuda:N"`` or CUDA indices
+    (``"0"``, ``"0,1"``: the first) -> ``"cuda:N"``. Anything else raises :class:`DatasetError`
+    naming it.
     """
-    text = "auto" if device is None else str(device).strip().lower()
-    if text == "auto":
+    parsed = parse_device(device, DatasetError)
+    if parsed is None:
         if not Path("/dev/nvidiactl").exists():
             return "cpu"
         import torch  # noqa: PLC0415 -- only where a GPU may be
 
         return "cuda" if torch.cuda.is_available() else "cpu"
-    first = text.split(",")[0]
-    if first.isdigit():
-        text = f"cuda:{first}"
-    if not STATS_DEVICE.fullmatch(text):
-        raise DatasetError(f"--device: expected auto, cpu, cuda, cuda:N or a CUDA index, got {device!r}")
-    return text
+    kind, indices = parsed
+    return f"cuda:{indices[0]}" if indices else kind
 
 
 def _without_cpu_device(config: dict) -> dict:

@@ -501,5 +501,5 @@ def test_cli_refuses_a_device_it_cannot_use(data_dir, tiny_yolo, tmp_path, capsy
     code, _, err = _run(capsys, "eval", "--data", data_dir, "--weights", tiny_yolo, "--out", tmp_path / "out",
                         "--device", "tpu", "--quiet")
     assert code == 2
-    _one_line_error(err, "--device: expected cpu, a CUDA index (0) or cuda:N, got 'tpu'")
+    _one_line_error(err, "--device: expected auto, cpu, cuda, cuda:N or CUDA indices (0 or 0,1), got 'tpu'")
     assert not (tmp_path / "out" / "metrics.json").exists()

@@ -138,7 +138,7 @@ def test_device_flag_values(monkeypatch):
     assert stats_device_for("cpu") == "cpu" and stats_device_for(" CPU ") == "cpu"
     assert stats_device_for("0") == "cuda:0" and stats_device_for("1,2") == "cuda:1"
     assert stats_device_for("cuda") == "cuda" and stats_device_for("cuda:3") == "cuda:3"
-    with pytest.raises(DatasetError, match=r"--device: expected auto, cpu, cuda, cuda:N or a CUDA index, got 'mps'"):
+    with pytest.raises(DatasetError, match=r"--device: expected auto, cpu, cuda, cuda:N or CUDA indices \(0 or 0,1\), got 'mps'"):
         stats_device_for("mps")
 
     class NoGpuPath(type(Path())):
@@ -161,7 +161,7 @@ def test_generate_device_cuda_without_cuda_is_one_line_error(tmp_path, capsys):
                                  r"\(torch.cuda.is_available\(\) is False\); use --device cpu")
     assert not (tmp_path / "data").exists() or not any((tmp_path / "data").iterdir())
     code = cli_status(["generate", "--out", tmp_path / "data", "--quiet", "--device", "tpu"])
-    one_line_error(capsys, code, r"--device: expected auto, cpu, cuda, cuda:N or a CUDA index, got 'tpu'")
+    one_line_error(capsys, code, r"--device: expected auto, cpu, cuda, cuda:N or CUDA indices \(0 or 0,1\), got 'tpu'")
 
 
 @pytest.mark.parametrize("rain_model", ["jeon2022", "physical"])

@@ -243,7 +243,7 @@ def test_batched_backend_runs_detect_heads_and_leaves_end_to_end_ones_to_ultraly
 def test_torch_device_strings():
     assert torch_device("cpu") == torch.device("cpu")
     assert torch_device(None) == torch.device("cuda:0" if torch.cuda.is_available() else "cpu")
-    with pytest.raises(backends.BackendError, match="--device: expected cpu, a CUDA index"):
+    with pytest.raises(backends.BackendError, match=r"--device: expected auto, cpu, cuda, cuda:N or CUDA indices \(0 or 0,1\), got .tpu."):
         torch_device("tpu")
     if torch.cuda.is_available():
         assert torch_device("0") == torch.device("cuda:0")

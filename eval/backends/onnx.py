@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from rainbench.devices import parse_device
 from rainbench.eval.backends import BackendError
 from rainbench.eval.backends.classes import _lookups, index_names
 from rainbench.eval.backends.letterbox import letterbox, rect_shape, select_detections, unletterbox
@@ -179,12 +180,13 @@ def output_layout(dims: list, nc: int | None, path: Path) -> tuple[str, int]:
 
 
 def onnx_cuda_device(path: Path, device: str | None, onnxruntime=None) -> int | None:
-    """The CUDA device index an ONNX model at ``path`` runs on for ``--device`` ``device`` ("0",
-    "0,1", "cuda", "cuda:1", any case; None or "cpu": None, the CPU). A CUDA device where onnxruntime
-    has no CUDA provider (the CPU wheel rainbench installs) is a one-line :class:`BackendError`,
-    not a silent run on the CPU."""
-    text = "" if device is None else str(device).strip().lower()
-    if text in ("", "cpu"):
+    """The CUDA device index an ONNX model at ``path`` runs on for ``--device`` ``device``
+    (:func:`rainbench.devices.parse_device`: "0", "0,1", "cuda", "cuda:1", any case; the first
+    index; None, "auto" or "cpu": None, the CPU). A value it does not read, or a CUDA device where
+    onnxruntime has no CUDA provider (the CPU wheel rainbench installs), is a one-line
+    :class:`BackendError`, not a silent run on the CPU."""
+    parsed = parse_device(device, BackendError)
+    if parsed is None or parsed[0] == "cpu":
         return None
     if onnxruntime is None:
         import onnxruntime  # noqa: PLC0415
@@ -192,8 +194,8 @@ def onnx_cuda_device(path: Path, device: str | None, onnxruntime=None) -> int | 
         raise BackendError(f"--device {device}: {path} is an ONNX model and this onnxruntime has no "
                            "CUDA provider (the CPU wheel rainbench installs); use --device cpu, or "
                            "install onnxruntime-gpu")
-    index = text.split(",")[0].rsplit(":", 1)[-1]  # torch_device's rule: "1,2" is CUDA 1
-    return int(index) if index.isdigit() else 0
+    indices = parsed[1]
+    return indices[0] if indices else 0
 
 
 def _load_onnx(path: Path, class_map: str | None, device: str | None,

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from rainbench.devices import parse_device
 from rainbench.eval.backends import BackendError
 from rainbench.eval.backends.letterbox import LETTERBOX_FILL, letterbox, letterbox_geometry, rect_shape
 
@@ -283,22 +284,19 @@ def torch_detector(yolo: Any, name: str, device: str | None, lookups: tuple[np.n
 
 
 def torch_device(device: str | None) -> torch.device:
-    """A torch device of a device string: ``"cpu"``, ``"0"`` / ``"0,1"`` (the first CUDA index),
-    ``"cuda"``, ``"cuda:1"``; None: CUDA 0 when present, else the CPU. Anything else, or a CUDA
-    device without CUDA, raises :class:`BackendError` naming it."""
-    if device is None or str(device).strip() == "":
+    """A torch device of a ``--device`` string (:func:`rainbench.devices.parse_device`):
+    ``"cpu"``, ``"0"`` / ``"0,1"`` (the first CUDA index), ``"cuda"``, ``"cuda:1"``; None, ``""``
+    or ``"auto"``: CUDA 0 when present, else the CPU. Anything else, or a CUDA device without
+    CUDA, raises :class:`BackendError` naming it."""
+    parsed = parse_device(device, BackendError)
+    if parsed is None:
         return torch.device("cuda:0" if torch.cuda.is_available() else "cpu")
-    text = str(device).strip().lower()
-    if text == "cpu":
+    kind, indices = parsed
+    if kind == "cpu":
         return torch.device("cpu")
-    index = text.split(",")[0]
-    if index.isdigit():
-        text = f"cuda:{index}"
-    if not text.startswith("cuda"):
-        raise BackendError(f"--device: expected cpu, a CUDA index (0) or cuda:N, got {device!r}")
     if not torch.cuda.is_available():
         raise BackendError(f"--device {device}: CUDA is not available on this machine")
-    return torch.device(text)
+    return torch.device(f"cuda:{indices[0]}" if indices else "cuda")
 
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from rainbench.devices import runs_on_cuda
 from rainbench.eval.backends import BackendError
 from rainbench.eval.backends.ultralytics import _offline_ultralytics
 
@@ -70,15 +71,6 @@ def cached_onnx(checkpoint: Path) -> Path:
     return path
 
 
-def _on_cuda(device: str | None) -> bool:
-    """Whether ``device`` (a torch device string; None: CUDA when present) is a CUDA device."""
-    if device is None:
-        import torch
-
-        return torch.cuda.is_available()
-    return str(device).lower() not in ("cpu", "")
-
-
 def checkpoint_file(spec: str | Path) -> Path:
     """The ultralytics checkpoint of a shipped model's name (its ``.pt``) or of a local ``.pt``
     file; anything else raises :class:`BackendError` naming it."""
@@ -125,7 +117,7 @@ def resolve_weights(spec: str | Path, device: str | None = None) -> tuple[Path, 
                            "or a weights file, got an empty name")
     checkpoint, path, name = weights_location(text)
     if checkpoint is not None:
-        if _on_cuda(device):
+        if runs_on_cuda(device, BackendError):
             return checkpoint, name
         return (_shipped_file(text, ".onnx") or cached_onnx(checkpoint)), name
     if path.is_dir():
