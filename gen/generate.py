@@ -27,6 +27,7 @@ from rainbench import __version__
 from rainbench.mjcf import layout as L
 from rainbench.mjcf.scene import build_spec, geom_instance_table
 from rainbench.rain.weather import Weather, weather_at
+from rainbench.store.manifest import is_int
 from rainbench.store.shard import ShardWriter, shard_name
 
 from . import labels as lb
@@ -415,13 +416,12 @@ def generate_shard(config: GenerateConfig, out_dir: str | Path,
     finished since the last call. The bytes do not depend on ``threads`` or
     ``frames_in_flight``.
     """
-    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+    if threads is not None and not (is_int(threads) and threads >= 1):
         raise ValueError(f"threads: expected an integer >= 1 or None, got {threads!r}")  # 0 was cpu_count
     threads = threads or os.cpu_count() or 1
     if frames_in_flight is None:
         frames_in_flight = default_frames_in_flight(threads)
-    if not (isinstance(frames_in_flight, int) and not isinstance(frames_in_flight, bool)
-            and frames_in_flight >= 1):
+    if not (is_int(frames_in_flight) and frames_in_flight >= 1):
         raise ValueError(f"frames_in_flight: expected an integer >= 1, got {frames_in_flight!r}")
     # a GPU's statistics cost torch's import and a CUDA context (seconds): started in a thread
     # of their own while the scene builds, taken by the first frame's rain step
@@ -503,7 +503,7 @@ def piece_configs(config: GenerateConfig, pieces: int) -> list[GenerateConfig]:
     (its ``frame_offset``, ``frames``, and the clip length made explicit), whose frames equal
     those frames of ``config``'s shard byte for byte; :class:`ShardAssembler` joins their
     shards."""
-    if not (isinstance(pieces, int) and not isinstance(pieces, bool) and pieces >= 1):
+    if not (is_int(pieces) and pieces >= 1):
         raise ValueError(f"pieces: expected an integer >= 1, got {pieces!r}")
     count = max(1, min(pieces, config.frames // MIN_PIECE_FRAMES))
     if count == 1:
