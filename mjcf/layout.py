@@ -995,6 +995,12 @@ WALKER_CHUNK_POINTS = 32
 """Planning-time positions per chunk of a walker's path in :meth:`_Builder.walker_distance`."""
 BUILDING_CELL_M = 20.0
 """Cell of the grid :meth:`_Builder.building_fits` looks buildings up in."""
+SIDEWALK_WALKER_KERB_M = 1.1
+"""The least distance from the kerb of a sidewalk walker's path on the curved and residential
+roads, whose sidewalks (2.5 and 2 m) have the lamp and sign poles 0.3-0.35 m from the kerb: at
+0.6 m people walked along the poles' line, 0.25-0.3 m beside it, and where they covered all of
+a pole's 4 m of play (:meth:`_Builder.place_pole`) an arm brushed it (2-3 % of those roads'
+poles). From 1.0 m a walker's centre passes a pole at 0.65 m or more."""
 POLE_WALKER_CLEARANCE_M = 0.9
 """How near a pedestrian's centre may pass a lamp or sign pole: half a shoulder width (0.25 m), an
 open umbrella's reach beyond it (0.5 m) and the pole or sign plate (0.15 m)."""
@@ -1596,7 +1602,7 @@ def _sample_curved(b: _Builder, road: Road) -> None:
             _crosser(b, index, road, unit_distance(b.ego, rng.uniform(0.3, 0.6) * b.duration)
                      + 25.0)
         else:
-            _sidewalk_walker(b, road, index, (road.half_width + 0.6,
+            _sidewalk_walker(b, road, index, (road.half_width + SIDEWALK_WALKER_KERB_M,
                                               road.half_width + road.sidewalk - 0.6))
     _riders(b, road, road.half_width - road.shoulder / 2)
     s_lo, s_hi = _span(b, road, 60.0, 150.0)
@@ -1862,7 +1868,8 @@ def _sample_residential(b: _Builder) -> None:
                             stride_length=float(rng.uniform(1.1, 1.5)))
             stepped = b.try_place(make, ((PERSON, "pedestrian"),), tries=60)
         if stepped is None:  # no free gap: a walker on the sidewalk instead
-            _sidewalk_walker(b, road, person, (half + 0.6, half + RESIDENTIAL_SIDEWALK - 0.6))
+            _sidewalk_walker(b, road, person, (half + SIDEWALK_WALKER_KERB_M,
+                                               half + RESIDENTIAL_SIDEWALK - 0.6))
     _riders(b, road, road.lane_offset(0) - 0.8, moto_speed=(5.0, 9.0), bike_speed=(3.0, 5.5))
     s_lo, s_hi = _span(b, road, 40.0, 120.0)
     road = Road(road.start, (), 1, RESIDENTIAL_LANE, RESIDENTIAL_PARKING, 0.0,

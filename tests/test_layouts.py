@@ -601,6 +601,22 @@ def test_traffic_lights_stand_clear_of_the_people_at_the_corners(seed):
         np.testing.assert_array_equal(head, pole)  # the lights go with their pole
 
 
+@pytest.mark.parametrize("name, seed", [("curved", 150), ("curved", 27), ("residential", 390),
+                                        ("residential", 392)])
+def test_sidewalk_walkers_pass_the_kerb_poles_with_room_to_spare(name, seed):
+    """On the curved and residential roads the lamps and signs stand 0.3-0.35 m from the kerb and
+    walkers walked 0.6 m from it, along the poles' line: where they covered a pole's 4 m of play
+    an arm brushed it (curved 150: 8 cm) or an umbrella went through it (residential 392: 14 cm).
+    They now keep SIDEWALK_WALKER_KERB_M from the kerb: 0.6 m of room or more to every pole."""
+    layout = _layout_of(name, seed)
+    paths = _walker_paths(layout)
+    poles = [prop for prop in layout.props if prop.shape == "cylinder"
+             and (prop.name.startswith("sign_pole") or prop.name[:4] == "pole" and prop.name[4:].isdigit())]
+    assert poles and paths
+    room = min(_nearest_pass(paths, np.array(pole.pos[:2])) - pole.size[0] for pole in poles)
+    assert room >= 0.6, room
+
+
 def test_no_bush_stands_in_a_walker_s_way():
     """Street bushes reached 11.0 m out while walkers walked to 11.4 m: legs vanished into them
     (12 of 41 street seeds). A bush a walker would pass through is left out."""
