@@ -1746,27 +1746,44 @@ def _sample_highway(b: _Builder, lanes: int) -> None:
                yaw_quat(0.0), rgba=(0.9, 0.1, 0.05, 1))
     # roadside: big direction signs, trees and bushes beyond the verge
     for side in (-1.0, 1.0):
+        boards = []  # the signs' x: a tree beside one stands out beyond its board
         x = s_lo + rng.uniform(0, 60)
         while x < s_hi:
             if abs(x - overpass_x) > 25:
+                boards.append(x)
                 y = side * (half + 4.0)
                 for offset in (-1.5, 1.5):
                     b.prop("sign_post", "cylinder", (0.08, 2.0), (x + offset, y, 2.0),
                            rgba=POLE_METAL)
-                b.prop("sign_board", "box", (0.05, 2.2, 1.0), (x, y, 4.5),
+                b.prop("sign_board", "box", (HIGHWAY_SIGN_HALF_DEPTH_M, 2.2, 1.0), (x, y, 4.5),
                        rgba=(0.05, 0.35, 0.15, 1) if rng.random() < 0.5 else (0.05, 0.2, 0.6, 1))
             x += rng.uniform(120.0, 200.0)
         x = view[0] + rng.uniform(0, 10)
         while x < view[1]:
             y = side * (half + rng.uniform(7.0, 20.0))
             if rng.random() < 0.7:
-                # under the deck a tree grew through it: it stands beside the deck instead (the
+                # under the deck a tree grew through it: it stands beside the deck instead; by a
+                # sign its crown went through the board: it stands beyond the board's end (the
                 # same draws, so everything after it is unchanged)
+                scale = rng.uniform(0.9, 1.4)
+                reach = TREE_CROWN_REACH_M * scale
+                if any(abs(x - board) < reach + HIGHWAY_SIGN_HALF_DEPTH_M for board in boards):
+                    y = side * max(abs(y), half + HIGHWAY_SIGN_OUTER_M + reach)
                 _tree(b, _beside_deck(x, overpass_x, deck_half + HIGHWAY_DECK_TREE_CLEARANCE), y,
-                      rng.uniform(0.9, 1.4))
+                      scale)
             else:
                 _bush(b, x, y, rng)  # a bush (at most 1.8 m) fits under the 6 m clearance
             x += rng.uniform(6.0, 18.0)
+
+
+HIGHWAY_SIGN_HALF_DEPTH_M = 0.05
+"""Half the thickness of a highway direction sign's board (it faces along the road)."""
+HIGHWAY_SIGN_OUTER_M = 6.2
+"""How far beyond the hard shoulder's edge a highway direction sign's board reaches (its centre
+4 m out, 2.2 m of half width)."""
+TREE_CROWN_REACH_M = 3.2
+"""The farthest a :func:`_tree`'s crown reaches from its trunk at scale 1 (a round crown's lobes:
+at most 0.75 of its 2.1 m radius out, 0.75 of it in radius)."""
 
 
 def _beside_deck(x: float, deck_x: float, reach: float) -> float:

@@ -617,6 +617,26 @@ def test_sidewalk_walkers_pass_the_kerb_poles_with_room_to_spare(name, seed):
     assert room >= 0.6, room
 
 
+@pytest.mark.parametrize("seed", [9, 21, 29])
+def test_no_highway_tree_grows_through_a_direction_sign(seed):
+    """Trees beyond the verge grew through the big direction signs' boards (5 of 40 highway
+    seeds, up to 1.6 m); a tree beside a sign now stands beyond the board's end."""
+    props = _layout_of("highway", seed).props
+    boards = [prop for prop in props if prop.name.startswith("sign_board")]
+    crowns = [prop for prop in props if prop.name.startswith(("tree_crown", "tree_lobe"))]
+    assert boards and crowns
+
+    def extent(prop):  # axis-aligned: the boards and crowns are not turned about +z
+        half = np.array(prop.size[:1] * 3 if prop.shape == "sphere" else prop.size[:3])
+        return np.array(prop.pos) - half, np.array(prop.pos) + half
+
+    for board in boards:
+        low, high = extent(board)
+        for crown in crowns:
+            crown_low, crown_high = extent(crown)
+            assert not (np.all(crown_low < high) and np.all(low < crown_high)), (board.name, crown.name)
+
+
 def test_no_bush_stands_in_a_walker_s_way():
     """Street bushes reached 11.0 m out while walkers walked to 11.4 m: legs vanished into them
     (12 of 41 street seeds). A bush a walker would pass through is left out."""
