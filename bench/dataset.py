@@ -91,31 +91,37 @@ def _workers_args(workers: int | None, device: str | None = None) -> list[str]:
     return ([] if workers is None else ["--workers", str(workers)]) + ([] if device is None else ["--device", device])
 
 
-def end_to_end(tmp: Path, frames: int, workers: int | None = None, device: str | None = None,
-               repeats: int = 1) -> dict:
-    """The paper clip's ``rainbench generate``, ``repeats`` times, each run between two bare
-    loops (one before, one after, shared with the neighbouring runs) and measured against their
-    mean: this machine's speed drifts by 20 % or more within minutes (a bare loop took 16.8 s in
-    one run and 22.8 s in the next), so one loop on one side of a run could fall in a fast or a
-    slow spell that the generation did not share. The reported ratio is the median of the runs'
-    ratios (one run's moved by +-5 % between runs of the same code: 2.41 to 2.66); every run is
-    kept under ``runs``, and the top-level seconds are the median run's (for an even count,
-    the lower of the middle two)."""
-    bare_loops = [bare_render_seconds(frames, 800, 600)]
+def _bracketed_runs(tmp: Path, name: str, frames: int, generate_args: list[str],
+                    images_per_frame: int, repeats: int) -> dict:
+    """``rainbench generate`` of the paper clip with ``generate_args``, ``repeats`` times, each run
+    between two bare loops of ``images_per_frame`` images a frame (one before, one after, shared
+    with the neighbouring runs) and measured against their mean: this machine's speed drifts by
+    20 % or more within minutes (a bare loop took 16.8 s in one run and 22.8 s in the next), so
+    one loop on one side of a run could fall in a fast or a slow spell that the generation did
+    not share. Returns the median run (by ratio; the lower middle one of an even count) at the
+    top level, every run under ``runs``."""
+    bare_loops = [bare_render_seconds(frames, 800, 600, images_per_frame)]
     runs = []
     for index in range(repeats):
-        out = tmp / f"e2e{index}"
-        seconds = cli_seconds(["--out", str(out), "--frames", str(frames),
-                               "--rates", "0:100:10", *_workers_args(workers, device)])
+        out = tmp / f"{name}{index}"
+        seconds = cli_seconds(["--out", str(out), "--frames", str(frames), "--rates", "0:100:10",
+                               *generate_args])
         shutil.rmtree(out, ignore_errors=True)
-        bare_loops.append(bare_render_seconds(frames, 800, 600))
+        bare_loops.append(bare_render_seconds(frames, 800, 600, images_per_frame))
         before, after = bare_loops[-2], bare_loops[-1]
         runs.append({"generate_s": seconds, "bare_render_s": (before + after) / 2,
                      "bare_render_before_s": before, "bare_render_after_s": after,
                      "ratio": seconds / ((before + after) / 2)})
-    median_run = sorted(runs, key=lambda run: run["ratio"])[(len(runs) - 1) // 2]
+    return {**sorted(runs, key=lambda run: run["ratio"])[(len(runs) - 1) // 2], "runs": runs}
+
+
+def end_to_end(tmp: Path, frames: int, workers: int | None = None, device: str | None = None,
+               repeats: int = 1) -> dict:
+    """The paper clip's ``rainbench generate`` (the default rain model) against the bare RGB loop,
+    bracketed (:func:`_bracketed_runs`) ``repeats`` times. The reported ratio is the median of the
+    runs' ratios (one run's moved by +-5 % between runs of the same code: 2.41 to 2.66)."""
     return {"frames": frames, "workers": workers, "device": device or "auto", "repeats": repeats,
-            **median_run, "runs": runs,  # the median run's ratio (the lower middle one of an even count)
+            **_bracketed_runs(tmp, "e2e", frames, _workers_args(workers, device), 1, repeats),
             "target_ratio": 3.0, "target_ratio_jeon2022": 2.5}
 
 
@@ -123,22 +129,12 @@ def weather_end_to_end(tmp: Path, frames: int, workers: int | None = None, devic
                        repeats: int = 1) -> dict:
     """The 11-rate paper clip with the weather following the rate (physical rain) against a
     bare renderer that renders as many images (11 per frame) of the same scene, bracketed as the
-    end-to-end runs are (loop, generate, loop, ...: each run against the mean of the loops
-    before and after it), ``repeats`` times; the median run is reported."""
-    runs, bare_loops = [], [bare_render_seconds(frames, 800, 600, images_per_frame=11)]
-    for index in range(repeats):
-        out = tmp / f"weather{index}"
-        seconds = cli_seconds(["--out", str(out), "--frames", str(frames), "--rates", "0:100:10",
-                               "--rain-model", "physical", *_workers_args(workers, device)])
-        shutil.rmtree(out, ignore_errors=True)
-        bare_loops.append(bare_render_seconds(frames, 800, 600, images_per_frame=11))
-        bare = (bare_loops[-2] + bare_loops[-1]) / 2
-        runs.append({"generate_s": seconds, "bare_render_11x_s": bare,
-                     "bare_render_11x_before_s": bare_loops[-2], "bare_render_11x_after_s": bare_loops[-1],
-                     "ratio": seconds / bare})
-    median_run = sorted(runs, key=lambda run: run["ratio"])[(len(runs) - 1) // 2]
+    end-to-end runs are (:func:`_bracketed_runs`), ``repeats`` times; the median run is
+    reported (its ``bare_render_*`` seconds are of the 11 images a frame)."""
     return {"frames": frames, "workers": workers, "device": device or "auto", "repeats": repeats,
-            **median_run, "runs": runs, "target_ratio": 1.6}
+            **_bracketed_runs(tmp, "weather", frames,
+                              ["--rain-model", "physical", *_workers_args(workers, device)], 11, repeats),
+            "target_ratio": 1.6}
 
 
 def scaling(tmp: Path, frames: int, workers: int = 2, rates: str = "0,50,100", device: str | None = None,
@@ -302,8 +298,8 @@ def main() -> None:
             for index, run in enumerate(weather["runs"]):
                 print(f"weather following the rate (physical, 11 rates), run {index + 1} of "
                       f"{len(weather['runs'])}: generate {run['generate_s']:.1f} s, bare RGB x11 "
-                      f"{run['bare_render_11x_s']:.1f} s (mean of {run['bare_render_11x_before_s']:.1f} s before "
-                      f"and {run['bare_render_11x_after_s']:.1f} s after), ratio {run['ratio']:.2f}")
+                      f"{run['bare_render_s']:.1f} s (mean of {run['bare_render_before_s']:.1f} s before "
+                      f"and {run['bare_render_after_s']:.1f} s after), ratio {run['ratio']:.2f}")
             print(f"weather following the rate: ratio {weather['ratio']:.2f}, the median of "
                   f"{len(weather['runs'])} run(s) (target <= 1.6)")
         if "scaling" not in skip:
