@@ -210,6 +210,7 @@ class FrameRenderer:
                             mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, "asphalt"))
         self._far_cullable = self._cullable & ~np.isin(model.geom_matid, mirrors[mirrors >= 0])
         self._cloud_deck_geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, CLOUD_DECK_GEOM)
+        self._sun_light = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_LIGHT, "sun")
         self._label_scene_ready = False
         self._geom_records: dict[int, np.ndarray | None] = {}  # per scene, see _scene_geoms
         self._option = mujoco.MjvOption()
@@ -553,6 +554,12 @@ class FrameRenderer:
                     geom.reflectance = 0.0
                     if covered is not None and geom.objid in covered:
                         geom.pos[2] -= COVERED_DROP_M
+            if option.geomgroup[CLOUD_DECK_GROUP] and self._sun_light >= 0:
+                # in light rain with the sun out the deck would shade the whole mirrored scene:
+                # the sun casts no shadow in this pass (blurred and weak, the mirror shows none)
+                for index in range(self._scene.nlight):
+                    if self._scene.lights[index].id == self._sun_light:
+                        self._scene.lights[index].castshadow = 0
         context = self._context(labels=False)
         if scale >= 1.0:
             mujoco.mjr_render(self._rect, self._scene, context)

@@ -27,7 +27,7 @@ ACTOR_PREFIX = "actor{:03d}/"
 # "actor alone" pass that measures truncation; the framebuffer is sized for it.
 TRUNCATION_MARGIN = 0.25
 PUDDLE_GROUP = 3  # puddle outlines: never drawn; the renderer lays the water over the image
-CLOUD_DECK_GROUP = 4  # the rain-cloud deck: drawn only in the road mirror's pass in sunless rain
+CLOUD_DECK_GROUP = 4  # the rain-cloud deck: drawn only in the road mirror's pass, in rain
 CLOUD_DECK_HEIGHT_M = 60.0  # the mirror pass reaches it to the horizon (gen.render.MIRROR_SKY_REACH_M)
 CLOUD_DECK_GEOM = "scenery/cloud_deck"
 SKY_TEXTURE_SIZE = 128  # skybox face size: re-uploaded whenever the weather changes the sky

@@ -73,7 +73,7 @@ class SceneLighting:
     grass_factor: float
     road_reflectance: float
     puddle_scale: float  # linear size of the puddles, 0 = none
-    cloud_deck: bool  # draw the emissive rain-cloud deck (sunless rain)
+    cloud_deck: bool  # draw the emissive rain-cloud deck in the wet road's mirror (any rain)
     cloud_deck_rgba: tuple[float, float, float, float]
     # dusk and night: lights "sun" and "skylight" are switched off at night (no sun; the city's
     # ambient stands for the sky), which frees OpenGL light slots for street and head lights
@@ -133,7 +133,7 @@ def scene_lighting(weather: Weather) -> SceneLighting:
         grass_factor=wet_display_factor(GRASS_WET_DARKENING, wet),
         road_reflectance=weather.road_reflectance,
         puddle_scale=weather.puddle_fraction ** 0.5,
-        cloud_deck=weather.rain_mm_h > 0 and weather.sun <= 0.02,
+        cloud_deck=weather.rain_mm_h > 0,
         # emission 1 plus the headlight's ambient light the deck also receives
         cloud_deck_rgba=tuple(float(c) for c in deck / (1.0 + ambient_rgb[0])) + (1.0,),
         sun_active=not night, skylight_active=not night, lamp_diffuse=lamp, beam_diffuse=beam,

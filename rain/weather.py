@@ -515,8 +515,8 @@ def mean_sky_rgb(weather: Weather) -> np.ndarray:
 
 
 AIRLIGHT_SIN_ELEVATION = 0.25
-"""The airlight of rain extinction, and the uniform rain-cloud deck the renderer draws in sunless
-rain, take the sky's colour at 14.5 degrees elevation: the middle of what a level camera sees."""
+"""The airlight of rain extinction, and the uniform rain-cloud deck the renderer draws in the wet
+road's mirror, take the sky's colour at 14.5 degrees elevation: the middle of what a level camera sees."""
 
 
 def airlight_rgb(weather: Weather) -> np.ndarray:

@@ -16,7 +16,7 @@ from rainbench.gen.config import GenerateConfig
 from rainbench.gen.generate import build_scene, generate_shard
 from rainbench.gen.render import FrameRenderer, camera_pose
 from rainbench.mjcf.scene import (CLOUD_DECK_GEOM, CLOUD_DECK_GROUP, CLOUD_DECK_HEIGHT_M, _camera_quat,
-                                  horizontal_to_vertical_fov)
+                                  geom_instance_table, horizontal_to_vertical_fov)
 from rainbench.rain import weather as wx
 
 # the paper's street by day: these tests are about the daytime weather laws
@@ -283,13 +283,18 @@ def test_the_wet_road_mirror_changes_road_pixels_only():
     assert not changed[~road].any()  # nothing else changes: the box and the sky stay sharp
 
 
-def test_the_far_wet_road_mirrors_the_cloud_deck_down_to_the_horizon():
+@pytest.mark.parametrize("sky, rate, least_gain", [("overcast", 50.0, 100), ("clear", 1.0, 20)])
+def test_the_far_wet_road_mirrors_the_cloud_deck_down_to_the_horizon(sky, rate, least_gain):
     """A camera 1 m above a 2 km road sees its mirror ray from the road d metres ahead rise at
     1/d rad: under 3.4 degrees (beyond 17 m) it met nothing within the model's 1 000 m far plane
     and mirrored black, so the far wet road went dark where it should mirror the sky (a visual
     audit: a dark block over the car ahead at a street's vanishing point). The mirror pass now
     reaches the deck (here only 100 m across in the model) to the horizon: the far road mirrors
-    it, out to a few hundred metres, far brighter than in the same weather without its mirror."""
+    it, out to a few hundred metres, far brighter than in the same weather without its mirror.
+
+    In light rain with the sun out (clear, 1 mm/h) there was no deck at all (it would have shaded
+    the mirrored scene): the wet road mirrored black. The deck is drawn in any rain now, and the
+    sun casts no shadow in the mirror pass (here it casts one in the camera's own)."""
     spec = _rig_spec(320, 240)
     spec.add_material(name="cloud_deck", rgba=[0.5, 0.5, 0.5, 1.0], emission=1.0, specular=0.0)
     world = spec.worldbody
@@ -302,17 +307,17 @@ def test_the_far_wet_road_mirrors_the_cloud_deck_down_to_the_horizon():
     ego.add_camera(name="ego", pos=[-10, 0, 1.0], quat=list(_camera_quat()),
                    fovy=horizontal_to_vertical_fov(20, 320, 240))
     ego.add_light(name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, pos=[0, 0, 20],
-                  dir=[0.5, 0, -0.87], castshadow=False)
+                  dir=[0.5, 0, -0.87], castshadow=True)
     ego.add_light(name="skylight", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, pos=[0, 0, 20],
                   dir=[0, 0, -1], castshadow=False)
     model = spec.compile()
     table = np.full(model.ngeom, -1, np.int32)
-    wet = wx.weather_at("overcast", 50.0)
-    assert wet.sun <= 0.02 and wet.road_reflectance > 0  # sunless rain: the deck is drawn
+    wet = wx.weather_at(sky, rate)
+    assert wet.road_reflectance > 0 and (wet.sun > 0.02) == (sky == "clear")  # sun out or not
     plain_weather = dataclasses.replace(wet, road_reflectance=0.0, puddle_fraction=0.0)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
-    with FrameRenderer(model, 320, 240, table, base_weather=wx.weather_at("overcast", 0.0)) as renderer:
+    with FrameRenderer(model, 320, 240, table, base_weather=wx.weather_at(sky, 0.0)) as renderer:
         renderer.update(data)
         _, _, depth = renderer.render_instances_depth()
         mirrored = cv2.cvtColor(renderer.render_weather(data, wet, depth), cv2.COLOR_RGB2GRAY)
@@ -324,9 +329,31 @@ def test_the_far_wet_road_mirrors_the_cloud_deck_down_to_the_horizon():
                      int(horizon + focal * 1.0 / near_m) + 1)
         assert np.isfinite(depth[rows]).all()  # the road, out to 400 m
         gained = mirrored[rows].astype(float).mean() - plain[rows].astype(float).mean()
-        # the deck's light at water's grazing reflectance (about 150 levels here); with the
-        # model's far plane 25-45, what the mirror pass draws where nothing is mirrored
-        assert gained > 100, (near_m, far_m, gained)
+        # the deck's light at water's grazing reflectance (about 150 levels here, 40-55 in the
+        # light rain's weak wetness); with the model's far plane 25-45, what the mirror pass
+        # draws where nothing is mirrored; without the deck in sunny rain, none
+        assert gained > least_gain, (near_m, far_m, gained)
+
+
+def test_the_deck_casts_no_sun_shadow_on_the_mirrored_scene():
+    """In light rain with the sun out the mirror pass draws the deck (above); casting the sun's
+    shadow it darkened the mirrored sunlit scene. The sun casts no shadow in that pass: the
+    wet road is as bright or brighter everywhere (the highway of seed 18, clear, 1 mm/h)."""
+    scene = build_scene(GenerateConfig(seed=18, layout="highway", sky="clear", time_of_day="day",
+                                       frames=1, width=200, height=150))
+    model = scene.model
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    weather = wx.weather_at("clear", 1.0)
+    assert weather.sun > 0.02 and weather.road_reflectance > 0
+    with FrameRenderer(model, 200, 150, geom_instance_table(model),
+                       base_weather=wx.weather_at("clear", 0.0)) as renderer:
+        renderer.update(data)
+        _, _, depth = renderer.render_instances_depth()
+        unshaded = renderer.render_weather(data, weather, depth).astype(float)
+        renderer._sun_light = -1  # as before: the sun's shadows in the mirror pass too
+        shaded = renderer.render_weather(data, weather, depth).astype(float)
+    assert (unshaded - shaded).min() >= 0 and (unshaded - shaded).mean() > 0.1
 
 
 def test_film_streaks_smear_along_the_vertical_over_the_road_only():
