@@ -1000,7 +1000,7 @@ SIDEWALK_WALKER_KERB_M = 1.1
 roads, whose sidewalks (2.5 and 2 m) have the lamp and sign poles 0.3-0.35 m from the kerb: at
 0.6 m people walked along the poles' line, 0.25-0.3 m beside it, and where they covered all of
 a pole's 4 m of play (:meth:`_Builder.place_pole`) an arm brushed it (2-3 % of those roads'
-poles). From 1.0 m a walker's centre passes a pole at 0.65 m or more."""
+poles). From 1.1 m a walker's centre passes a pole's axis at 0.75 m or more."""
 POLE_WALKER_CLEARANCE_M = 0.9
 """How near a pedestrian's centre may pass a lamp or sign pole: half a shoulder width (0.25 m), an
 open umbrella's reach beyond it (0.5 m) and the pole or sign plate (0.15 m)."""

@@ -407,14 +407,15 @@ def cloud_cover_and_shade(cover: float, cloud_ranks: np.ndarray | None,
     reads ``cloud_ranks`` (N,) in 0..1.
 
     About a fraction ``cover`` of the field is under cloud, the highest ranks, with edges
-    feathered over ``edge_ranks`` (N,) (e; None: ``CLOUD_EDGE_RANKS`` everywhere; a skybox passes
-    wider ramps where its texels step further in rank, :func:`rainbench.gen.weather.
-    skybox_edge_ranks`, so that no edge is sharper than the texels can draw): cover 0 leaves no
-    cloud, cover 1 no gap; between, the mean share is ``cover + e (cover - 1/2)`` where the ramp
-    lies inside the ranks (0.824 for the cloudy sky's 0.8 and the default e), fading to
-    ``cover`` itself towards the horizon. Within the cloud the thickest parts are darker, the
-    thinnest lighter (``1 +- CLOUD_SHADE``: the grey bases of a closed deck). Low down, where the layer's cells shrink below what the sky texture resolves,
-    both fade into their means (``cover`` and 1) with the haze, over ``CLOUD_FADE_SIN_ELEVATION``.
+    feathered over ``edge_ranks`` (N,) (e; None: ``CLOUD_EDGE_RANKS`` everywhere; a skybox
+    passes wider ramps where its texels step further in rank,
+    :func:`rainbench.gen.weather.skybox_edge_ranks`, so that no edge is sharper than the texels
+    can draw): cover 0 leaves no cloud, cover 1 no gap; between, the mean share is ``cover + e
+    (cover - 1/2)`` where the ramp lies inside the ranks (0.824 for the cloudy sky's 0.8 and the
+    default e), fading to ``cover`` itself towards the horizon. Within the cloud the thickest
+    parts are darker, the thinnest lighter (``1 +- CLOUD_SHADE``: the grey bases of a closed
+    deck). Low down, where the layer's cells shrink below what the sky texture resolves, both
+    fade into their means (``cover`` and 1) with the haze, over ``CLOUD_FADE_SIN_ELEVATION``.
     ``cloud_ranks`` None: the mean sky, ``(cover, 1)`` everywhere.
     """
     s = np.clip(np.asarray(sin_elevation, dtype=np.float64), 0.0, 1.0)[..., None]
