@@ -28,6 +28,10 @@ from rainbench.rain.weather import (CLOUD_BASE_M, CLOUD_EDGE_RANKS, CLOUD_TILE_M
                                      puddle_outline_phases, puddle_ripple_slope, sky_colours,
                                      sky_key)
 
+ROAD_LEVEL_TOLERANCE_M = 0.005
+"""Road slabs whose tops lie within this of the mirrored one's are level with it (one mirror
+plane): every other box of a curved road stands 1 mm higher
+(:data:`rainbench.mjcf.layout.ARC_OVERLAP_LIFT_M`); an overpass deck is metres up."""
 MIRROR_AHEAD_M = 15.0
 """Where the wet road's mirror matters most: Fresnel's weight grows with distance, the road's
 image shrinks; the road geom under this point ahead of the camera is the one mirrored."""
@@ -307,8 +311,8 @@ class WeatherRig:
         """The road's mirror plane through road geom ``geom``'s top: ``(cover, slabs, others)``.
 
         ``slabs``: (K, 6) :meth:`top_rectangle` of every road geom whose top is level with
-        ``geom``'s (a road of several slabs: straights, arcs, the crossing street), ``geom``'s
-        first; ``others``: (K - 1,) int64 ids of those other than ``geom``. ``cover``: (6,) the
+        ``geom``'s (within :data:`ROAD_LEVEL_TOLERANCE_M`; a road of several slabs: straights,
+        arcs, the crossing street), ``geom``'s first, all at ``geom``'s height; ``others``: (K - 1,) int64 ids of those other than ``geom``. ``cover``: (6,) the
         smallest rectangle at ``geom``'s yaw holding them all: drawn as the one mirror (the
         others out of its way), it mirrors every slab in one pass (MuJoCo mirrors one geom a
         render); None when a slab is an unbounded plane (it mirrors everywhere already).
@@ -321,8 +325,9 @@ class WeatherRig:
                 self._static_tops = tops
         mine = ids == geom
         own = tops[int(np.flatnonzero(mine)[0])]
-        level = (np.abs(tops[:, 2] - own[2]) <= 1e-4) & ~mine
+        level = (np.abs(tops[:, 2] - own[2]) <= ROAD_LEVEL_TOLERANCE_M) & ~mine
         slabs = np.concatenate([own[None], tops[level]])
+        slabs[:, 2] = own[2]  # one plane: an arc's boxes stand 0 or 1 mm up, alternately
         others = ids[level].astype(np.int64)
         if np.isinf(slabs[:, 3:5]).any():  # an unbounded plane: nothing to stretch
             return None, slabs, others

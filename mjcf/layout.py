@@ -106,6 +106,11 @@ PLANNING_RATE_HZ = 25.0  # footprints are checked at this many times per second
 COLLISION_MARGIN_M = 0.4  # footprints are grown by this much (in total) when planning
 PUDDLE_AREA_M2 = 9.0 * 2 * ROAD_HALF_WIDTH  # one puddle per this much road surface (the street's)
 ARC_STEP_RAD = math.radians(3.0)  # curved strips are drawn as boxes spanning at most this angle
+ARC_OVERLAP_LIFT_M = 0.001
+"""How much higher every other box of a curved strip stands: lengthened so that the outer edge
+has no gaps, an arc's boxes overlap on its inner side, and two coplanar tops z-fought there (pale
+slivers of the other box's texture, patches missing their shadow, flickering from frame to
+frame). 1 mm keeps the lane markings (2 mm up) above the asphalt."""
 
 # One line per layout: the registry `rainbench scene --list` prints.
 LAYOUTS: dict[str, str] = {
@@ -878,22 +883,31 @@ def _strip(builder: _Builder, road: Road, base: str, lateral: float, half_width:
     ``top``: one box per straight stretch, short boxes (at most ARC_STEP_RAD each) on arcs,
     lengthened so that the outer edge has no gaps."""
     s_lo, s_hi = s_range or road.s_range
+    joined, end, curved = 0, None, False  # boxes so far of the run of overlapping boxes
     for a, b, k in _intervals(road, s_lo, s_hi, gaps):
         steps = 1 if k == 0 else max(1, math.ceil((b - a) * abs(k) / ARC_STEP_RAD))
         edges = np.linspace(a, b, steps + 1)
+        if end is None or abs(a - end) > 1e-9 or (k == 0 and not curved):
+            joined = 0  # after a gap, or two straights end to end: no overlap
         for lo, hi in zip(edges[:-1], edges[1:]):
             mid = (lo + hi) / 2
             x, y, h = road_pose(road, mid, lateral)
             stretch = max(abs(1 - k * (lateral - half_width)), abs(1 - k * (lateral + half_width)))
             half_length = (hi - lo) * stretch / 2 + (0.03 if k != 0 else 0.0)
+            # an arc's boxes overlap each other on its inner side, and the straights beside it:
+            # every other box of a run stands a little higher, so that two tops do not fight for
+            # the same pixels (or the same shadow texels); a road without arcs is unchanged
+            lifted = top + (ARC_OVERLAP_LIFT_M if joined % 2 else 0.0)
+            joined += 1
             builder.prop(base, "box", (half_length, half_width, thickness / 2),
-                         (x, y, top - thickness / 2), yaw_quat(h), material, rgba)
+                         (x, y, lifted - thickness / 2), yaw_quat(h), material, rgba)
             slab = Slab((float(x), float(y)), float(half_length), float(half_width), float(h),
-                        float(top))
+                        float(top))  # where people stand and puddles lie: the strip's own top
             if walkway:
                 builder.walkways.append(slab)
             if road_surface:
                 builder.road_surfaces.append(slab)
+        end, curved = b, k != 0
 
 
 def _dashes(builder: _Builder, road: Road, base: str, lateral: float, period: float, length: float,
