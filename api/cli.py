@@ -13,7 +13,7 @@ from pathlib import Path
 
 try:  # about a second of imports: Ctrl-C meanwhile is one line too, not a traceback
     from rainbench import gl
-    from rainbench.devices import runs_on_cuda
+    from rainbench.devices import parse_device, runs_on_cuda
     from rainbench.eval.metrics.coco import DEFAULT_BACKEND, METRICS_BACKENDS
     from rainbench.gen.config import (HFOV_DEG, MAX_CLIP_SECONDS, MAX_FPS, MAX_FRAME_OFFSET, MAX_FRAMES,
                                       MAX_SCENES, MAX_SEED, PAPER_CLIP, SIDE_PX, DatasetConfig, stats_device_for)
@@ -238,7 +238,7 @@ def _stats_device(device: str | None) -> str:
     asked for by name on a machine where torch sees none is refused here, before anything
     renders."""
     resolved = stats_device_for(device)
-    if resolved != "cpu" and device not in (None, "auto"):
+    if resolved != "cpu" and parse_device(device) is not None:  # a GPU asked for by name
         import torch  # noqa: PLC0415 -- only when a GPU is asked for
 
         from rainbench.rain.metrics_torch import cuda_device_problem  # noqa: PLC0415
@@ -690,9 +690,9 @@ def build_parser() -> argparse.ArgumentParser:
                                "cores / workers; 1 = each worker on one core)")
     generate.add_argument("--device", default="auto",
                           help="where each rate's statistics (SSIM, PSNR, per-box rain labels) are "
-                               "computed: auto (a CUDA GPU if torch sees one, else cpu), cpu, cuda "
-                               "or cuda:N; the figures agree to float32 rounding, and the manifest "
-                               "records the device")
+                               "computed: auto (a CUDA GPU if torch sees one, else cpu), cpu, cuda, "
+                               "cuda:N or a CUDA index (0); the figures agree to float32 rounding, and "
+                               "the manifest records the device")
     generate.add_argument("--executor", choices=("local", "ray"), default="local",
                           help="local worker processes, or tasks on a Ray cluster (default local; docs/datasets.md)")
     generate.add_argument("--ray-address", default=None,
@@ -826,7 +826,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="a shipped recipe name (experiments/recipes: rainbench-yolo11n, rainbench-yolo11s, rainbench-yolo11n-rain, ...) or a .yaml file")
     training.add_argument("--out", default=None, help="run directory (default: runs/<name>); "
                           "running the same command again resumes a cut-off run there")
-    training.add_argument("--device", default=None, help="torch device (default: CUDA 0 if present, else cpu)")
+    training.add_argument("--device", default=None,
+                          help="auto, cpu, cuda, cuda:N or CUDA indices, e.g. 0 or 0,1 (default: CUDA 0 "
+                               "if present, else cpu)")
     training.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=1,
                           help="processes generating the training scenes")
     training.set_defaults(run=cmd_train)
@@ -852,8 +854,8 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--n-boot", type=_positive_int("N_BOOT", 1_000_000), default=1000,
                        help="bootstrap resamples of the intervals (default 1000)")
     paper.add_argument("--device", default=None,
-                       help="torch device for evaluation and for the datasets' statistics, e.g. "
-                            "cpu or 0 (default: CUDA 0 if present, else cpu)")
+                       help="device for evaluation and for the datasets' statistics: auto, cpu, cuda, "
+                            "cuda:N or a CUDA index, e.g. 0 (default: CUDA 0 if present, else cpu)")
     paper.add_argument("--workers", type=_positive_int("WORKERS", 1024), default=1,
                        help="generation processes (the clip is rendered in up to that many pieces, "
                             "docs/datasets.md)")

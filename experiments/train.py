@@ -430,15 +430,14 @@ def check_device(device: str | None) -> str | None:
     parsed = parse_device(device, TrainError)
     if parsed is None:
         return None
-    from rainbench.eval.backends.torch_batched import torch_device
-
-    torch_device(device)  # CUDA asked for without CUDA: eval's one-line error
     kind, indices = parsed
     if kind == "cpu":
         return "cpu"
     indices = indices or (0,)
     import torch
 
+    if not torch.cuda.is_available():  # eval's message (torch_device)
+        raise TrainError(f"--device {device}: CUDA is not available on this machine")
     count = torch.cuda.device_count()
     missing = [i for i in indices if i >= count]
     if missing:

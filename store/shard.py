@@ -155,7 +155,7 @@ class ShardWriter:
         unknown = sorted(set(store) - set(STORABLE))
         if unknown:
             raise ValueError(f"store: expected a subset of {STORABLE}, got {unknown}")
-        if threads is not None and not (_is_integer(threads) and threads >= 1):
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
             raise ValueError(f"threads: expected an integer >= 1 or None, got {threads!r}")
         self.path = Path(path)
         self._tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")

@@ -351,7 +351,7 @@ def test_the_deck_casts_no_sun_shadow_on_the_mirrored_scene():
         renderer.update(data)
         _, _, depth = renderer.render_instances_depth()
         unshaded = renderer.render_weather(data, weather, depth).astype(float)
-        renderer._sun_light = -1  # as before: the sun's shadows in the mirror pass too
+        renderer._sun_light = -1  # the deck with the sun's shadows in the mirror pass too
         shaded = renderer.render_weather(data, weather, depth).astype(float)
     assert (unshaded - shaded).min() >= 0 and (unshaded - shaded).mean() > 0.1
 
