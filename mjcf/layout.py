@@ -1756,8 +1756,7 @@ def _sample_highway(b: _Builder, lanes: int) -> None:
     b.walkways.append(Slab((overpass_x, 0.0), deck_half, span + 8.0, 0.0, deck_top + 0.04))
     # warning triangle behind the broken-down car
     if config.num_cars > 0:
-        b.prop("warning_triangle", "box", (0.02, 0.25, 0.22), (breakdown_x - 30.0, shoulder_y, 0.22),
-               yaw_quat(0.0), rgba=(0.9, 0.1, 0.05, 1))
+        _warning_triangle(b, breakdown_x - 30.0, shoulder_y)
     # roadside: big direction signs, trees and bushes beyond the verge
     for side in (-1.0, 1.0):
         boards = []  # the signs' x: a tree beside one stands out beyond its board
@@ -1766,8 +1765,8 @@ def _sample_highway(b: _Builder, lanes: int) -> None:
             if abs(x - overpass_x) > 25:
                 boards.append(x)
                 y = side * (half + 4.0)
-                for offset in (-1.5, 1.5):
-                    b.prop("sign_post", "cylinder", (0.08, 2.0), (x + offset, y, 2.0),
+                for offset in (-1.5, 1.5):  # under the board's width (it faces along the road)
+                    b.prop("sign_post", "cylinder", (0.08, 2.0), (x, y + offset, 2.0),
                            rgba=POLE_METAL)
                 b.prop("sign_board", "box", (HIGHWAY_SIGN_HALF_DEPTH_M, 2.2, 1.0), (x, y, 4.5),
                        rgba=(0.05, 0.35, 0.15, 1) if rng.random() < 0.5 else (0.05, 0.2, 0.6, 1))
@@ -1788,6 +1787,23 @@ def _sample_highway(b: _Builder, lanes: int) -> None:
             else:
                 _bush(b, x, y, rng)  # a bush (at most 1.8 m) fits under the 6 m clearance
             x += rng.uniform(6.0, 18.0)
+
+
+WARNING_TRIANGLE_SIDE_M = 0.45
+"""Side of the red warning triangle set up behind a broken-down car (ECE R27: 0.40-0.50 m)."""
+
+
+def _warning_triangle(b: _Builder, x: float, y: float) -> None:
+    """A warning triangle standing at (x, y), facing along the road (the traffic coming up): an
+    upright equilateral frame of three red bars, hollow, as the real ones are."""
+    side, bar = WARNING_TRIANGLE_SIDE_M, 0.025
+    height = side * math.sqrt(3.0) / 2.0
+    red = (0.9, 0.1, 0.05, 1)
+    b.prop("warning_triangle", "box", (bar, side / 2, bar), (x, y, bar), yaw_quat(0.0), rgba=red)
+    for sign in (-1.0, 1.0):  # the two slanted sides, turned 60 degrees about the road's axis
+        b.prop("warning_triangle", "box", (bar, side / 2, bar),
+               (x, y + sign * side / 4, bar + height / 2),
+               yaw_quat(0.0, 0.0, -sign * math.pi / 3), rgba=red)
 
 
 HIGHWAY_SIGN_HALF_DEPTH_M = 0.05

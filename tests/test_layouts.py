@@ -664,6 +664,35 @@ def test_overlapping_boxes_of_a_curved_road_do_not_share_a_top(seed):
                 assert len(set(tops)) == 1, strip
 
 
+def test_highway_signs_stand_on_their_posts_and_the_warning_triangle_is_a_triangle():
+    """A visual audit: the direction signs' two posts stood 1.5 m before and behind the 0.1 m
+    board (along the road) instead of under its width, and the warning triangle was a red box."""
+    props = _layout_of("highway", 0).props
+    boards = [prop for prop in props if prop.name.startswith("sign_board")]
+    posts = [prop for prop in props if prop.name.startswith("sign_post")]
+    assert boards and len(posts) == 2 * len(boards)
+    for board, pair in zip(boards, zip(posts[::2], posts[1::2])):
+        for post in pair:
+            assert post.pos[0] == pytest.approx(board.pos[0])  # under the board, not beside it
+            assert abs(post.pos[1] - board.pos[1]) < board.size[1]
+            assert post.pos[2] + post.size[1] > board.pos[2] - board.size[2]  # it holds the board
+    bars = [prop for prop in props if prop.name.startswith("warning_triangle")]
+    assert len(bars) == 3
+    side = L.WARNING_TRIANGLE_SIDE_M
+
+    def ends(bar):  # a bar's two ends: along its local y axis, turned about x by its quaternion
+        w, x, _, _ = bar.quat
+        angle = 2 * math.atan2(x, w)
+        direction = np.array([0.0, math.cos(angle), math.sin(angle)]) * bar.size[1]
+        return np.array(bar.pos) - direction, np.array(bar.pos) + direction
+
+    corners = np.array([end for bar in bars for end in ends(bar)])
+    apex = corners[np.argmax(corners[:, 2])]
+    assert apex[1] == pytest.approx(bars[0].pos[1], abs=0.01)  # the top corner over the base's middle
+    assert apex[2] - bars[0].pos[2] == pytest.approx(side * math.sqrt(3) / 2, abs=0.01)
+    assert np.ptp(corners[:, 1]) == pytest.approx(side, abs=0.01)
+
+
 def test_no_bush_stands_in_a_walker_s_way():
     """Street bushes reached 11.0 m out while walkers walked to 11.4 m: legs vanished into them
     (12 of 41 street seeds). A bush a walker would pass through is left out."""
