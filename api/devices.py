@@ -46,3 +46,17 @@ def runs_on_cuda(device: object, error: type[Exception] = ValueError) -> bool:
 
         return torch.cuda.is_available()
     return parsed[0] == "cuda"
+
+
+def ultralytics_device(device: object, error: type[Exception] = ValueError) -> str | None:
+    """``--device`` as ultralytics' ``predict`` / ``train`` ``device=`` takes it: None (its own
+    default, CUDA 0 when present) for None, ``""`` and ``"auto"``, which ultralytics' parser
+    refuses; ``"cpu"``; CUDA indices comma-joined (``"cuda"`` -> ``"0"``, ``"cuda:1"`` -> ``"1"``,
+    ``"0,1"``). A value :func:`parse_device` refuses raises ``error``."""
+    parsed = parse_device(device, error)
+    if parsed is None:
+        return None
+    kind, indices = parsed
+    if kind == "cpu":
+        return "cpu"
+    return ",".join(str(index) for index in indices or (0,))

@@ -79,7 +79,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rainbench.devices import parse_device
+from rainbench.devices import ultralytics_device
 from rainbench.gen.config import DatasetConfig
 from rainbench.gen.dataset import run_dataset
 from rainbench.store.export import yolo_names
@@ -422,27 +422,23 @@ def _load_or_refuse(recipe: Recipe, key: str, value: Any, load: Callable[[], Any
 
 
 def check_device(device: str | None) -> str | None:
-    """``device`` (``--device``, :func:`rainbench.devices.parse_device`) as ultralytics takes it:
-    None (None, ``""`` or ``"auto"``: CUDA 0 when present, else the CPU), ``"cpu"``, or CUDA
-    indices (``"0"``, ``"0,1"``; ``cuda`` / ``cuda:N`` accepted). A device that is neither, or a
-    CUDA device this machine does not have, is a one-line error naming ``--device``, as
-    ``rainbench eval`` refuses it."""
-    parsed = parse_device(device, TrainError)
-    if parsed is None:
-        return None
-    kind, indices = parsed
-    if kind == "cpu":
-        return "cpu"
-    indices = indices or (0,)
+    """``device`` (``--device``) as ultralytics takes it
+    (:func:`rainbench.devices.ultralytics_device`): None (None, ``""`` or ``"auto"``: CUDA 0 when
+    present, else the CPU), ``"cpu"``, or CUDA indices (``"0"``, ``"0,1"``; ``cuda`` /
+    ``cuda:N`` accepted). A device that is neither, or a CUDA device this machine does not have,
+    is a one-line error naming ``--device``, as ``rainbench eval`` refuses it."""
+    chosen = ultralytics_device(device, TrainError)
+    if chosen in (None, "cpu"):
+        return chosen
     import torch
 
     if not torch.cuda.is_available():  # eval's message (torch_device)
         raise TrainError(f"--device {device}: CUDA is not available on this machine")
     count = torch.cuda.device_count()
-    missing = [i for i in indices if i >= count]
+    missing = [index for index in map(int, chosen.split(",")) if index >= count]
     if missing:
         raise TrainError(f"--device {device}: there is no CUDA device {missing[0]} ({count} visible)")
-    return ",".join(str(i) for i in indices)
+    return chosen
 
 
 def _seed_range(config: DatasetConfig) -> set[int]:

@@ -28,7 +28,7 @@ def test_every_reader_refuses_what_the_parser_refuses(value):
     statistics, torch, ONNX, ultralytics and train readers now refuse the same values with one
     message."""
     from rainbench.eval.backends.torch_batched import torch_device
-    from rainbench.eval.backends.ultralytics import ultralytics_device
+    from rainbench.devices import ultralytics_device
     from rainbench.experiments.train import TrainError, check_device
 
     message = rf"^--device: expected auto, cpu, cuda, cuda:N or CUDA indices \(0 or 0,1\), got {value!r}$"
@@ -36,7 +36,8 @@ def test_every_reader_refuses_what_the_parser_refuses(value):
         parse_device(value)
     with pytest.raises(DatasetError, match=message):
         stats_device_for(value)
-    for reader in (lambda v: onnx_cuda_device(Path("m.onnx"), v), torch_device, ultralytics_device):
+    for reader in (lambda v: onnx_cuda_device(Path("m.onnx"), v), torch_device,
+                   lambda v: ultralytics_device(v, BackendError)):
         with pytest.raises(BackendError, match=message):
             reader(value)
     with pytest.raises(TrainError, match=message):
@@ -47,7 +48,7 @@ def test_ultralytics_gets_a_device_it_takes():
     """ultralytics' own device parser refuses ``auto`` (ValueError: Invalid CUDA 'device=auto'),
     which the other readers take as the default: it gets None (its default) instead, and CUDA
     devices as its comma-joined indices."""
-    from rainbench.eval.backends.ultralytics import ultralytics_device
+    from rainbench.devices import ultralytics_device
 
     assert [ultralytics_device(value) for value in (None, "", "auto", "CPU", "cuda", "cuda:1", "0,1")] \
         == [None, None, None, "cpu", "0", "1", "0,1"]

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from rainbench.devices import parse_device
+from rainbench.devices import ultralytics_device
 from rainbench.eval.backends import BackendError
 from rainbench.eval.backends.classes import _lookups
 from rainbench.store.classes import PAPER_CLASSES
@@ -213,19 +213,6 @@ def _load_ultralytics(path: Path, class_map: str | None, device: str | None, tru
                            "expected a detection model")
     full_lookup, lookup = _lookups(model.names, class_map, f"--weights {path}", classes, trained)
     return UltralyticsDetector(name=name or path.stem, model=model, lookup=lookup,
-                               device=ultralytics_device(device), full_lookup=full_lookup)
+                               device=ultralytics_device(device, BackendError),
+                               full_lookup=full_lookup)
 
-
-def ultralytics_device(device: str | None) -> str | None:
-    """``--device`` as ultralytics' ``predict(device=...)`` takes it
-    (:func:`rainbench.devices.parse_device`): None (its own default: CUDA 0 when present) for
-    None, ``""`` and ``"auto"``, which ultralytics refuses; ``"cpu"``; ``"cuda"`` -> ``"0"``;
-    CUDA indices comma-joined (``"cuda:1"`` -> ``"1"``). Anything else raises
-    :class:`BackendError` naming it."""
-    parsed = parse_device(device, BackendError)
-    if parsed is None:
-        return None
-    kind, indices = parsed
-    if kind == "cpu":
-        return "cpu"
-    return ",".join(str(index) for index in indices or (0,))
