@@ -36,6 +36,11 @@ CLOUD_STREAM = 13  # the cloud field draws from default_rng([seed, CLOUD_STREAM]
 PLAIN_GREY = (0.5, 0.5, 0.5, 1.0)  # a prop with neither a material nor a colour
 SHADOW_HALF_SIZE_M = 45.0  # half the sun's shadow box (MuJoCo's shadowclip x stat.extent)
 SHADOW_CENTER_AHEAD_M = 35.0  # the box's centre ahead of the ego: it spans -10..80 m
+SHADOW_MAP_SIZE = 3072
+"""Texels a side of the sun's shadow map: 2.9 cm over the 90 m box. At 2048 (4.4 cm, until
+2026-11-28) a visual audit found car shadows stair-stepped and thin lamp arms' shadows broken
+into dashes; 3072 renders a residential frame (seed 143, 800x600, llvmpipe) in 167-172 ms
+against 155 ms, 4096 in 184-206 ms."""
 
 
 def padded_size(width: int, height: int) -> tuple[int, int, int, int]:
@@ -104,7 +109,7 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     # 4x multisampling: anti-aliased edges in RGB. Segmentation passes stay exact (MuJoCo draws
     # them without blending; tested), and boxes come from them.
     spec.visual.quality.offsamples = 4
-    spec.visual.quality.shadowsize = 2048
+    spec.visual.quality.shadowsize = SHADOW_MAP_SIZE
     # Tessellation of spheres, capsules and cylinders: 16 x 8 instead of MuJoCo's 28 x 16 halves
     # the software-rendered frame time (measured 183 -> 94 ms at 800x600) with no visible facets
     # at road distances.
@@ -115,10 +120,10 @@ def build_spec(layout: L.Layout, width: int, height: int, hfov_deg: float = 90.0
     spec.visual.map.znear = 0.001  # 0.1 m
     spec.visual.map.zfar = 10.0  # 1000 m
     # The sun's shadow box: +-SHADOW_HALF_SIZE_M (shadowclip x extent) around a point
-    # SHADOW_CENTER_AHEAD_M ahead of the ego (the sun rig, below), so its 2048 texels cover
-    # 10 m behind to 80 m ahead: 4.4 cm texels (+-80 m, the box before: 7.8 cm, whose steps
-    # showed as 20-60 px blocks on the road under a low sun). Shadows beyond 80 m end within a
-    # few pixels of the horizon.
+    # SHADOW_CENTER_AHEAD_M ahead of the ego (the sun rig, below), so its SHADOW_MAP_SIZE texels
+    # cover 10 m behind to 80 m ahead: 2.9 cm texels (+-80 m, the box before: 7.8 cm at 2048,
+    # whose steps showed as 20-60 px blocks on the road under a low sun). Shadows beyond 80 m end
+    # within a few pixels of the horizon.
     spec.visual.map.shadowclip = SHADOW_HALF_SIZE_M / spec.stat.extent
     base = weather_at(layout.sky, 0.0, time_of_day=layout.time_of_day)
     lighting = scene_lighting(base)
