@@ -881,7 +881,8 @@ def _strip(builder: _Builder, road: Road, base: str, lateral: float, half_width:
            rgba=None, walkway: bool = False, road_surface: bool = False) -> None:
     """Boxes covering the band ``lateral +- half_width`` along ``road`` with their top at
     ``top``: one box per straight stretch, short boxes (at most ARC_STEP_RAD each) on arcs,
-    lengthened so that the outer edge has no gaps."""
+    lengthened so that the outer edge has no gaps; where boxes overlap, every other one stands
+    ``ARC_OVERLAP_LIFT_M`` higher. The slabs recorded (walkways, road surfaces) are at ``top``."""
     s_lo, s_hi = s_range or road.s_range
     joined, end, curved = 0, None, False  # boxes so far of the run of overlapping boxes
     for a, b, k in _intervals(road, s_lo, s_hi, gaps):
