@@ -503,7 +503,7 @@ def cmd_paper(args: argparse.Namespace) -> int:
     # before anything is generated, each model under the flag it came with
     specs = ([("--model" if args.model else "--model (default)", model) for model in models]
              + [("--weights", weights) for weights in args.weights or ()])
-    check_models(specs)
+    check_models(specs, args.device)
     config = PaperConfig(dataset=dataset, rain_models=tuple(args.rain_models.split(",")),
                          weights=models + tuple(args.weights or ()), imgsz=args.imgsz, batch=args.batch,
                          n_boot=args.n_boot, device=args.device, classes=args.classes,

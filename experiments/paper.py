@@ -143,13 +143,16 @@ def default_references(models: Sequence[str], chosen: Sequence[tuple[str, str]] 
                  if base + "-randomrain" in names and base + "-rain" not in named) + tuple(chosen)
 
 
-def check_models(specs: Sequence[tuple[str, str | Path]]) -> None:
+def check_models(specs: Sequence[tuple[str, str | Path]], device: str | None = None) -> None:
     """Refuse, before anything is generated, a model that :func:`run_paper` could not evaluate:
     ``specs`` are ``(flag, model)`` pairs, the flag the user gave it with (``--model`` or
     ``--weights``). Each model must be a shipped model's name or an existing weights file
     (:func:`rainbench.eval.weights.resolve_weights`' rule, without building anything), and the
     model names (a shipped name, else the file's stem) must be unique, as ``run_eval`` requires.
-    The error is one line naming the flag and the model."""
+    An ONNX file on a CUDA ``device`` needs onnxruntime's CUDA provider
+    (:func:`rainbench.eval.backends.onnx.onnx_cuda_device`; a shipped name on a GPU runs its
+    ``.pt``). The error is one line naming the flag and the model."""
+    from rainbench.eval.backends.onnx import onnx_cuda_device
     from rainbench.eval.weights import IS_A_DIRECTORY, shipped_models, weights_location
 
     seen: dict[str, str] = {}
@@ -167,6 +170,8 @@ def check_models(specs: Sequence[tuple[str, str | Path]]) -> None:
             raise EvalError(f"{flag}: {text} is a second model named {name!r} (after {seen[name]}); model names "
                             "(file stems) must be unique")
         seen[name] = f"{flag} {text}"
+        if checkpoint is None and path.suffix.lower() == ".onnx":
+            onnx_cuda_device(path, device)
 
 
 def table_one(data_dir: Path, classes: Sequence[int] = PAPER_CLASSES) -> dict[str, tuple[int, int]]:
@@ -265,7 +270,6 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     With ``progress``, progress bars and, as each phase ends, its wall time
     (``paper: generate jeon2022: 14.2 s``) go to stderr."""
     from rainbench.eval.backends import check_model_classes, load_detector
-    from rainbench.eval.backends.onnx import onnx_cuda_device
     from rainbench.eval.backends.ultralytics import preload_torch
     from rainbench.eval.weights import resolve_weights
 
@@ -274,10 +278,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path, data_root: str | Path, *
     preload_torch()  # before generating: triton after Mesa rendering crashes
     # every model and the device are checked before anything is generated
     check_device(config.device)
-    check_models([("--weights", spec) for spec in config.weights])
-    for spec in config.weights:  # an ONNX file on a GPU needs onnxruntime's CUDA provider (a
-        if Path(str(spec)).suffix.lower() == ".onnx":  # shipped name on a GPU runs its .pt)
-            onnx_cuda_device(Path(str(spec)), config.device)
+    check_models([("--weights", spec) for spec in config.weights], config.device)
     out_dir, data_root = Path(out_dir), Path(data_root)
     class_ids = PAPER_CLASSES if config.classes is None else parse_classes(config.classes)
     if config.classes is not None:  # a model that cannot predict a requested class fails before generating

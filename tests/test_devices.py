@@ -78,7 +78,7 @@ def test_paper_picks_its_default_models_by_the_evaluation_device(monkeypatch, tm
 
     chosen = []
 
-    def stop(specs):
+    def stop(specs, device=None):
         chosen.append([spec for _, spec in specs])
         raise cli.CliError("stop here")
 

@@ -297,6 +297,10 @@ def test_run_paper_checks_models_and_device_before_generating(tmp_path, monkeypa
     with pytest.raises(EvalError, match="^--rain-models: physical is named twice$"):
         PaperConfig(dataset=dataset, rain_models=("physical", "jeon2022", "physical"))
     check_models([("--model", name) for name in shipped_models()])  # every shipped name is known
+    # the ONNX refusal is check_models' own, so the CLI's check (with --model too) makes it
+    with pytest.raises(BackendError, match=r"^--device 0: .*m\.onnx is an ONNX model"):
+        check_models([("--model", "rainbench-yolo11n"), ("--weights", str(onnx_model))], "0")
+    check_models([("--weights", str(onnx_model))], "cpu")
 
 
 # ---- one run at a time per --out --------------------------------------------------------------
