@@ -439,16 +439,13 @@ def cmd_preview(args: argparse.Namespace) -> int:
 EVAL_INFERENCE_DEFAULTS = {"batch": 32, "conf": 0.001, "iou": 0.7, "max_det": 300, "pt_backend": "batched"}
 """``rainbench eval``'s inference settings whose flags default to None (so that a flag the user gave
 is known: with ``--predictions`` it is refused) and the values they stand for."""
-EVAL_INFERENCE_FLAGS = ("imgsz", "batch", "conf", "iou", "max_det", "class_map", "device", "pt_backend",
-                        "workers", "force", "trust_pickle")
-"""The ``rainbench eval`` flags (argparse dests) that only running detectors uses."""
-
-
 def cmd_eval(args: argparse.Namespace) -> int:
     if bool(args.weights) == (args.predictions is not None):
         raise CliError("eval: expected exactly one of --weights W [--weights W2 ...] or --predictions DIR")
     if args.predictions is not None:
-        for dest in EVAL_INFERENCE_FLAGS:
+        from rainbench.eval.pipeline import INFERENCE_SETTINGS  # the flags only inference uses
+
+        for dest in INFERENCE_SETTINGS:
             value = getattr(args, dest)
             if value is not None and value is not False:
                 flag = "--" + dest.replace("_", "-")

@@ -376,6 +376,12 @@ def _infer(detector, dataset: Dataset, rates: Sequence[float], *, batch, imgsz, 
             yield rate, []
 
 
+INFERENCE_SETTINGS = ("imgsz", "batch", "conf", "iou", "max_det", "class_map", "device", "pt_backend",
+                      "workers", "force", "trust_pickle")
+""":func:`run_eval`'s arguments (and ``rainbench eval``'s flags) that only running detectors uses:
+with ``predictions_dir`` (``--predictions``) a value other than the default is refused."""
+
+
 def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str | Path | None = None,
              weights: Sequence[str | Path] = (), imgsz: int | None = None, batch: int = 32, conf: float = 0.001,
              iou: float = 0.7, max_det: int = 300, report_conf: float = 0.25, n_boot: int = 1000,
@@ -430,15 +436,14 @@ def run_eval(data_dir: str | Path, out_dir: str | Path, *, predictions_dir: str 
     They are written all or nothing (:func:`_write_outputs`): a failure while writing leaves none
     of them, and an OSError names the file.
     """
+    arguments = locals()
     class_ids = _check_settings(predictions_dir, weights, imgsz=imgsz, batch=batch, max_det=max_det,
                                 n_boot=n_boot, conf=conf, iou=iou, report_conf=report_conf, classes=classes,
                                 metrics=metrics, pt_backend=pt_backend, workers=workers)
     if predictions_dir is not None:  # as the CLI refuses their flags: not silently ignored
-        settings = dict(imgsz=imgsz, batch=batch, conf=conf, iou=iou, max_det=max_det, class_map=class_map,
-                        device=device, force=force, trust_pickle=trust_pickle, pt_backend=pt_backend,
-                        workers=workers)
         defaults = inspect.signature(run_eval).parameters
-        for name, value in settings.items():
+        for name in INFERENCE_SETTINGS:
+            value = arguments[name]
             if value != defaults[name].default:
                 raise EvalError(f"{name}: has no effect with predictions_dir (detections are read from "
                                 f"its files, not inferred); leave it at {defaults[name].default!r}")
