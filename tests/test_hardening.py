@@ -207,8 +207,14 @@ def test_ctrl_c_stops_the_workers_tells_the_truth_and_the_rerun_resumes(referenc
     process = _start(out, *SLOW)
     try:
         _wait_for_temporary(process, out)
-        # a second generate on the same OUT meanwhile is refused (real processes)
-        code = cli.main(GEN + ["--out", str(out), "--workers", "1"])
+        # a second generate on the same OUT meanwhile is refused (real processes); the run is held
+        # (SIGSTOP to its group) meanwhile: on a fast machine it could finish before the second
+        # one, started in this process, reached its check (a CI run saw exit 0)
+        os.killpg(process.pid, signal.SIGSTOP)
+        try:
+            code = cli.main(GEN + ["--out", str(out), "--workers", "1"])
+        finally:
+            os.killpg(process.pid, signal.SIGCONT)
         _one_line_error(capsys, code, re.escape(f"OUT: {out} is being written by another rainbench "
                                                 f"generate (pid {process.pid}); wait for it to "
                                                 "finish or choose another OUT"))
