@@ -1765,11 +1765,12 @@ def _sample_highway(b: _Builder, lanes: int) -> None:
         while x < s_hi:
             if abs(x - overpass_x) > 25:
                 boards.append(x)
-                y = side * (half + 4.0)
+                y = side * (half + HIGHWAY_SIGN_OUT_M)
                 for offset in (-1.5, 1.5):  # under the board's width (it faces along the road)
                     b.prop("sign_post", "cylinder", (0.08, 2.0), (x, y + offset, 2.0),
                            rgba=POLE_METAL)
-                b.prop("sign_board", "box", (HIGHWAY_SIGN_HALF_DEPTH_M, 2.2, 1.0), (x, y, 4.5),
+                b.prop("sign_board", "box", (HIGHWAY_SIGN_HALF_DEPTH_M, HIGHWAY_SIGN_HALF_WIDTH_M, 1.0),
+                       (x, y, 4.5),
                        rgba=(0.05, 0.35, 0.15, 1) if rng.random() < 0.5 else (0.05, 0.2, 0.6, 1))
             x += rng.uniform(120.0, 200.0)
         x = view[0] + rng.uniform(0, 10)
@@ -1809,9 +1810,12 @@ def _warning_triangle(b: _Builder, x: float, y: float) -> None:
 
 HIGHWAY_SIGN_HALF_DEPTH_M = 0.05
 """Half the thickness of a highway direction sign's board (it faces along the road)."""
-HIGHWAY_SIGN_OUTER_M = 6.2
-"""How far beyond the hard shoulder's edge a highway direction sign's board reaches (its centre
-4 m out, 2.2 m of half width)."""
+HIGHWAY_SIGN_OUT_M = 4.0
+"""How far beyond the hard shoulder's edge a highway direction sign's centre stands."""
+HIGHWAY_SIGN_HALF_WIDTH_M = 2.2
+"""Half the width of a highway direction sign's board (across the road)."""
+HIGHWAY_SIGN_OUTER_M = HIGHWAY_SIGN_OUT_M + HIGHWAY_SIGN_HALF_WIDTH_M
+"""How far beyond the hard shoulder's edge a highway direction sign's board reaches."""
 TREE_CROWN_REACH_M = 3.2
 """The farthest a :func:`_tree`'s crown reaches from its trunk at scale 1 (a round crown's lobes:
 at most 0.75 of its 2.1 m radius out, 0.75 of it in radius)."""
